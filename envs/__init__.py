@@ -1,0 +1,1 @@
+"""Simulator adapters and scripted experts, shared by explore and evaluate."""

@@ -1,0 +1,88 @@
+"""Scripted privileged-state experts: they read object positions, which policies never see."""
+
+from __future__ import annotations
+
+from enum import Enum, auto
+
+import numpy as np
+
+from envs.robosuite_env import ACTION_DIM, Observation
+
+GAIN = 12.0  # action = GAIN * position error; 1.0 asks OSC for its largest step (5 cm)
+OPEN, CLOSED = -1.0, 1.0
+
+
+class Phase(Enum):
+    APPROACH = auto()
+    DESCEND = auto()
+    GRASP = auto()
+    LIFT = auto()
+    CARRY = auto()
+    LOWER = auto()
+    RELEASE = auto()
+
+
+class PickPlaceExpert:
+    """Pick the `pick` object; then lift it (Lift) or set it on the `place` object (Stack)."""
+
+    def __init__(self, pick_role: str, place_role: str | None, noise: float, rng: np.random.Generator):
+        self.pick_role, self.place_role = pick_role, place_role
+        self.noise, self.rng = noise, rng
+        self.phase, self.hold = Phase.APPROACH, 0
+
+    @classmethod
+    def for_env(cls, env_name: str, noise: float, rng: np.random.Generator) -> PickPlaceExpert:
+        if env_name == "Lift":
+            return cls("target", None, noise, rng)
+        if env_name == "Stack":
+            return cls("pick", "place", noise, rng)
+        raise ValueError(f"no scripted expert for {env_name}")
+
+    def _towards(self, obs: Observation, target: np.ndarray, gripper: float) -> np.ndarray:
+        action = np.zeros(ACTION_DIM)
+        action[:3] = np.clip(GAIN * (target - obs.gripper_pos), -1.0, 1.0)
+        action[6] = gripper
+        return action
+
+    def _advance(self, obs: Observation) -> np.ndarray:
+        cube = obs.objects[self.pick_role]
+        eef = obs.gripper_pos
+        above = cube + np.array([0.0, 0.0, 0.08])
+        if self.phase is Phase.APPROACH:
+            if np.linalg.norm((above - eef)[:2]) < 0.01 and abs(above[2] - eef[2]) < 0.02:
+                self.phase = Phase.DESCEND
+            return self._towards(obs, above, OPEN)
+        if self.phase is Phase.DESCEND:
+            grasp_point = cube + np.array([0.0, 0.0, -0.005])
+            if np.linalg.norm(grasp_point - eef) < 0.012:
+                self.phase, self.hold = Phase.GRASP, 0
+            return self._towards(obs, grasp_point, OPEN)
+        if self.phase is Phase.GRASP:
+            self.hold += 1
+            if self.hold >= 6:
+                self.phase = Phase.LIFT if self.place_role is None else Phase.CARRY
+            return self._towards(obs, eef, CLOSED)
+        if self.phase is Phase.LIFT:
+            return self._towards(obs, np.array([cube[0], cube[1], cube[2] + 0.25]), CLOSED)
+        place = obs.objects[self.place_role]
+        # cube centre sits at the place object's top plus its own half-size (~2 cm each)
+        stacked = place + np.array([0.0, 0.0, 0.045])
+        if self.phase is Phase.CARRY:
+            carry = stacked + np.array([0.0, 0.0, 0.06])
+            offset = cube - eef  # keep the grasp offset so the cube, not the hand, is aligned
+            if np.linalg.norm((carry - cube)[:2]) < 0.008 and abs(carry[2] - cube[2]) < 0.02:
+                self.phase = Phase.LOWER
+            return self._towards(obs, carry - offset, CLOSED)
+        if self.phase is Phase.LOWER:
+            offset = cube - eef
+            if abs(cube[2] - stacked[2]) < 0.008:
+                self.phase, self.hold = Phase.RELEASE, 0
+            return self._towards(obs, stacked - offset, CLOSED)
+        self.hold += 1
+        return self._towards(obs, eef + np.array([0.0, 0.0, 0.02 if self.hold > 4 else 0.0]), OPEN)
+
+    def act(self, obs: Observation) -> np.ndarray:
+        action = self._advance(obs)
+        if self.noise:
+            action[:6] += self.rng.normal(0.0, self.noise, size=6)
+        return np.clip(action, -1.0, 1.0)

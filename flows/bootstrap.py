@@ -1,0 +1,197 @@
+"""The bootstrap flow: one Prefect flow run per iteration, each chaining the stages as tasks.
+
+Composition only. Tasks pass keys and paths; each stage skips the units already registered in
+the warehouse catalog, so re-running a finished campaign does no work and a killed one resumes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+from pydantic import BaseModel
+
+from flows.tracking import Tracking
+from schemas.config import CampaignConfig
+from schemas.workspace import Workspace
+from stages.evaluate import EvaluateResult, run_evaluate
+from stages.explore import ExploreResult, PolicyExplorer, run_explore
+from stages.filter import FilterResult, run_filter
+from stages.generate_tasks import TasksResult, load_embeddings, load_tasks, run_generate_tasks
+from stages.index import IndexResult, run_index
+from stages.redeploy import RedeployResult, run_redeploy
+from stages.train import TrainResult, run_train
+from warehouse.catalog import Catalog
+
+log = logging.getLogger("sim2act.flows")
+# Prefect sends the "sim2act" loggers to the API (PREFECT_LOGGING_EXTRA_LOGGERS); they reach the
+# console through the root handler, which passes what the logger lets through.
+logging.getLogger("sim2act").setLevel(logging.INFO)
+# The catalog, not Prefect's result cache, decides what is done: one source of truth.
+stage_task = task(cache_policy=NO_CACHE, persist_result=False)
+
+
+class IterationOutcome(BaseModel):
+    iteration: int
+    dataset: IndexResult
+    model_key: str
+    champion: PolicyExplorer
+    success: dict[str, float]  # task_id -> success rate
+    seen_success: float
+    unseen_success: float | None
+    stages_run: int  # how many stages did any work; 0 on a finished re-run
+
+
+def _mean(values: list[float]) -> float | None:
+    return sum(values) / len(values) if values else None
+
+
+@stage_task(name="generate_tasks")
+def generate_tasks_task(workspace: str, config: CampaignConfig) -> TasksResult:
+    return run_generate_tasks(Workspace.at(workspace), config)
+
+
+@stage_task(name="explore")
+def explore_task(
+    workspace: str, config: CampaignConfig, iteration: int, tasks_key: str, explorer: PolicyExplorer | None
+) -> ExploreResult:
+    ws = Workspace.at(workspace)
+    embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
+    return run_explore(ws, config, iteration, load_tasks(ws, tasks_key), explorer, embeddings)
+
+
+@stage_task(name="filter")
+def filter_task(workspace: str, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
+    return run_filter(Workspace.at(workspace), config, iteration, explore_keys)
+
+
+@stage_task(name="index")
+def index_task(
+    workspace: str, config: CampaignConfig, iteration: int, explore_keys: list[str], filter_keys: list[str],
+    previous: IndexResult | None,
+) -> IndexResult:
+    return run_index(Workspace.at(workspace), config, iteration, explore_keys, filter_keys, previous)
+
+
+@stage_task(name="train")
+def train_task(workspace: str, config: CampaignConfig, iteration: int, dataset: IndexResult, tasks_key: str) -> TrainResult:
+    ws = Workspace.at(workspace)
+    embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
+    return run_train(ws, config, iteration, dataset, tasks_key, embeddings)
+
+
+@stage_task(name="evaluate")
+def evaluate_task(
+    workspace: str, config: CampaignConfig, iteration: int, model: TrainResult, tasks_key: str
+) -> EvaluateResult:
+    ws = Workspace.at(workspace)
+    embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
+    return run_evaluate(ws, config, iteration, model.model_key, model.checkpoint, load_tasks(ws, tasks_key), embeddings)
+
+
+@stage_task(name="redeploy")
+def redeploy_task(
+    workspace: str, config: CampaignConfig, iteration: int, model: TrainResult, mlflow_run_id: str
+) -> RedeployResult:
+    return run_redeploy(Workspace.at(workspace), config, iteration, model.model_key, model.checkpoint, mlflow_run_id)
+
+
+def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
+    """Log what a stage did, right after it, and only when it did work (a re-run adds no points)."""
+    if stage == "explore" and result.episodes:
+        tracking.log_metrics(run_id, {"explore.episodes": result.episodes, "explore.triplets": result.steps})
+    elif stage == "filter" and result.reasons:
+        total = sum(result.reasons.values())
+        tracking.log_metrics(
+            run_id,
+            {"filter.pass_rate": result.reasons.get("kept", 0) / total,
+             **{f"filter.{reason}": count for reason, count in result.reasons.items()}},
+        )
+    elif stage == "index" and not result.skipped:
+        tracking.log_metrics(run_id, {f"dataset.{k}": getattr(result, k) for k in ("episodes", "kept_episodes", "triplets")})
+        tracking.set_tags(run_id, {"sim2act.dataset_digest": result.dataset_digest})
+    elif stage == "train":
+        for epoch, record in enumerate(result.history):
+            tracking.log_metrics(run_id, {f"train.{k}": v for k, v in record.items()}, step=epoch)
+    elif stage == "evaluate" and result.skipped_units < len(result.tasks):
+        tracking.log_metrics(run_id, {f"success.{t.task_id}": t.success_rate for t in result.tasks})
+        for t in result.tasks:
+            if t.media_path:
+                tracking.log_artifact(run_id, t.media_path, f"evaluation/{t.task_id}")
+
+
+@flow(name="bootstrap-iteration", flow_run_name="{config.name}-iteration-{iteration}")
+def iteration_flow(
+    config: CampaignConfig,
+    iteration: int,
+    workspace: str,
+    campaign_run_id: str,
+    previous: IndexResult | None = None,
+    explorer: PolicyExplorer | None = None,
+) -> IterationOutcome:
+    tracking = Tracking(Workspace.at(workspace), config)
+    run_id = tracking.iteration_run(campaign_run_id, iteration)
+    tasks = generate_tasks_task(workspace, config)
+    explore = explore_task(workspace, config, iteration, tasks.unit_key, explorer)
+    _log_stage(tracking, run_id, "explore", explore)
+    filtered = filter_task(workspace, config, iteration, explore.unit_keys)
+    _log_stage(tracking, run_id, "filter", filtered)
+    index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
+    _log_stage(tracking, run_id, "index", index)
+    model = train_task(workspace, config, iteration, index, tasks.unit_key)
+    _log_stage(tracking, run_id, "train", model)
+    evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
+    _log_stage(tracking, run_id, "evaluate", evaluation)
+    deployment = redeploy_task(workspace, config, iteration, model, run_id)
+    tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
+                               "sim2act.model_key": model.model_key})
+    tracking.finish(run_id)
+    success = {t.task_id: t.success_rate for t in evaluation.tasks}
+    stages_run = sum([
+        not tasks.skipped, explore.skipped_units < len(explore.unit_keys), filtered.skipped_units < len(filtered.unit_keys),
+        not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,
+    ])
+    return IterationOutcome(
+        iteration=iteration, dataset=index, model_key=model.model_key, champion=deployment.champion, success=success,
+        seen_success=_mean([t.success_rate for t in evaluation.tasks if t.split == "seen"]) or 0.0,
+        unseen_success=_mean([t.success_rate for t in evaluation.tasks if t.split == "unseen"]),
+        stages_run=stages_run,
+    )
+
+
+@flow(name="bootstrap", flow_run_name="{config.name}")
+def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "workspace") -> list[IterationOutcome]:
+    """Run a bootstrap campaign: `config.iterations` iterations, each exploring with the last champion."""
+    started = time.monotonic()
+    ws = Workspace.at(workspace).create()
+    catalog = Catalog(ws.catalog)
+    catalog.initialise()
+    orphans = catalog.clean_orphans()
+    if orphans:
+        log.info("removed %d unregistered file(s) left by an interrupted run", len(orphans))
+    tracking = Tracking(ws, config)
+    campaign_run_id = tracking.campaign_run()
+    outcomes: list[IterationOutcome] = []
+    previous, explorer = None, None
+    for iteration in range(config.iterations):
+        outcome = iteration_flow(config, iteration, str(ws.root), campaign_run_id, previous, explorer)
+        tracking.log_metrics(
+            campaign_run_id,
+            {"success.seen": outcome.seen_success,
+             **({"success.unseen": outcome.unseen_success} if outcome.unseen_success is not None else {})},
+            step=iteration,
+        )
+        outcomes.append(outcome)
+        previous, explorer = outcome.dataset, outcome.champion
+    tracking.finish(campaign_run_id)
+    for outcome in outcomes:
+        unseen = "n/a" if outcome.unseen_success is None else f"{outcome.unseen_success:.0%}"
+        log.info(
+            "iteration %d: %d triplets in the dataset, success seen %.0f%% unseen %s, model %s, stages that ran: %d/7",
+            outcome.iteration, outcome.dataset.triplets, 100 * outcome.seen_success, unseen, outcome.model_key,
+            outcome.stages_run,
+        )
+    log.info("campaign %s done in %.1fs; workspace %s", config.name, time.monotonic() - started, ws.root)
+    return outcomes

@@ -1,0 +1,78 @@
+"""MLflow bookkeeping: one campaign run, one child run per iteration, found again on resume."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+
+from mlflow import MlflowClient
+from mlflow.entities import Metric, Param, RunTag
+from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
+
+from schemas.config import CampaignConfig
+from schemas.workspace import Workspace
+
+EXPERIMENT = "sim2act"
+
+
+def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
+    flat = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(_flatten(value, f"{name}."))
+        else:
+            flat[name] = str(value)
+    return flat
+
+
+class Tracking:
+    def __init__(self, workspace: Workspace, config: CampaignConfig):
+        self.client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
+        self.config = config
+        experiment = self.client.get_experiment_by_name(EXPERIMENT)
+        self.experiment_id = (
+            experiment.experiment_id
+            if experiment
+            else self.client.create_experiment(EXPERIMENT, artifact_location=workspace.artifact_root.as_uri())
+        )
+        # A campaign is its name plus everything but the iteration count: asking for more
+        # iterations continues the same campaign run.
+        settings = config.model_dump_json(exclude={"iterations"})
+        self.config_hash = hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
+
+    def _find_or_create(self, tags: dict[str, str], name: str, params: dict[str, str] | None = None) -> str:
+        query = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())
+        found = self.client.search_runs([self.experiment_id], query, max_results=1)
+        if found:
+            return found[0].info.run_id
+        run = self.client.create_run(self.experiment_id, tags={**tags, MLFLOW_RUN_NAME: name}, run_name=name)
+        if params:
+            self.client.log_batch(run.info.run_id, params=[Param(k, v[:6000]) for k, v in params.items()])
+        return run.info.run_id
+
+    def campaign_run(self) -> str:
+        tags = {"sim2act.campaign": self.config.name, "sim2act.config": self.config_hash, "sim2act.kind": "campaign"}
+        return self._find_or_create(tags, f"{self.config.name}", _flatten(self.config.model_dump(mode="json")))
+
+    def iteration_run(self, campaign_run_id: str, iteration: int) -> str:
+        tags = {
+            "sim2act.campaign": self.config.name, "sim2act.config": self.config_hash,
+            "sim2act.kind": "iteration", "sim2act.iteration": str(iteration), MLFLOW_PARENT_RUN_ID: campaign_run_id,
+        }
+        return self._find_or_create(tags, f"{self.config.name}-iteration-{iteration}", {"iteration": str(iteration)})
+
+    def log_metrics(self, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
+        import time
+
+        now = int(time.time() * 1000)
+        self.client.log_batch(run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
+
+    def log_artifact(self, run_id: str, path: str, folder: str) -> None:
+        self.client.log_artifact(run_id, path, folder)
+
+    def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
+        self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
+
+    def finish(self, run_id: str) -> None:
+        self.client.set_terminated(run_id, "FINISHED")

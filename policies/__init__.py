@@ -1,0 +1,1 @@
+"""The vision-language-action model, its language encoder and the inference wrapper."""

@@ -1,0 +1,188 @@
+"""The campaign config: one pydantic model, used by the CLI and as the Prefect flow parameter.
+
+Every model forbids unknown keys, so a typo is refused with its field named, before any work.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from schemas.tasks import Colour
+
+EnvName = Literal["Lift", "Stack"]
+CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
+PRESETS = ("smoke", "default")
+
+PositiveInt = Annotated[int, Field(gt=0)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TasksConfig(_Strict):
+    envs: list[EnvName] = Field(default=["Lift", "Stack"], min_length=1)
+    colours: list[Colour] = Field(default=["red", "green", "blue", "yellow"], min_length=2)
+    unseen_colours: list[Colour] = Field(default=[], description="tasks using these colours are held out (split=unseen)")
+    max_tasks_per_env: PositiveInt | None = None
+    paraphrases: int = Field(default=3, ge=3, description="instructions per task, canonical included")
+    include: list[str] | None = Field(default=None, description="keep only these task ids")
+    horizon: dict[EnvName, PositiveInt] = {"Lift": 80, "Stack": 160}
+
+    @model_validator(mode="after")
+    def _unseen_are_colours(self) -> TasksConfig:
+        stray = sorted(set(self.unseen_colours) - set(self.colours))
+        if stray:
+            raise ValueError(f"unseen_colours {stray} are not in colours")
+        return self
+
+
+class RenderConfig(_Strict):
+    """How frames are rendered; recorded per campaign so training and evaluation see alike."""
+
+    camera: CameraName = "agentview"
+    image_size: int = Field(default=84, ge=32, le=256)
+    # Shadows, reflections and multisampling cost 3-4x render time on CPU (ANCHORS.md) and add
+    # little a policy needs at 84 px.
+    shadows: bool = False
+    reflections: bool = False
+    multisamples: int = Field(default=0, ge=0, le=16)
+
+
+class ExploreConfig(_Strict):
+    episodes_per_task: PositiveInt = 8
+    episodes_per_shard: PositiveInt = 4
+    expert_noise: float = Field(default=0.1, ge=0.0, le=1.0, description="std of Gaussian action noise")
+    policy_fraction: float = Field(
+        default=0.5, ge=0.0, le=1.0, description="share of episodes the redeployed policy explores (iteration >= 1)"
+    )
+    workers: PositiveInt = 2
+
+
+class FilterConfig(_Strict):
+    min_return: float = Field(default=0.0, description="episodes whose return is below this are rejected")
+    require_success: bool = False
+
+
+class ModelConfig(_Strict):
+    patch_size: PositiveInt = 12
+    dim: PositiveInt = 64
+    vision_depth: PositiveInt = 2
+    fusion_depth: PositiveInt = 2
+    heads: PositiveInt = 4
+    language_encoder: Literal["all-MiniLM-L6-v2"] = "all-MiniLM-L6-v2"
+
+    @model_validator(mode="after")
+    def _heads_divide_dim(self) -> ModelConfig:
+        if self.dim % self.heads:
+            raise ValueError(f"dim {self.dim} is not divisible by heads {self.heads}")
+        return self
+
+
+class TrainConfig(_Strict):
+    epochs: PositiveInt = 10
+    batch_size: PositiveInt = 64
+    lr: float = Field(default=3e-4, gt=0)
+    weight_decay: float = Field(default=0.01, ge=0)
+    contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")
+    temperature: float = Field(default=0.1, gt=0)
+    grad_clip: float = Field(default=1.0, gt=0)
+    shuffle_buffer: PositiveInt = 2048
+    threads: PositiveInt = 2
+    model: ModelConfig = ModelConfig()
+
+
+class EvaluateConfig(_Strict):
+    episodes_per_task: PositiveInt = 3
+    workers: PositiveInt = 2
+    gif: bool = True
+
+
+class RedeployConfig(_Strict):
+    registered_model: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.-]+$", description="registry name; default sim2act-<campaign>"
+    )
+    alias: str = Field(default="champion", pattern=r"^[A-Za-z][A-Za-z0-9_-]*$")
+
+
+class CampaignConfig(_Strict):
+    """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
+
+    name: str = Field(default="default", pattern=r"^[a-z0-9][a-z0-9_-]*$")
+    seed: int = Field(default=0, ge=0)
+    iterations: PositiveInt = 2
+    tasks: TasksConfig = TasksConfig()
+    render: RenderConfig = RenderConfig()
+    explore: ExploreConfig = ExploreConfig()
+    filter: FilterConfig = FilterConfig()
+    train: TrainConfig = TrainConfig()
+    evaluate: EvaluateConfig = EvaluateConfig()
+    redeploy: RedeployConfig = RedeployConfig()
+
+    @property
+    def registered_model_name(self) -> str:
+        return self.redeploy.registered_model or f"sim2act-{self.name}"
+
+
+class ConfigError(ValueError):
+    """A config that cannot run; its message is one line naming the field."""
+
+
+def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _read_yaml(text: str, origin: str) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{origin}: not valid YAML ({exc.__class__.__name__})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{origin}: the top level must be a mapping of config fields")
+    return data
+
+
+def preset_dict(preset: str) -> dict[str, Any]:
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    text = resources.files("schemas").joinpath(f"presets/{preset}.yaml").read_text()
+    return _read_yaml(text, f"preset {preset}")
+
+
+def describe_validation_error(exc: ValidationError) -> str:
+    """One line per config: 'field.path: what is wrong' for the first error (and a count of the rest)."""
+    errors = exc.errors()
+    first = errors[0]
+    field = ".".join(str(part) for part in first["loc"]) or "config"
+    message = "unknown key" if first["type"] == "extra_forbidden" else first["msg"]
+    if first["type"] not in ("extra_forbidden", "missing") and "input" in first:
+        message += f" (got {first['input']!r})"
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{field}: {message}{more}"
+
+
+def load_config(
+    preset: str = "default", config_file: Path | None = None, overrides: dict[str, Any] | None = None
+) -> CampaignConfig:
+    """Preset, then the user's YAML file on top, then command-line overrides; validated once."""
+    data = preset_dict(preset)
+    if config_file is not None:
+        if not config_file.is_file():
+            raise ConfigError(f"--config: no such file {config_file}")
+        data = _deep_merge(data, _read_yaml(config_file.read_text(), str(config_file)))
+    data = _deep_merge(data, overrides or {})
+    try:
+        return CampaignConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc)) from None

@@ -1,0 +1,40 @@
+"""Language-described task records: what generate_tasks produces and every later stage reads."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Colour = Literal["red", "green", "blue", "yellow", "purple", "orange"]
+
+# Flat colours for the task objects (the material/texture is dropped so the colour is what the camera sees).
+COLOUR_RGBA: dict[str, tuple[float, float, float, float]] = {
+    "red": (0.85, 0.12, 0.10, 1.0),
+    "green": (0.15, 0.70, 0.20, 1.0),
+    "blue": (0.12, 0.25, 0.85, 1.0),
+    "yellow": (0.92, 0.85, 0.12, 1.0),
+    "purple": (0.55, 0.20, 0.70, 1.0),
+    "orange": (0.95, 0.50, 0.08, 1.0),
+}
+
+Split = Literal["seen", "unseen"]
+
+
+class TaskRecord(BaseModel):
+    """One concrete task: an environment, object attributes, and the ways to say it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    task_id: str
+    family: Literal["robosuite"]
+    env_name: str
+    # object role -> colour, e.g. {"target": "red"} or {"pick": "red", "place": "green"}
+    object_colours: dict[str, Colour]
+    instructions: list[str] = Field(min_length=3, description="first is canonical, the rest paraphrases")
+    split: Split
+    horizon: int = Field(gt=0)
+
+    @property
+    def instruction(self) -> str:
+        return self.instructions[0]

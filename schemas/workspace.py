@@ -1,0 +1,63 @@
+"""Every path Sim2Act reads or writes, from one root. Nothing else builds paths."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Workspace:
+    root: Path
+
+    @classmethod
+    def at(cls, root: str | Path) -> Workspace:
+        return cls(Path(root).expanduser().resolve())
+
+    @property
+    def warehouse(self) -> Path:
+        return self.root / "warehouse"
+
+    @property
+    def catalog(self) -> Path:
+        return self.warehouse / "catalog.duckdb"
+
+    @property
+    def shards(self) -> Path:
+        return self.warehouse / "shards"
+
+    def shard_path(self, table: str, iteration: int, key: str) -> Path:
+        """Hive-style folders by iteration: shards/<table>/iteration=<k>/<key>.parquet."""
+        return self.shards / table / f"iteration={iteration}" / f"{key}.parquet"
+
+    @property
+    def models(self) -> Path:
+        return self.root / "models"
+
+    def checkpoint(self, model_key: str) -> Path:
+        return self.models / model_key / "policy.pt"
+
+    @property
+    def media(self) -> Path:
+        return self.root / "media"
+
+    @property
+    def mlflow(self) -> Path:
+        return self.root / "mlflow"
+
+    @property
+    def tracking_uri(self) -> str:
+        return f"sqlite:///{self.mlflow / 'mlflow.db'}"
+
+    @property
+    def artifact_root(self) -> Path:
+        return self.mlflow / "artifacts"
+
+    @property
+    def prefect_home(self) -> Path:
+        return self.root / "prefect"
+
+    def create(self) -> Workspace:
+        for folder in (self.shards, self.models, self.media, self.artifact_root, self.prefect_home):
+            folder.mkdir(parents=True, exist_ok=True)
+        return self

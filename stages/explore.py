@@ -1,0 +1,229 @@
+"""explore: rollouts in robosuite, one unit = one shard of K episodes of one task.
+
+Each step becomes a triplet (o_t, l, a_t, o_{t+1}) with reward, done and success, plus the
+MuJoCo state for replay. Iteration 0 explores with the noisy scripted expert; later iterations
+mix in the redeployed policy. Workers write shards; this process registers them.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+from PIL import Image
+from pydantic import BaseModel
+
+from schemas.config import CampaignConfig, RenderConfig
+from schemas.keys import derive_seed, unit_key
+from schemas.tables import EPISODES, STEPS
+from schemas.tasks import TaskRecord
+from schemas.workspace import Workspace
+from stages.pool import Progress, run_in_pool
+from warehouse.catalog import Catalog
+from warehouse.shard_writer import ShardFile, write_shard
+
+STAGE, VERSION = "explore", 1
+EXPERT = "expert"
+log = logging.getLogger("sim2act.stages.explore")
+
+
+class PolicyExplorer(BaseModel):
+    """The redeployed policy: where its checkpoint is and what to call it in the warehouse."""
+
+    name: str  # e.g. "policy:sim2act-smoke/1"
+    model_key: str
+    checkpoint: str
+
+
+class EpisodePlan(BaseModel):
+    episode_id: str
+    seed: int
+    instruction: str
+    explorer: str
+
+
+class ExploreUnit(BaseModel):
+    unit_key: str
+    workspace: str
+    campaign: str
+    iteration: int
+    task: TaskRecord
+    render: RenderConfig
+    expert_noise: float
+    episodes: list[EpisodePlan]
+    policy: PolicyExplorer | None
+    # instruction -> embedding, only the few this unit's episodes say (small vectors)
+    embeddings: dict[str, list[float]]
+
+
+class ExploreResult(BaseModel):
+    unit_keys: list[str]
+    episodes: int
+    steps: int
+    skipped_units: int
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG", compress_level=1)
+    return buffer.getvalue()
+
+
+def plan_explore(
+    config: CampaignConfig,
+    iteration: int,
+    tasks: list[TaskRecord],
+    policy: PolicyExplorer | None,
+    embeddings: dict[str, np.ndarray],
+    workspace: Workspace,
+) -> list[ExploreUnit]:
+    """Pure: the shards this iteration explores. Unseen tasks are never explored."""
+    explore = config.explore
+    reads = {
+        "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
+        "explore": explore.model_dump(exclude={"workers"}), "policy": policy.model_key if policy else None,
+    }
+    units = []
+    for task in (t for t in tasks if t.split == "seen"):
+        rng = np.random.default_rng(derive_seed(config.name, config.seed, iteration, task.task_id, "explorers"))
+        n_policy = round(explore.policy_fraction * explore.episodes_per_task) if policy else 0
+        by_policy = set(rng.choice(explore.episodes_per_task, size=n_policy, replace=False).tolist())
+        for shard, first in enumerate(range(0, explore.episodes_per_task, explore.episodes_per_shard)):
+            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard)])
+            episodes = []
+            for index in range(first, min(first + explore.episodes_per_shard, explore.episodes_per_task)):
+                seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)
+                instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
+                explorer = policy.name if index in by_policy else EXPERT
+                episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
+                episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction, explorer=explorer))
+            said = {e.instruction for e in episodes if e.explorer != EXPERT}
+            units.append(
+                ExploreUnit(
+                    unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
+                    task=task, render=config.render, expert_noise=explore.expert_noise, episodes=episodes,
+                    policy=policy, embeddings={text: embeddings[text].tolist() for text in said},
+                )
+            )
+    return units
+
+
+# -- worker side ------------------------------------------------------------------------------
+
+_ENVS: dict[tuple[str, str], object] = {}
+
+
+def worker_env(env_name: str, render: RenderConfig, horizon: int):
+    """One environment per (env, render settings) per worker process, reused across units."""
+    from envs.robosuite_env import TaskEnv
+
+    key = (env_name, render.model_dump_json())
+    if key not in _ENVS:
+        _ENVS[key] = TaskEnv(env_name, render, horizon)
+    return _ENVS[key]
+
+
+def rollout(env, task: TaskRecord, seed: int, act) -> tuple[list[dict], np.ndarray, bool]:
+    """Run one episode until success or the horizon. -> (step rows, final image, success)."""
+    obs = env.reset(task, seed)
+    rows, success = [], False
+    for step in range(task.horizon):
+        qpos, qvel, sim_time = env.mujoco_state()
+        action = np.asarray(act(obs), dtype=np.float32)
+        next_obs, reward, success = env.step(action)
+        done = success or step == task.horizon - 1
+        rows.append(
+            {
+                "step": step, "image": obs.image, "proprio": obs.proprio.tolist(), "action": action.tolist(),
+                "reward": reward, "done": done, "success": success,
+                "qpos": qpos.tolist(), "qvel": qvel.tolist(), "sim_time": sim_time,
+            }
+        )
+        obs = next_obs
+        if done:
+            break
+    return rows, obs.image, success
+
+
+def _actor(unit: ExploreUnit, plan: EpisodePlan, policy):
+    from envs.experts import PickPlaceExpert
+
+    if plan.explorer == EXPERT:
+        expert = PickPlaceExpert.for_env(unit.task.env_name, unit.expert_noise, np.random.default_rng(plan.seed))
+        return expert.act
+    embedding = np.asarray(unit.embeddings[plan.instruction], dtype=np.float32)
+    return lambda obs: policy.act(obs.image, obs.proprio, embedding)
+
+
+def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
+    """Worker: roll out the unit's episodes and write its episodes and steps shards."""
+    policy = None
+    if unit.policy is not None:
+        from policies.policy import Policy
+
+        policy = Policy.load(Path(unit.policy.checkpoint))
+    env = worker_env(unit.task.env_name, unit.render, unit.task.horizon)
+    episode_rows, step_rows = [], []
+    common = {"campaign": unit.campaign, "iteration": unit.iteration, "task_id": unit.task.task_id}
+    for plan in unit.episodes:
+        error = None
+        try:
+            rows, final_image, success = rollout(env, unit.task, plan.seed, _actor(unit, plan, policy))
+        except Exception as exc:  # a simulator failure marks the episode, not the shard
+            rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
+        for row in rows:
+            row.update(common, episode_id=plan.episode_id, instruction=plan.instruction,
+                       image=encode_png(row["image"]), next_image=None)
+        if rows:
+            rows[-1]["next_image"] = encode_png(final_image)
+        step_rows.extend(rows)
+        episode_rows.append(
+            {
+                **common, "episode_id": plan.episode_id, "instruction": plan.instruction, "explorer": plan.explorer,
+                "seed": plan.seed, "shard_key": unit.unit_key, "num_steps": len(rows),
+                "episode_return": float(sum(r["reward"] for r in rows)), "success": success, "error": error,
+            }
+        )
+    workspace = Workspace.at(unit.workspace)
+    return [
+        write_shard("episodes", pa.Table.from_pylist(episode_rows, schema=EPISODES),
+                    workspace.shard_path("episodes", unit.iteration, unit.unit_key)),
+        write_shard("steps", pa.Table.from_pylist(step_rows, schema=STEPS),
+                    workspace.shard_path("steps", unit.iteration, unit.unit_key)),
+    ]
+
+
+# -- registrar side ---------------------------------------------------------------------------
+
+
+def run_explore(
+    workspace: Workspace,
+    config: CampaignConfig,
+    iteration: int,
+    tasks: list[TaskRecord],
+    policy: PolicyExplorer | None,
+    embeddings: dict[str, np.ndarray],
+) -> ExploreResult:
+    catalog = Catalog(workspace.catalog)
+    units = plan_explore(config, iteration, tasks, policy, embeddings, workspace)
+    keys = [u.unit_key for u in units]
+    done = catalog.registered_keys(keys)
+    todo = [u for u in units if u.unit_key not in done]
+    explorers = "expert" if policy is None else f"expert + {policy.name} ({config.explore.policy_fraction:.0%})"
+    log.info("explore it%d: %d shards (%d already registered), explorers: %s", iteration, len(units), len(done), explorers)
+    progress = Progress(log, f"explore it{iteration}", len(todo), "shards", "triplets")
+    episodes = steps = 0
+    for unit, shards, seconds in run_in_pool(run_explore_unit, todo, config.explore.workers):
+        by_table = {s.table: s for s in shards}
+        summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
+        catalog.register_unit(
+            unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
+            summary=summary, wall_s=seconds, shards=shards,
+        )
+        episodes += summary["episodes"]
+        steps += summary["steps"]
+        progress.advance(summary["steps"])
+    return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(done))

@@ -1,0 +1,80 @@
+"""index: the iteration's snapshot of the warehouse. Aggregates this iteration's kept data with
+every earlier iteration's, and fixes the training selection and its digest."""
+
+from __future__ import annotations
+
+import logging
+
+from pydantic import BaseModel
+
+from schemas.config import CampaignConfig
+from schemas.keys import unit_key
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog
+from warehouse.datasets import Selection
+
+STAGE, VERSION = "index", 1
+log = logging.getLogger("sim2act.stages.index")
+
+
+class IndexResult(BaseModel):
+    unit_key: str
+    iteration: int
+    dataset_digest: str
+    explore_units: list[str]
+    filter_units: list[str]
+    episodes: int
+    kept_episodes: int
+    triplets: int
+    skipped: bool
+
+    @property
+    def selection(self) -> Selection:
+        return Selection(tuple(self.explore_units), tuple(self.filter_units))
+
+
+def run_index(
+    workspace: Workspace,
+    config: CampaignConfig,
+    iteration: int,
+    explore_keys: list[str],
+    filter_keys: list[str],
+    previous: IndexResult | None,
+) -> IndexResult:
+    catalog = Catalog(workspace.catalog)
+    explore_units = sorted(set(explore_keys) | set(previous.explore_units if previous else ()))
+    filter_units = sorted(set(filter_keys) | set(previous.filter_units if previous else ()))
+    key = unit_key(STAGE, VERSION, {"campaign": config.name, "iteration": iteration}, explore_units + filter_units)
+    existing = catalog.query(
+        "SELECT dataset_digest, episodes, kept_episodes, triplets FROM iterations WHERE unit_key = ?", [key]
+    )
+    if existing:
+        digest, episodes, kept, triplets = existing[0]
+        skipped = True
+    else:
+        selection = Selection(tuple(explore_units), tuple(filter_units))
+        digest = selection.digest(catalog)
+        counts = selection.counts(catalog)
+        episodes, kept, triplets = counts["episodes"], counts["kept_episodes"], counts["triplets"]
+        row = {
+            "unit_key": key, "campaign": config.name, "iteration": iteration, "dataset_digest": digest,
+            "explore_units": explore_units, "filter_units": filter_units, **counts,
+        }
+        catalog.register_unit(
+            unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
+            summary={"dataset_digest": digest, **counts}, rows={"iterations": [row]},
+        )
+        skipped = False
+    log.info(
+        "index it%d: dataset %s: %d triplets from %d kept of %d episodes (iterations 0..%d)%s",
+        iteration, digest[:12], triplets, kept, episodes, iteration, ", already registered" if skipped else "",
+    )
+    if triplets == 0:
+        raise RuntimeError(
+            f"iteration {iteration}: the filter kept no episode (filter.min_return={config.filter.min_return}); "
+            "nothing to train on"
+        )
+    return IndexResult(
+        unit_key=key, iteration=iteration, dataset_digest=digest, explore_units=explore_units,
+        filter_units=filter_units, episodes=episodes, kept_episodes=kept, triplets=triplets, skipped=skipped,
+    )

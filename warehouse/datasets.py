@@ -1,0 +1,49 @@
+"""A training selection: the kept episodes of a set of explore shards, and its digest."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from schemas.keys import digest_of
+from warehouse.catalog import Catalog
+
+
+@dataclass(frozen=True)
+class Selection:
+    explore_units: tuple[str, ...]
+    filter_units: tuple[str, ...]
+
+    def _params(self) -> list:
+        return [list(self.explore_units), list(self.filter_units)]
+
+    def step_shards(self, catalog: Catalog) -> list[Path]:
+        return [path for path, _ in catalog.shard_paths("steps", "list_contains(?, unit_key)", [list(self.explore_units)])]
+
+    def kept_episode_ids(self, catalog: Catalog) -> set[str]:
+        rows = catalog.query(
+            "SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)",
+            [list(self.filter_units)],
+        )
+        return {row[0] for row in rows}
+
+    def digest(self, catalog: Catalog) -> str:
+        """Digest of the exact shard files read: same digest, same training data."""
+        rows = catalog.query(
+            "SELECT sha256 FROM shards WHERE (table_name = 'steps' AND list_contains(?, unit_key)) "
+            "OR (table_name = 'filter_decisions' AND list_contains(?, unit_key))",
+            self._params(),
+        )
+        return digest_of([row[0] for row in rows])
+
+    def counts(self, catalog: Catalog) -> dict[str, int]:
+        [(episodes, kept, triplets)] = catalog.query(
+            """
+            WITH kept AS (SELECT episode_id FROM filter_decisions WHERE kept AND list_contains($2, filter_key))
+            SELECT (SELECT count(*) FROM episodes WHERE list_contains($1, shard_key)),
+                   (SELECT count(*) FROM kept),
+                   (SELECT count(*) FROM steps WHERE episode_id IN (SELECT episode_id FROM kept))
+            """,
+            self._params(),
+        )
+        return {"episodes": episodes, "kept_episodes": kept, "triplets": triplets}

@@ -1,0 +1,65 @@
+"""Read-only SQL over the catalog, formatted for a terminal or a pipe."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from typing import Literal
+
+import duckdb
+import pyarrow as pa
+
+from warehouse.catalog import Catalog
+
+OutputFormat = Literal["table", "csv", "json"]
+_READ_STATEMENTS = {duckdb.StatementType.SELECT, duckdb.StatementType.EXPLAIN}
+
+
+class ReadOnlyViolation(ValueError):
+    pass
+
+
+def check_read_only(sql: str) -> None:
+    """Refuse anything but SELECT/EXPLAIN (COPY ... TO writes files even on a read-only connection)."""
+    try:
+        statements = duckdb.extract_statements(sql)
+    except duckdb.ParserException as exc:
+        raise ReadOnlyViolation(f"SQL does not parse: {str(exc).splitlines()[0]}") from None
+    if not statements:
+        raise ReadOnlyViolation("no SQL statement given")
+    for statement in statements:
+        if statement.type not in _READ_STATEMENTS:
+            raise ReadOnlyViolation(
+                f"the warehouse is read-only here: {statement.type.name} statements are refused (use SELECT)"
+            )
+
+
+def _cell(value: object) -> object:
+    if isinstance(value, bytes):
+        return f"<{len(value)} bytes>"
+    return value
+
+
+def format_rows(table: pa.Table, fmt: OutputFormat) -> str:
+    columns = table.column_names
+    rows = [[_cell(v) for v in row.values()] for row in table.to_pylist()]
+    if fmt == "json":
+        return json.dumps([dict(zip(columns, row)) for row in rows], default=str, indent=1)
+    if fmt == "csv":
+        out = io.StringIO()
+        writer = csv.writer(out)
+        writer.writerow(columns)
+        writer.writerows(rows)
+        return out.getvalue().rstrip("\n")
+    text = [[str(c) for c in columns]] + [["NULL" if v is None else str(v) for v in row] for row in rows]
+    widths = [min(60, max(len(r[i]) for r in text)) for i in range(len(columns))]
+    lines = [" | ".join(cell[:60].ljust(w) for cell, w in zip(r, widths)) for r in text]
+    lines.insert(1, "-+-".join("-" * w for w in widths))
+    lines.append(f"({len(rows)} row{'s' if len(rows) != 1 else ''})")
+    return "\n".join(lines)
+
+
+def run_sql(catalog: Catalog, sql: str, fmt: OutputFormat = "table") -> str:
+    check_read_only(sql)
+    return format_rows(catalog.query_arrow(sql), fmt)
