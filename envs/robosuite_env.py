@@ -56,6 +56,7 @@ ENV_METADATA: dict[str, EnvMeta] = {
     ),
 }
 
+MODEL_SEED = 0
 ACTION_DIM = 7  # OSC_POSE deltas (xyz, axis-angle) + gripper, each in [-1, 1]
 PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 PROPRIO_DIM = 9
@@ -93,6 +94,9 @@ class TaskEnv:
             ignore_done=True,
             hard_reset=False,  # 0.26 s -> 0.002 s per reset (ANCHORS.md); colours are re-applied anyway
             reward_shaping=True,
+            # robosuite samples object sizes when it builds the model, from env.rng: a fixed seed
+            # makes every worker's model identical, so an episode depends on its own seed only.
+            seed=MODEL_SEED,
         )
         self._apply_render_settings()
 

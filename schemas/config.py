@@ -87,7 +87,7 @@ class ModelConfig(_Strict):
 class TrainConfig(_Strict):
     epochs: PositiveInt = 10
     batch_size: PositiveInt = 64
-    lr: float = Field(default=3e-4, gt=0)
+    lr: float = Field(default=1e-3, gt=0)
     weight_decay: float = Field(default=0.01, ge=0)
     contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")
     temperature: float = Field(default=0.1, gt=0)

@@ -53,10 +53,13 @@ def _collate(samples: list[Sample]) -> dict[str, np.ndarray]:
 
 
 def _normalisers(catalog: Catalog, dataset: IndexResult) -> tuple[Normaliser, Normaliser]:
-    """Action and proprio statistics over exactly the kept steps of the selection."""
+    """Action and proprio statistics over exactly the kept steps of the selection. Ordered: a
+    parallel scan returns rows in varying order, and float sums in another order differ in the
+    last bits, which would make a re-trained model differ from the first."""
     table: pa.Table = catalog.query_arrow(
         "SELECT action, proprio FROM steps WHERE episode_id IN "
-        "(SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key))",
+        "(SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)) "
+        "ORDER BY episode_id, step",
         [dataset.filter_units],
     )
     actions = np.asarray(table["action"].to_pylist(), dtype=np.float32)
@@ -135,8 +138,8 @@ def run_train(
         record.update(samples_per_s=seen / elapsed, lr=schedule.get_last_lr()[0])
         history.append(record)
         log.info(
-            "train it%d: epoch %d/%d loss %.3f (infonce %.3f, bc_nll %.3f, mse %.3f), %.0f samples/s",
-            iteration, epoch + 1, cfg.epochs, record["loss"], record["infonce"], record["bc_nll"],
+            "train it%d: epoch %d/%d loss %.3f (infonce %.3f, bc %.3f, action mse %.3f), %.0f samples/s",
+            iteration, epoch + 1, cfg.epochs, record["loss"], record["infonce"], record["bc"],
             record["action_mse"], record["samples_per_s"],
         )
     save_checkpoint(checkpoint, model, action_norm, proprio_norm, cfg.model.language_encoder)

@@ -177,7 +177,7 @@ class Catalog:
 
     def query_arrow(self, sql: str, params: Sequence[Any] = ()) -> pa.Table:
         with self.connect(read_only=True) as con:
-            return con.execute(sql, list(params)).fetch_arrow_table()
+            return con.execute(sql, list(params)).to_arrow_table()
 
     def shard_paths(self, table: str, where: str = "TRUE", params: Sequence[Any] = ()) -> list[tuple[Path, str]]:
         rows = self.query(

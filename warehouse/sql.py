@@ -48,7 +48,7 @@ def format_rows(table: pa.Table, fmt: OutputFormat) -> str:
         return json.dumps([dict(zip(columns, row)) for row in rows], default=str, indent=1)
     if fmt == "csv":
         out = io.StringIO()
-        writer = csv.writer(out)
+        writer = csv.writer(out, lineterminator="\n")
         writer.writerow(columns)
         writer.writerows(rows)
         return out.getvalue().rstrip("\n")

@@ -1,0 +1,76 @@
+import subprocess
+
+import pytest
+
+from schemas.config import CampaignConfig, ConfigError, load_config
+from schemas.keys import derive_seed, unit_key
+from tests.conftest import SIM2ACT
+
+
+@pytest.mark.parametrize("preset", ["smoke", "default"])
+def test_presets_validate(preset):
+    config = load_config(preset)
+    assert config.name == preset
+    assert config.iterations >= 2
+
+
+def test_file_and_overrides_stack_on_the_preset(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("explore: {episodes_per_task: 6}\n")
+    config = load_config("smoke", path, {"iterations": 3})
+    assert (config.explore.episodes_per_task, config.iterations) == (6, 3)
+    assert config.explore.episodes_per_shard == load_config("smoke").explore.episodes_per_shard
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "field", "words"),
+    [
+        ("explore: {episods_per_task: 3}\n", "explore.episods_per_task", "unknown key"),
+        ("train: {epochs: many}\n", "train.epochs", "valid integer"),
+        ("explore: {episodes_per_task: -2}\n", "explore.episodes_per_task", "greater than 0"),
+        ("tasks: {envs: [Lift, Juggle]}\n", "tasks.envs.1", "'Lift' or 'Stack'"),
+        ("tasks: {include: [lift-magenta]}\n", "tasks.include", "unknown task 'lift-magenta'"),
+        ("- just a list\n", "", "mapping"),
+    ],
+)
+def test_bad_config_is_refused_in_one_line_before_any_work(tmp_path, yaml_text, field, words):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml_text)
+    workspace = tmp_path / "ws"
+    result = subprocess.run(
+        [SIM2ACT, "run", "--preset", "smoke", "--config", str(bad), "--workspace", str(workspace)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert field in lines[0] and words in lines[0], lines[0]
+    assert not workspace.exists()
+
+
+def test_negative_iterations_on_the_command_line(tmp_path):
+    result = subprocess.run(
+        [SIM2ACT, "run", "--iterations", "-1", "--workspace", str(tmp_path / "ws")], capture_output=True, text=True
+    )
+    assert result.returncode == 2 and "iterations" in result.stderr
+    assert not (tmp_path / "ws").exists()
+
+
+def test_unit_keys_follow_what_the_unit_reads():
+    config = CampaignConfig()
+    key = unit_key("explore", 1, config.explore, ["task-a"])
+    assert key == unit_key("explore", 1, CampaignConfig().explore, ["task-a"])
+    assert key != unit_key("explore", 1, config.explore.model_copy(update={"expert_noise": 0.3}), ["task-a"])
+    assert key != unit_key("explore", 2, config.explore, ["task-a"])
+    assert key != unit_key("explore", 1, config.explore, ["task-b"])
+
+
+def test_seeds_are_stable_and_distinct():
+    assert derive_seed("c", 0, "lift-red", 0, 1) == derive_seed("c", 0, "lift-red", 0, 1)
+    seeds = {derive_seed("c", 0, "lift-red", shard, episode) for shard in range(10) for episode in range(10)}
+    assert len(seeds) == 100
+
+
+def test_config_error_is_a_value_error():
+    with pytest.raises(ConfigError, match="unknown preset"):
+        load_config("huge")

@@ -1,0 +1,97 @@
+import duckdb
+import pyarrow as pa
+import pytest
+
+from schemas.tables import FILTER_DECISIONS
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog, CatalogMissing
+from warehouse.shard_writer import SchemaMismatch, write_shard
+from warehouse.sql import ReadOnlyViolation, run_sql
+
+
+def _decisions(n: int, key: str) -> pa.Table:
+    return pa.Table.from_pylist(
+        [
+            {"campaign": "t", "iteration": 0, "episode_id": f"{key}-e{i}", "task_id": "lift-red", "kept": i % 2 == 0,
+             "reason": "kept" if i % 2 == 0 else "low_return", "episode_return": float(i), "filter_key": key}
+            for i in range(n)
+        ],
+        schema=FILTER_DECISIONS,
+    )
+
+
+@pytest.fixture
+def workspace(tmp_path) -> Workspace:
+    ws = Workspace.at(tmp_path).create()
+    Catalog(ws.catalog).initialise()
+    return ws
+
+
+def _register(ws: Workspace, key: str, rows: int) -> bool:
+    shard = write_shard("filter_decisions", _decisions(rows, key), ws.shard_path("filter_decisions", 0, key))
+    return Catalog(ws.catalog).register_unit(
+        unit_key=key, stage="filter", campaign="t", iteration=0, summary={}, shards=[shard]
+    )
+
+
+def test_views_show_registered_shards_only_and_registering_twice_is_a_no_op(workspace):
+    catalog = Catalog(workspace.catalog)
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(0,)]
+    assert _register(workspace, "filter-a", 4) is True
+    assert _register(workspace, "filter-a", 4) is False
+    # a file written but never registered (a run killed in between) stays invisible
+    write_shard("filter_decisions", _decisions(3, "filter-b"), workspace.shard_path("filter_decisions", 0, "filter-b"))
+    assert catalog.query("SELECT count(*), count(DISTINCT filter_key) FROM filter_decisions") == [(4, 1)]
+    assert catalog.query("SELECT count(*) FROM shards") == [(1,)]
+    removed = catalog.clean_orphans()
+    assert [p.name for p in removed] == ["filter-b.parquet"]
+    assert workspace.shard_path("filter_decisions", 0, "filter-a").exists()
+
+
+def test_shards_are_zstd_parquet_in_hive_folders(workspace):
+    _register(workspace, "filter-a", 2)
+    path = workspace.shard_path("filter_decisions", 0, "filter-a")
+    assert path.parent.name == "iteration=0"
+    import pyarrow.parquet as pq
+
+    meta = pq.ParquetFile(path).metadata
+    assert meta.row_group(0).column(0).compression == "ZSTD"
+    assert pq.read_schema(path).metadata[b"sim2act.schema_version"] == b"1"
+
+
+def test_a_wrong_schema_is_refused_and_nothing_is_written(workspace):
+    rows = _decisions(2, "filter-x").drop_columns(["reason"])
+    path = workspace.shard_path("filter_decisions", 0, "filter-x")
+    with pytest.raises(SchemaMismatch, match="reason"):
+        write_shard("filter_decisions", rows, path)
+    assert not path.parent.exists() or not any(path.parent.iterdir())
+
+
+@pytest.mark.parametrize(
+    "statement",
+    ["DELETE FROM tasks", "DROP VIEW steps", "COPY (SELECT 1) TO '/tmp/sim2act-x.csv'", "CREATE TABLE x (a INT)"],
+)
+def test_sql_is_read_only(workspace, statement):
+    with pytest.raises(ReadOnlyViolation, match="read-only"):
+        run_sql(Catalog(workspace.catalog), statement)
+
+
+def test_sql_formats(workspace):
+    _register(workspace, "filter-a", 4)
+    catalog = Catalog(workspace.catalog)
+    table = run_sql(catalog, "SELECT reason, count(*) AS n FROM filter_decisions GROUP BY 1 ORDER BY 1")
+    assert "kept" in table and "(2 rows)" in table
+    assert run_sql(catalog, "SELECT count(*) AS n FROM filter_decisions", "csv") == "n\n4"
+    assert '"n": 4' in run_sql(catalog, "SELECT count(*) AS n FROM filter_decisions", "json")
+
+
+def test_catalog_opens_in_a_plain_duckdb_client(workspace):
+    _register(workspace, "filter-a", 4)
+    con = duckdb.connect(str(workspace.catalog), read_only=True)
+    assert con.execute("SELECT count(*) FROM filter_decisions WHERE kept").fetchone() == (2,)
+    con.close()
+
+
+def test_missing_catalog_is_a_clear_error(tmp_path):
+    with pytest.raises(CatalogMissing, match="sim2act run"):
+        Catalog(tmp_path / "nope.duckdb").query("SELECT 1")
