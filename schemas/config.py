@@ -35,10 +35,13 @@ class TasksConfig(_Strict):
     horizon: dict[EnvName, PositiveInt] = {"Lift": 80, "Stack": 160}
 
     @model_validator(mode="after")
-    def _unseen_are_colours(self) -> TasksConfig:
+    def _consistent(self) -> TasksConfig:
         stray = sorted(set(self.unseen_colours) - set(self.colours))
         if stray:
             raise ValueError(f"unseen_colours {stray} are not in colours")
+        missing = [env for env in self.envs if env not in self.horizon]
+        if missing:
+            raise ValueError(f"horizon has no entry for {', '.join(missing)}")
         return self
 
 
@@ -165,9 +168,9 @@ def describe_validation_error(exc: ValidationError) -> str:
     errors = exc.errors()
     first = errors[0]
     field = ".".join(str(part) for part in first["loc"]) or "config"
-    message = "unknown key" if first["type"] == "extra_forbidden" else first["msg"]
-    if first["type"] not in ("extra_forbidden", "missing") and "input" in first:
-        message += f" (got {first['input']!r})"
+    message = "unknown key" if first["type"] == "extra_forbidden" else first["msg"].removeprefix("Value error, ")
+    if first["type"] not in ("extra_forbidden", "missing", "value_error") and not isinstance(first.get("input"), dict):
+        message += f" (got {first.get('input')!r})"
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
     return f"{field}: {message}{more}"
 

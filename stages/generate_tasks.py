@@ -64,7 +64,7 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
                     object_colours=colouring,
                     instructions=instructions,
                     split="unseen" if unseen else "seen",
-                    horizon=config.horizon.get(env_name, 100),
+                    horizon=config.horizon[env_name],
                 )
             )
     if config.include is not None:

@@ -30,6 +30,7 @@ def test_file_and_overrides_stack_on_the_preset(tmp_path):
         ("explore: {episodes_per_task: -2}\n", "explore.episodes_per_task", "greater than 0"),
         ("tasks: {envs: [Lift, Juggle]}\n", "tasks.envs.1", "'Lift' or 'Stack'"),
         ("tasks: {include: [lift-magenta]}\n", "tasks.include", "unknown task 'lift-magenta'"),
+        ("tasks: {unseen_colours: [purple]}\n", "tasks", "not in colours"),
         ("- just a list\n", "", "mapping"),
     ],
 )
