@@ -6,7 +6,7 @@ from enum import Enum, auto
 
 import numpy as np
 
-from envs.robosuite_env import ACTION_DIM, Observation
+from envs.observation import ACTION_DIM, Observation
 
 GAIN = 12.0  # action = GAIN * position error; 1.0 asks OSC for its largest step (5 cm)
 OPEN, CLOSED = -1.0, 1.0
@@ -36,17 +36,17 @@ class PickPlaceExpert:
             return cls("target", None, noise, rng)
         if env_name == "Stack":
             return cls("pick", "place", noise, rng)
-        raise ValueError(f"no scripted expert for {env_name}")
+        raise ValueError(f"no pick_place expert for {env_name}")
 
     def _towards(self, obs: Observation, target: np.ndarray, gripper: float) -> np.ndarray:
         action = np.zeros(ACTION_DIM)
-        action[:3] = np.clip(GAIN * (target - obs.gripper_pos), -1.0, 1.0)
+        action[:3] = np.clip(GAIN * (target - obs.privileged["gripper"]), -1.0, 1.0)
         action[6] = gripper
         return action
 
     def _advance(self, obs: Observation) -> np.ndarray:
-        cube = obs.objects[self.pick_role]
-        eef = obs.gripper_pos
+        cube = obs.privileged[self.pick_role]
+        eef = obs.privileged["gripper"]
         above = cube + np.array([0.0, 0.0, 0.08])
         if self.phase is Phase.APPROACH:
             if np.linalg.norm((above - eef)[:2]) < 0.01 and abs(above[2] - eef[2]) < 0.02:
@@ -64,7 +64,7 @@ class PickPlaceExpert:
             return self._towards(obs, eef, CLOSED)
         if self.phase is Phase.LIFT:
             return self._towards(obs, np.array([cube[0], cube[1], cube[2] + 0.25]), CLOSED)
-        place = obs.objects[self.place_role]
+        place = obs.privileged[self.place_role]
         # cube centre sits at the place object's top plus its own half-size (~2 cm each)
         stacked = place + np.array([0.0, 0.0, 0.045])
         if self.phase is Phase.CARRY:
@@ -85,4 +85,23 @@ class PickPlaceExpert:
         action = self._advance(obs)
         if self.noise:
             action[:6] += self.rng.normal(0.0, self.noise, size=6)
+        return np.clip(action, -1.0, 1.0)
+
+
+class MetaWorldExpert:
+    """MetaWorld's own scripted policy for the task, with the same Gaussian noise as ours."""
+
+    def __init__(self, env_name: str, noise: float, rng: np.random.Generator):
+        from metaworld.policies import ENV_POLICY_MAP
+
+        from envs.metaworld_env import from_metaworld_action
+
+        self.policy = ENV_POLICY_MAP[env_name]()
+        self.to_common = from_metaworld_action
+        self.noise, self.rng = noise, rng
+
+    def act(self, obs: Observation) -> np.ndarray:
+        action = self.to_common(self.policy.get_action(obs.privileged["state"]))
+        if self.noise:
+            action[:3] += self.rng.normal(0.0, self.noise, size=3)
         return np.clip(action, -1.0, 1.0)

@@ -1,4 +1,4 @@
-"""robosuite tasks behind one small interface: reset(seed) -> Observation, step(action).
+"""robosuite tasks behind the common interface (envs.observation): reset(task, seed), step(action).
 
 Create an environment inside the worker process that uses it (never before a fork): its
 offscreen GL context belongs to the process that made it.
@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import sys
 import types
-from dataclasses import dataclass
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 # robosuite reads overrides from robosuite.macros_private; ours keeps its console to errors
@@ -21,76 +20,43 @@ sys.modules.setdefault("robosuite.macros_private", _macros)
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from envs.observation import NO_IMAGE, Observation  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
 
-@dataclass(frozen=True)
-class EnvMeta:
-    """What task generation may know of an environment without starting it."""
-
-    # object role -> (robosuite object name, its visual geom)
-    objects: dict[str, tuple[str, str]]
-    templates: tuple[str, ...]
-
-
-ENV_METADATA: dict[str, EnvMeta] = {
-    "Lift": EnvMeta(
-        objects={"target": ("cube", "cube_g0_vis")},
-        templates=(
-            "pick up the {target} block",
-            "lift the {target} cube",
-            "grab the {target} block and raise it",
-            "raise the {target} cube off the table",
-            "take the {target} block and hold it up",
-        ),
-    ),
-    "Stack": EnvMeta(
-        objects={"pick": ("cubeA", "cubeA_g0_vis"), "place": ("cubeB", "cubeB_g0_vis")},
-        templates=(
-            "stack the {pick} block on the {place} block",
-            "put the {pick} cube on top of the {place} cube",
-            "place the {pick} block onto the {place} one",
-            "set the {pick} cube down on the {place} cube",
-        ),
-    ),
+# object role -> (robosuite object name, its visual geom): what task specs may bind colours to.
+ROBOSUITE_ROLES: dict[str, dict[str, tuple[str, str]]] = {
+    "Lift": {"target": ("cube", "cube_g0_vis")},
+    "Stack": {"pick": ("cubeA", "cubeA_g0_vis"), "place": ("cubeB", "cubeB_g0_vis")},
 }
 
 MODEL_SEED = 0
-ACTION_DIM = 7  # OSC_POSE deltas (xyz, axis-angle) + gripper, each in [-1, 1]
 PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
-PROPRIO_DIM = 9
 
 
-@dataclass
-class Observation:
-    image: np.ndarray  # uint8 (H, W, 3), upright
-    proprio: np.ndarray  # float32 (PROPRIO_DIM,)
-    objects: dict[str, np.ndarray]  # privileged: role -> position, for scripted experts only
-    gripper_pos: np.ndarray
-
-
-class TaskEnv:
+class RobosuiteEnv:
     """One robosuite environment, recoloured per task, rendered with the campaign's settings."""
 
-    def __init__(self, env_name: str, render: RenderConfig, horizon: int):
+    def __init__(self, env_name: str, render: RenderConfig | None):
+        """render=None: no camera at all (scripted experts need no pixels; 8x faster on CPU)."""
         import robosuite
 
         self.env_name = env_name
         self.render_config = render
-        self.meta = ENV_METADATA[env_name]
-        self.horizon = horizon
+        self.roles = ROBOSUITE_ROLES[env_name]
+        camera = {} if render is None else {
+            "camera_names": render.camera, "camera_heights": render.image_size, "camera_widths": render.image_size,
+        }
         self.env = robosuite.make(
             env_name,
             robots="Panda",
             has_renderer=False,
-            has_offscreen_renderer=True,
-            use_camera_obs=True,
-            camera_names=render.camera,
-            camera_heights=render.image_size,
-            camera_widths=render.image_size,
+            has_offscreen_renderer=render is not None,
+            use_camera_obs=render is not None,
+            **camera,
             control_freq=20,
-            horizon=horizon,
+            horizon=10_000,  # episodes end by our horizon; robosuite's own is never reached
             ignore_done=True,
             hard_reset=False,  # 0.26 s -> 0.002 s per reset (ANCHORS.md); colours are re-applied anyway
             reward_shaping=True,
@@ -98,7 +64,8 @@ class TaskEnv:
             # makes every worker's model identical, so an episode depends on its own seed only.
             seed=MODEL_SEED,
         )
-        self._apply_render_settings()
+        if render is not None:
+            self._apply_render_settings()
 
     def _apply_render_settings(self) -> None:
         model = self.env.sim.model
@@ -115,7 +82,7 @@ class TaskEnv:
     def _apply_colours(self, task: TaskRecord) -> None:
         model = self.env.sim.model
         for role, colour in task.object_colours.items():
-            geom_id = model.geom_name2id(self.meta.objects[role][1])
+            geom_id = model.geom_name2id(self.roles[role][1])
             model._model.geom_matid[geom_id] = -1  # drop the wood texture: the colour is the cue
             model._model.geom_rgba[geom_id] = COLOUR_RGBA[colour]
 
@@ -133,10 +100,11 @@ class TaskEnv:
         return self._observation(raw), float(reward), bool(self.env._check_success())
 
     def _observation(self, raw: dict[str, np.ndarray]) -> Observation:
-        image = raw[f"{self.render_config.camera}_image"][::-1].copy()  # OpenGL rows run bottom-up
+        image = NO_IMAGE if self.render_config is None else raw[f"{self.render_config.camera}_image"][::-1].copy()
         proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
-        objects = {role: np.asarray(raw[f"{name}_pos"], dtype=np.float64) for role, (name, _) in self.meta.objects.items()}
-        return Observation(image, proprio, objects, np.asarray(raw["robot0_eef_pos"], dtype=np.float64))
+        privileged = {role: np.asarray(raw[f"{name}_pos"], dtype=np.float64) for role, (name, _) in self.roles.items()}
+        privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
+        return Observation(image, proprio, privileged)
 
     def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         data = self.env.sim.data

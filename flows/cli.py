@@ -6,6 +6,8 @@ Configs are validated before anything is imported or written: bad input costs on
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import os
 import sys
 from pathlib import Path
@@ -60,6 +62,76 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tasks_list(args: argparse.Namespace) -> int:
+    import pyarrow as pa
+
+    from stages.generate_tasks import suite_tasks
+    from warehouse.sql import format_rows
+
+    rows = [
+        {"task_id": t.task_id, "family": t.family, "env": t.env_name, "split": t.split, "horizon": t.horizon,
+         "instruction": t.instruction}
+        for t in suite_tasks(args.spec_file)
+        if (args.family is None or t.family == args.family) and (args.split is None or t.split == args.split)
+    ]
+    if args.format == "json":
+        print(json.dumps(rows, indent=1))
+    else:
+        print(format_rows(pa.Table.from_pylist(rows), "table"))
+    return 0
+
+
+def cmd_tasks_show(args: argparse.Namespace) -> int:
+    from stages.generate_tasks import suite_tasks
+
+    found = [t for t in suite_tasks(args.spec_file) if t.task_id == args.task_id]
+    if not found:
+        raise ConfigError(f"tasks show: no task {args.task_id!r} in the suite (`sim2act tasks list` shows them)")
+    print(found[0].model_dump_json(indent=1))
+    return 0
+
+
+def cmd_tasks_validate(args: argparse.Namespace) -> int:
+    from envs.registry import check_spec
+    from schemas.config import TasksConfig
+    from schemas.task_spec import parse_spec_file
+    from stages.generate_tasks import expand_spec
+
+    if not args.file.is_file():
+        raise ConfigError(f"tasks validate: no such file {args.file}")
+    specs = parse_spec_file(args.file.read_text(), str(args.file))
+    count = 0
+    for spec in specs:
+        check_spec(spec, str(args.file))
+        count += len(expand_spec(spec, TasksConfig(specs=[spec.name]), seed=0))
+    print(f"{args.file}: {len(specs)} spec(s), {count} task(s), valid")
+    return 0
+
+
+def cmd_tasks_experts(args: argparse.Namespace) -> int:
+    from stages.expert_table import measure_experts, write_table
+    from stages.generate_tasks import suite_tasks
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    tasks = [
+        t for t in suite_tasks(args.spec_file)
+        if (args.family is None or t.family == args.family) and (not args.task or t.task_id in args.task)
+    ]
+    if not tasks:
+        raise ConfigError("tasks experts: no task matches --family/--task")
+    done = itertools.count(1)
+
+    def report(row) -> None:
+        print(f"[{next(done)}/{len(tasks)}] {row.task_id}: {row.successes}/{row.episodes}", flush=True)
+
+    rows = measure_experts(tasks, args.episodes, args.noise, args.workers, report)
+    command = "sim2act tasks experts " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "sim2act tasks experts"
+    write_table(rows, args.out, command.strip(), args.noise)
+    below = sum(r.success_rate < 0.9 for r in rows)
+    print(f"{len(rows)} tasks, {below} below 90%; table written to {args.out}")
+    return 0
+
+
 def cmd_sql(args: argparse.Namespace) -> int:
     from warehouse.catalog import Catalog
     from warehouse.sql import run_sql
@@ -78,6 +150,30 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
     run.add_argument("--workspace", default=_default_workspace(), help="default: $SIM2ACT_WORKSPACE or ./workspace")
     run.set_defaults(handler=cmd_run)
+
+    tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
+    task_commands = tasks.add_subparsers(dest="tasks_command", required=True)
+    listing = task_commands.add_parser("list", help="every task of the suite")
+    listing.add_argument("--family", choices=("robosuite", "metaworld"))
+    listing.add_argument("--split", choices=("seen", "unseen"))
+    listing.add_argument("--format", choices=("table", "json"), default="table")
+    listing.set_defaults(handler=cmd_tasks_list)
+    show = task_commands.add_parser("show", help="one task, in full")
+    show.add_argument("task_id")
+    show.set_defaults(handler=cmd_tasks_show)
+    experts = task_commands.add_parser("experts", help="measure each task's scripted expert, write the table")
+    experts.add_argument("--episodes", type=int, default=10)
+    experts.add_argument("--noise", type=float, default=0.1, help="expert action noise, as in exploration")
+    experts.add_argument("--family", choices=("robosuite", "metaworld"))
+    experts.add_argument("--task", action="append", default=[], help="only these task ids")
+    experts.add_argument("--workers", type=int, default=2)
+    experts.add_argument("--out", type=Path, default=Path("docs/experts.md"))
+    experts.set_defaults(handler=cmd_tasks_experts)
+    for sub in (listing, show, experts):
+        sub.add_argument("--spec-file", type=Path, action="append", default=[], help="extra YAML spec file")
+    validate = task_commands.add_parser("validate", help="check a YAML spec file")
+    validate.add_argument("file", type=Path)
+    validate.set_defaults(handler=cmd_tasks_validate)
 
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")

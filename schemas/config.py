@@ -14,7 +14,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from schemas.tasks import Colour
 
-EnvName = Literal["Lift", "Stack"]
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
 PRESETS = ("smoke", "default")
 
@@ -26,23 +25,16 @@ class _Strict(BaseModel):
 
 
 class TasksConfig(_Strict):
-    envs: list[EnvName] = Field(default=["Lift", "Stack"], min_length=1)
-    colours: list[Colour] = Field(default=["red", "green", "blue", "yellow"], min_length=2)
-    unseen_colours: list[Colour] = Field(default=[], description="tasks using these colours are held out (split=unseen)")
-    max_tasks_per_env: PositiveInt | None = None
+    """Which task specs (schemas/task_specs/*.yaml, plus the user's spec_files) a campaign uses."""
+
+    specs: list[str] = Field(default=["lift", "stack"], min_length=1, description="spec names")
+    spec_files: list[Path] = Field(default=[], description="extra YAML spec files")
+    colours: list[Colour] | None = Field(default=None, description="bind only these colours (default: the spec's)")
+    unseen_colours: list[Colour] = Field(default=[], description="held out in addition to each spec's own")
+    max_tasks_per_spec: PositiveInt | None = None
     paraphrases: int = Field(default=3, ge=3, description="instructions per task, canonical included")
     include: list[str] | None = Field(default=None, description="keep only these task ids")
-    horizon: dict[EnvName, PositiveInt] = {"Lift": 80, "Stack": 160}
-
-    @model_validator(mode="after")
-    def _consistent(self) -> TasksConfig:
-        stray = sorted(set(self.unseen_colours) - set(self.colours))
-        if stray:
-            raise ValueError(f"unseen_colours {stray} are not in colours")
-        missing = [env for env in self.envs if env not in self.horizon]
-        if missing:
-            raise ValueError(f"horizon has no entry for {', '.join(missing)}")
-        return self
+    horizon: dict[str, PositiveInt] = Field(default={}, description="per-spec horizon override")
 
 
 class RenderConfig(_Strict):

@@ -87,7 +87,7 @@ CREATE TABLE IF NOT EXISTS shards (
     path VARCHAR PRIMARY KEY, table_name VARCHAR, unit_key VARCHAR, campaign VARCHAR, iteration INTEGER,
     num_rows BIGINT, num_bytes BIGINT, sha256 VARCHAR, schema_version INTEGER);
 CREATE TABLE IF NOT EXISTS tasks (
-    campaign VARCHAR, task_id VARCHAR, family VARCHAR, env_name VARCHAR, instruction VARCHAR,
+    campaign VARCHAR, task_id VARCHAR, spec VARCHAR, family VARCHAR, env_name VARCHAR, instruction VARCHAR,
     instructions VARCHAR[], object_colours JSON, split VARCHAR, horizon INTEGER, unit_key VARCHAR,
     PRIMARY KEY (unit_key, task_id));
 CREATE TABLE IF NOT EXISTS iterations (

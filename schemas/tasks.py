@@ -19,6 +19,7 @@ COLOUR_RGBA: dict[str, tuple[float, float, float, float]] = {
 }
 
 Split = Literal["seen", "unseen"]
+Family = Literal["robosuite", "metaworld"]
 
 
 class TaskRecord(BaseModel):
@@ -27,7 +28,8 @@ class TaskRecord(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     task_id: str
-    family: Literal["robosuite"]
+    spec: str
+    family: Family
     env_name: str
     # object role -> colour, e.g. {"target": "red"} or {"pick": "red", "place": "green"}
     object_colours: dict[str, Colour]

@@ -58,7 +58,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     from policies.policy import Policy
 
     policy = Policy.load(Path(unit.checkpoint))
-    env = worker_env(unit.task.env_name, unit.render, unit.task.horizon)
+    env = worker_env(unit.task, unit.render)
     embedding = np.asarray(unit.embedding, dtype=np.float32)
     successes, returns, lengths = 0, [], []
     for index, seed in enumerate(unit.seeds):

@@ -113,16 +113,16 @@ def plan_explore(
 
 # -- worker side ------------------------------------------------------------------------------
 
-_ENVS: dict[tuple[str, str], object] = {}
+_ENVS: dict[tuple[str, str, str], object] = {}
 
 
-def worker_env(env_name: str, render: RenderConfig, horizon: int):
-    """One environment per (env, render settings) per worker process, reused across units."""
-    from envs.robosuite_env import TaskEnv
+def worker_env(task: TaskRecord, render: RenderConfig | None):
+    """One environment per (family, env, render settings) per worker process, reused across units."""
+    from envs.registry import make_env
 
-    key = (env_name, render.model_dump_json())
+    key = (task.family, task.env_name, render.model_dump_json() if render else "no camera")
     if key not in _ENVS:
-        _ENVS[key] = TaskEnv(env_name, render, horizon)
+        _ENVS[key] = make_env(task.family, task.env_name, render)
     return _ENVS[key]
 
 
@@ -149,11 +149,10 @@ def rollout(env, task: TaskRecord, seed: int, act) -> tuple[list[dict], np.ndarr
 
 
 def _actor(unit: ExploreUnit, plan: EpisodePlan, policy):
-    from envs.experts import PickPlaceExpert
+    from envs.registry import make_expert
 
     if plan.explorer == EXPERT:
-        expert = PickPlaceExpert.for_env(unit.task.env_name, unit.expert_noise, np.random.default_rng(plan.seed))
-        return expert.act
+        return make_expert(unit.task, unit.expert_noise, np.random.default_rng(plan.seed))
     embedding = np.asarray(unit.embeddings[plan.instruction], dtype=np.float32)
     return lambda obs: policy.act(obs.image, obs.proprio, embedding)
 
@@ -165,7 +164,7 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
         from policies.policy import Policy
 
         policy = Policy.load(Path(unit.policy.checkpoint))
-    env = worker_env(unit.task.env_name, unit.render, unit.task.horizon)
+    env = worker_env(unit.task, unit.render)
     episode_rows, step_rows = [], []
     common = {"campaign": unit.campaign, "iteration": unit.iteration, "task_id": unit.task.task_id}
     for plan in unit.episodes:

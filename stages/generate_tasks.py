@@ -10,15 +10,16 @@ import itertools
 import json
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel
 
-from envs.robosuite_env import ENV_METADATA
 from schemas.config import CampaignConfig, ConfigError, TasksConfig
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import INSTRUCTIONS
+from schemas.task_spec import TaskSpec, load_specs
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
@@ -35,38 +36,49 @@ class TasksResult(BaseModel):
     skipped: bool
 
 
-def _colourings(env_name: str, colours: list[str]) -> list[dict[str, str]]:
-    roles = list(ENV_METADATA[env_name].objects)
-    return [dict(zip(roles, combo)) for combo in itertools.permutations(colours, len(roles))]
+def _bindings(spec: TaskSpec, allowed: list[str] | None) -> list[dict[str, str]]:
+    """Every assignment of distinct colours to the spec's object roles, in spec order."""
+    roles = list(spec.objects)
+    choices = [[c for c in spec.objects[r].colours if allowed is None or c in allowed] for r in roles]
+    return [dict(zip(roles, combo)) for combo in itertools.product(*choices) if len(set(combo)) == len(combo)]
+
+
+def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int) -> list[TaskRecord]:
+    """Pure: the concrete tasks one spec yields under a tasks config."""
+    if len(spec.templates) < config.paraphrases:
+        raise ConfigError(f"tasks.paraphrases: spec {spec.name} has {len(spec.templates)} templates, "
+                          f"{config.paraphrases} asked")
+    unseen_colours = set(spec.split.unseen_colours) | set(config.unseen_colours)
+    tasks = []
+    for colouring in _bindings(spec, config.colours)[: config.max_tasks_per_spec]:
+        task_id = "-".join([spec.name, *colouring.values()])
+        rng = np.random.default_rng(derive_seed(seed, task_id, "paraphrases"))
+        order = [0, *(1 + rng.permutation(len(spec.templates) - 1))]
+        unseen = task_id in spec.split.unseen_tasks or any(c in unseen_colours for c in colouring.values())
+        tasks.append(
+            TaskRecord(
+                task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colouring,
+                instructions=[spec.templates[i].format(**colouring) for i in order[: config.paraphrases]],
+                split="unseen" if unseen else "seen", horizon=config.horizon.get(spec.name, spec.horizon),
+            )
+        )
+    return tasks
 
 
 def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
-    """Pure: the concrete tasks a tasks config describes. Raises ConfigError for unknown ids."""
+    """Pure: the concrete tasks a tasks config describes. Raises ConfigError for what does not exist."""
+    from envs.registry import check_spec
+
+    suite = load_specs(config.spec_files)
     tasks = []
-    for env_name in config.envs:
-        meta = ENV_METADATA[env_name]
-        colourings = _colourings(env_name, config.colours)[: config.max_tasks_per_env]
-        for colouring in colourings:
-            task_id = "-".join([env_name.lower(), *colouring.values()])
-            rng = np.random.default_rng(derive_seed(seed, task_id, "paraphrases"))
-            order = [0, *(1 + rng.permutation(len(meta.templates) - 1))]
-            instructions = [meta.templates[i].format(**colouring) for i in order[: config.paraphrases]]
-            if len(instructions) < config.paraphrases:
-                raise ConfigError(
-                    f"tasks.paraphrases: {env_name} has {len(meta.templates)} templates, {config.paraphrases} asked"
-                )
-            unseen = any(c in config.unseen_colours for c in colouring.values())
-            tasks.append(
-                TaskRecord(
-                    task_id=task_id,
-                    family="robosuite",
-                    env_name=env_name,
-                    object_colours=colouring,
-                    instructions=instructions,
-                    split="unseen" if unseen else "seen",
-                    horizon=config.horizon[env_name],
-                )
-            )
+    for name in config.specs:
+        if name not in suite:
+            raise ConfigError(f"tasks.specs: unknown spec {name!r} (`sim2act tasks list` shows the suite)")
+        check_spec(suite[name].spec, suite[name].origin)
+        tasks.extend(expand_spec(suite[name].spec, config, seed))
+    unknown_horizons = sorted(set(config.horizon) - set(config.specs))
+    if unknown_horizons:
+        raise ConfigError(f"tasks.horizon: {unknown_horizons[0]!r} is not one of tasks.specs")
     if config.include is not None:
         known = {t.task_id for t in tasks}
         unknown = sorted(set(config.include) - known)
@@ -78,16 +90,24 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
     return tasks
 
 
-def tasks_unit_key(config: CampaignConfig) -> str:
-    return unit_key(STAGE, VERSION, {"tasks": config.tasks, "seed": config.seed, "campaign": config.name})
+def suite_tasks(spec_files: list[Path] = (), seed: int = 0) -> list[TaskRecord]:
+    """Every task of the built-in suite and the given files, all colours bound."""
+    names = list(load_specs(list(spec_files)))
+    return generate_tasks(TasksConfig(specs=names, spec_files=list(spec_files)), seed)
+
+
+def tasks_unit_key(config: CampaignConfig, tasks: list[TaskRecord]) -> str:
+    """Keyed by the tasks themselves, so editing a spec file makes new tasks."""
+    reads = {"campaign": config.name, "encoder": config.train.model.language_encoder}
+    return unit_key(STAGE, VERSION, reads, [t.model_dump_json() for t in tasks])
 
 
 def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksResult:
     from policies.language import encode  # loading the encoder is slow: only when there is work
 
     catalog = Catalog(workspace.catalog)
-    key = tasks_unit_key(config)
     tasks = generate_tasks(config.tasks, config.seed)
+    key = tasks_unit_key(config, tasks)
     ids = [t.task_id for t in tasks]
     if catalog.is_registered(key):
         log.info("generate_tasks: %d tasks already registered (%s), skipped", len(tasks), key)
@@ -114,6 +134,7 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
         {
             "campaign": config.name,
             "task_id": t.task_id,
+            "spec": t.spec,
             "family": t.family,
             "env_name": t.env_name,
             "instruction": t.instruction,
@@ -136,14 +157,14 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
 
 def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:
     rows = Catalog(workspace.catalog).query(
-        "SELECT task_id, family, env_name, object_colours, instructions, split, horizon FROM tasks "
+        "SELECT task_id, spec, family, env_name, object_colours, instructions, split, horizon FROM tasks "
         "WHERE unit_key = ? ORDER BY task_id",
         [task_unit_key],
     )
     return [
         TaskRecord(
-            task_id=r[0], family=r[1], env_name=r[2], object_colours=json.loads(r[3]),
-            instructions=list(r[4]), split=r[5], horizon=r[6],
+            task_id=r[0], spec=r[1], family=r[2], env_name=r[3], object_colours=json.loads(r[4]),
+            instructions=list(r[5]), split=r[6], horizon=r[7],
         )
         for r in rows
     ]

@@ -13,7 +13,7 @@ import torch
 from pydantic import BaseModel
 from torch.utils.data import DataLoader
 
-from envs.robosuite_env import ACTION_DIM, PROPRIO_DIM
+from envs.observation import ACTION_DIM, PROPRIO_DIM
 from policies.language import ENCODER_DIMS
 from policies.model import ModelDims, VLAModel, vla_loss
 from policies.policy import Normaliser, save_checkpoint

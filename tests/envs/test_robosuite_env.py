@@ -5,7 +5,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from envs.experts import PickPlaceExpert
-from envs.robosuite_env import PROPRIO_DIM, TaskEnv
+from envs.observation import PROPRIO_DIM
+from envs.robosuite_env import RobosuiteEnv
 from schemas.config import CampaignConfig, RenderConfig
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
@@ -16,13 +17,13 @@ from warehouse.training_reader import decode_png
 
 
 def _lift(colour: str) -> TaskRecord:
-    return TaskRecord(task_id=f"lift-{colour}", family="robosuite", env_name="Lift", object_colours={"target": colour},
+    return TaskRecord(task_id=f"lift-{colour}", spec="lift", family="robosuite", env_name="Lift", object_colours={"target": colour},
                       instructions=[f"pick up the {colour} block", "b", "c"], split="seen", horizon=60)
 
 
 @pytest.fixture(scope="module")
 def lift_env():
-    env = TaskEnv("Lift", RenderConfig(), horizon=60)
+    env = RobosuiteEnv("Lift", RenderConfig())
     yield env
     env.close()
 
@@ -59,7 +60,7 @@ def test_the_scripted_expert_lifts_the_cube(lift_env):
 
 def test_an_explore_unit_writes_triplet_shards(tmp_path):
     config = CampaignConfig.model_validate(
-        {"name": "t", "tasks": {"envs": ["Lift"], "colours": ["red", "blue"], "horizon": {"Lift": 50}},
+        {"name": "t", "tasks": {"specs": ["lift"], "colours": ["red", "blue"], "horizon": {"lift": 50}},
          "explore": {"episodes_per_task": 2, "episodes_per_shard": 2}}
     )
     workspace = Workspace.at(tmp_path).create()
@@ -86,13 +87,13 @@ def test_an_explore_unit_writes_triplet_shards(tmp_path):
 def test_an_episode_depends_on_its_seed_only_not_on_what_the_worker_ran_before(lift_env):
     """Workers reuse environments across units; a resumed run hands units to other workers."""
 
-    def episode(env: TaskEnv) -> list:
+    def episode(env: RobosuiteEnv) -> list:
         expert = PickPlaceExpert.for_env("Lift", noise=0.1, rng=np.random.default_rng(5))
         rows, _, _ = rollout(env, _lift("red"), seed=5, act=expert.act)
         return [(r["qpos"], r["action"], r["reward"]) for r in rows]
 
     rollout(lift_env, _lift("blue"), seed=1, act=lambda obs: np.ones(7))  # something else first
-    fresh = TaskEnv("Lift", RenderConfig(), horizon=60)
+    fresh = RobosuiteEnv("Lift", RenderConfig())
     try:
         assert episode(lift_env) == episode(fresh)
     finally:

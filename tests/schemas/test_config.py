@@ -28,9 +28,9 @@ def test_file_and_overrides_stack_on_the_preset(tmp_path):
         ("explore: {episods_per_task: 3}\n", "explore.episods_per_task", "unknown key"),
         ("train: {epochs: many}\n", "train.epochs", "valid integer"),
         ("explore: {episodes_per_task: -2}\n", "explore.episodes_per_task", "greater than 0"),
-        ("tasks: {envs: [Lift, Juggle]}\n", "tasks.envs.1", "'Lift' or 'Stack'"),
+        ("tasks: {specs: [lift, juggle]}\n", "tasks.specs", "unknown spec 'juggle'"),
+        ("tasks: {horizon: {stak: 10}}\n", "tasks.horizon", "not one of tasks.specs"),
         ("tasks: {include: [lift-magenta]}\n", "tasks.include", "unknown task 'lift-magenta'"),
-        ("tasks: {unseen_colours: [purple]}\n", "tasks", "not in colours"),
         ("- just a list\n", "", "mapping"),
     ],
 )

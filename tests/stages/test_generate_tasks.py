@@ -1,25 +1,81 @@
-from schemas.config import TasksConfig
+import pytest
+
+from schemas.config import ConfigError, TasksConfig
+from schemas.task_spec import load_specs, parse_spec_file
 from stages.generate_tasks import generate_tasks
 
 
-def test_tasks_come_from_environment_metadata_with_paraphrases():
-    tasks = generate_tasks(TasksConfig(envs=["Lift", "Stack"], colours=["red", "green", "blue"]), seed=0)
-    ids = [t.task_id for t in tasks]
-    assert "lift-red" in ids and "stack-red-green" in ids
-    assert len(tasks) == 3 + 6  # 3 colours for Lift's one cube; ordered pairs for Stack's two
+def test_the_built_in_suite_expands_to_distinct_tasks_each_said_three_ways():
+    suite = load_specs()
+    tasks = generate_tasks(TasksConfig(specs=list(suite)), seed=0)
+    by_family = {}
     for task in tasks:
+        by_family[task.family] = by_family.get(task.family, 0) + 1
         assert len(set(task.instructions)) >= 3
         for colour in task.object_colours.values():
             assert all(colour in text for text in task.instructions)
+    assert len({t.task_id for t in tasks}) == len(tasks)
+    assert by_family == {"robosuite": 6 + 30, "metaworld": 50}  # navigation (issue 3) will add the rest of 100+
+
+
+def test_colour_bindings_come_from_the_environment_roles():
+    tasks = generate_tasks(TasksConfig(specs=["lift", "stack"], colours=["red", "green", "blue"]), seed=0)
+    ids = [t.task_id for t in tasks]
+    assert "lift-red" in ids and "stack-red-green" in ids and "stack-red-red" not in ids
+    assert len(tasks) == 3 + 6  # 3 colours for Lift's one cube; ordered pairs for Stack's two
 
 
 def test_generation_is_deterministic_for_a_seed():
-    config = TasksConfig(envs=["Stack"], colours=["red", "green", "blue", "yellow"], paraphrases=3)
+    config = TasksConfig(specs=["stack"], colours=["red", "green", "blue", "yellow"], paraphrases=3)
     assert generate_tasks(config, 3) == generate_tasks(config, 3)
     variants = {tuple(t.instructions) for seed in range(8) for t in generate_tasks(config, seed)[:1]}
     assert len(variants) > 1  # the seed picks which paraphrases
 
 
-def test_unseen_colours_make_unseen_tasks():
-    tasks = generate_tasks(TasksConfig(envs=["Lift"], colours=["red", "blue", "yellow"], unseen_colours=["yellow"]), 0)
-    assert {t.task_id: t.split for t in tasks} == {"lift-red": "seen", "lift-blue": "seen", "lift-yellow": "unseen"}
+def test_splits_hold_out_colours_and_whole_tasks():
+    tasks = generate_tasks(TasksConfig(specs=["lift"], colours=["red", "blue", "orange"], unseen_colours=["blue"]), 0)
+    assert {t.task_id: t.split for t in tasks} == {"lift-red": "seen", "lift-blue": "unseen", "lift-orange": "unseen"}
+    metaworld = {t.task_id: t.split for t in generate_tasks(TasksConfig(specs=["mw-push-back", "mw-push"]), 0)}
+    assert metaworld == {"mw-push-back": "unseen", "mw-push": "seen"}
+
+
+SPEC = """
+defaults: {family: robosuite, expert: pick_place, horizon: 50}
+specs:
+  - name: my-lift
+    env: Lift
+    objects: {target: {colours: [red, purple]}}
+    templates: ["lift the {target} one", "raise the {target} cube", "pick up the {target} block"]
+"""
+
+
+def test_a_user_adds_tasks_by_writing_a_file(tmp_path):
+    path = tmp_path / "mine.yaml"
+    path.write_text(SPEC)
+    tasks = generate_tasks(TasksConfig(specs=["my-lift"], spec_files=[path]), 0)
+    assert [t.task_id for t in tasks] == ["my-lift-red", "my-lift-purple"]
+    assert tasks[0].instruction == "lift the red one" and tasks[0].horizon == 50
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (("env: Lift", "env: Lifft"), "my-lift.env: unknown robosuite environment 'Lifft'"),
+        (("{target: {colours", "{cube: {colours"), "template 'lift the {target} one' names ['target']"),
+        (("expert: pick_place", "expert: metaworld_policy"), "my-lift.expert: metaworld_policy does not drive"),
+        (("horizon: 50", "horizon: -5"), "specs.0.horizon: Input should be greater than 0"),
+        (("colours: [red, purple]", "colours: [red, mauve]"), "specs.0.objects.target.colours.1"),
+        (('"raise the {target} cube", ', ""), "specs.0.templates: List should have at least 3 items"),
+    ],
+)
+def test_a_broken_spec_is_refused_with_the_field_and_reason(tmp_path, change, words):
+    path = tmp_path / "broken.yaml"
+    path.write_text(SPEC.replace(*change))
+    with pytest.raises(ConfigError) as error:
+        generate_tasks(TasksConfig(specs=["my-lift"], spec_files=[path]), 0)
+    assert words in str(error.value) and str(path) in str(error.value)
+
+
+def test_spec_names_are_unique():
+    with pytest.raises(ConfigError, match="appears twice"):
+        parse_spec_file(SPEC + SPEC.split("specs:")[1], "twice.yaml")

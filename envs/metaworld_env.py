@@ -1,0 +1,93 @@
+"""MetaWorld v3 tasks behind the common interface (envs.observation).
+
+MetaWorld's action is (dx, dy, dz, grip); ours adds a zero rotation. Its 39-d state is kept as
+privileged state for its scripted policies; proprio is the hand position and finger opening.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from envs.observation import NO_IMAGE, Observation  # noqa: E402
+from schemas.config import RenderConfig  # noqa: E402
+from schemas.tasks import TaskRecord  # noqa: E402
+
+BENCHMARK_SEED = 0  # fixes MetaWorld's 50 pre-sampled object/goal variations per task
+CAMERAS = {"agentview": "corner", "frontview": "corner2", "sideview": "corner3", "birdview": "topview"}
+IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+
+
+def known_envs() -> list[str]:
+    import metaworld
+
+    return list(metaworld.ALL_V3_ENVIRONMENTS)
+
+
+def to_metaworld_action(action: np.ndarray) -> np.ndarray:
+    return np.asarray([action[0], action[1], action[2], action[6]], dtype=np.float32)
+
+
+def from_metaworld_action(action: np.ndarray) -> np.ndarray:
+    return np.asarray([action[0], action[1], action[2], 0.0, 0.0, 0.0, action[3]], dtype=np.float32)
+
+
+class MetaWorldEnv:
+    def __init__(self, env_name: str, render: RenderConfig | None):
+        """render=None: no camera at all (scripted experts need no pixels)."""
+        import metaworld
+
+        self.env_name = env_name
+        self.render_config = render
+        self.benchmark = metaworld.MT1(env_name, seed=BENCHMARK_SEED)
+        if render is None:
+            self.env = self.benchmark.train_classes[env_name]()
+            return
+        self.env = self.benchmark.train_classes[env_name](
+            render_mode="rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
+            height=render.image_size,
+        )
+        model = self.env.model
+        model.vis.quality.offsamples = render.multisamples  # read when the renderer is created
+        model.vis.global_.offwidth = render.image_size
+        model.vis.global_.offheight = render.image_size
+        self._scene_configured = False
+
+    def _render(self) -> np.ndarray:
+        if self.render_config is None:
+            return NO_IMAGE
+        image = self.env.render()
+        if not self._scene_configured:  # the viewer exists only after the first render
+            scene = self.env.mujoco_renderer._get_viewer("rgb_array").scn
+            scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(self.render_config.shadows)
+            scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.render_config.reflections)
+            self._scene_configured = True
+            image = self.env.render()
+        return image[::-1].copy()  # OpenGL rows run bottom-up
+
+    def _observation(self, state: np.ndarray) -> Observation:
+        proprio = np.concatenate([state[:3], IDENTITY_QUAT, [state[3], -state[3]]]).astype(np.float32)
+        return Observation(self._render(), proprio, {"state": np.asarray(state, dtype=np.float64)})
+
+    def reset(self, task: TaskRecord, seed: int) -> Observation:
+        if task.env_name != self.env_name:
+            raise ValueError(f"task {task.task_id} is for {task.env_name}, this environment is {self.env_name}")
+        variations = self.benchmark.train_tasks
+        self.env.set_task(variations[seed % len(variations)])
+        state, _ = self.env.reset(seed=seed)
+        return self._observation(state)
+
+    def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:
+        state, reward, _, _, info = self.env.step(to_metaworld_action(np.clip(action, -1.0, 1.0)))
+        return self._observation(state), float(reward), bool(info["success"])
+
+    def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
+        data = self.env.data
+        return data.qpos.copy(), data.qvel.copy(), float(data.time)
+
+    def close(self) -> None:
+        self.env.close()

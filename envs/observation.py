@@ -1,0 +1,24 @@
+"""What every simulator adapter returns, and the action/proprio convention they share.
+
+Manipulation families speak one action space, end-effector deltas and a gripper command:
+(dx, dy, dz, rx, ry, rz, grip) in [-1, 1], grip > 0 closes. Proprio is (eef xyz, eef quat wxyz,
+two gripper coordinates). An adapter maps its simulator's own spaces onto these, so one policy
+trains across families.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+ACTION_DIM = 7
+PROPRIO_DIM = 9
+NO_IMAGE = np.zeros((0, 0, 3), dtype=np.uint8)  # what a camera-less adapter returns
+
+
+@dataclass
+class Observation:
+    image: np.ndarray  # uint8 (H, W, 3), upright; OpenGL rows run bottom-up, adapters flip them
+    proprio: np.ndarray  # float32 (PROPRIO_DIM,)
+    privileged: dict[str, np.ndarray]  # simulator state only scripted experts may read

@@ -1,0 +1,65 @@
+"""Which simulator adapter and which scripted expert serve a task, and whether a spec fits them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from envs.observation import Observation
+from schemas.config import ConfigError, RenderConfig
+from schemas.task_spec import TaskSpec
+from schemas.tasks import TaskRecord
+
+EXPERT_FAMILY = {"pick_place": "robosuite", "metaworld_policy": "metaworld"}
+
+
+def known_envs(family: str) -> list[str]:
+    if family == "robosuite":
+        from envs.robosuite_env import ROBOSUITE_ROLES
+
+        return list(ROBOSUITE_ROLES)
+    from envs.metaworld_env import known_envs as metaworld_envs
+
+    return metaworld_envs()
+
+
+def env_roles(family: str, env_name: str) -> set[str]:
+    if family == "robosuite":
+        from envs.robosuite_env import ROBOSUITE_ROLES
+
+        return set(ROBOSUITE_ROLES[env_name])
+    return set()
+
+
+def check_spec(spec: TaskSpec, origin: str) -> None:
+    """Refuse a spec whose environment, object roles or expert do not exist, naming the field."""
+    envs = known_envs(spec.family)
+    if spec.env not in envs:
+        shown = ", ".join(envs[:6]) + (", ..." if len(envs) > 6 else "")
+        raise ConfigError(f"{origin}: {spec.name}.env: unknown {spec.family} environment {spec.env!r} (known: {shown})")
+    roles = env_roles(spec.family, spec.env)
+    if set(spec.objects) != roles:
+        raise ConfigError(
+            f"{origin}: {spec.name}.objects: {spec.env} has roles {sorted(roles)}, the spec names {sorted(spec.objects)}"
+        )
+    if EXPERT_FAMILY[spec.expert] != spec.family:
+        raise ConfigError(f"{origin}: {spec.name}.expert: {spec.expert} does not drive {spec.family} environments")
+
+
+def make_env(family: str, env_name: str, render: RenderConfig | None):
+    if family == "robosuite":
+        from envs.robosuite_env import RobosuiteEnv
+
+        return RobosuiteEnv(env_name, render)
+    from envs.metaworld_env import MetaWorldEnv
+
+    return MetaWorldEnv(env_name, render)
+
+
+def make_expert(task: TaskRecord, noise: float, rng: np.random.Generator) -> Callable[[Observation], np.ndarray]:
+    from envs.experts import MetaWorldExpert, PickPlaceExpert
+
+    if task.family == "robosuite":
+        return PickPlaceExpert.for_env(task.env_name, noise, rng).act
+    return MetaWorldExpert(task.env_name, noise, rng).act
