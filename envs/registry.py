@@ -11,7 +11,7 @@ from schemas.config import ConfigError, RenderConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import TaskRecord
 
-EXPERT_FAMILY = {"pick_place": "robosuite", "metaworld_policy": "metaworld"}
+EXPERT_FAMILY = {"pick_place": "robosuite", "metaworld_policy": "metaworld", "navigation_planner": "navigation"}
 
 
 def known_envs(family: str) -> list[str]:
@@ -19,6 +19,10 @@ def known_envs(family: str) -> list[str]:
         from envs.robosuite_env import ROBOSUITE_ROLES
 
         return list(ROBOSUITE_ROLES)
+    if family == "navigation":
+        from envs.navigation_env import NAVIGATION_ROLES
+
+        return list(NAVIGATION_ROLES)
     from envs.metaworld_env import known_envs as metaworld_envs
 
     return metaworld_envs()
@@ -29,6 +33,10 @@ def env_roles(family: str, env_name: str) -> set[str]:
         from envs.robosuite_env import ROBOSUITE_ROLES
 
         return set(ROBOSUITE_ROLES[env_name])
+    if family == "navigation":
+        from envs.navigation_env import NAVIGATION_ROLES
+
+        return set(NAVIGATION_ROLES[env_name])
     return set()
 
 
@@ -52,6 +60,10 @@ def make_env(family: str, env_name: str, render: RenderConfig | None):
         from envs.robosuite_env import RobosuiteEnv
 
         return RobosuiteEnv(env_name, render)
+    if family == "navigation":
+        from envs.navigation_env import NavigationEnv
+
+        return NavigationEnv(env_name, render)
     from envs.metaworld_env import MetaWorldEnv
 
     return MetaWorldEnv(env_name, render)
@@ -62,4 +74,8 @@ def make_expert(task: TaskRecord, noise: float, rng: np.random.Generator) -> Cal
 
     if task.family == "robosuite":
         return PickPlaceExpert.for_env(task.env_name, noise, rng).act
+    if task.family == "navigation":
+        from envs.navigation_env import NavigationExpert
+
+        return NavigationExpert(noise, rng).act
     return MetaWorldExpert(task.env_name, noise, rng).act

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from schemas.config import PRESETS, ConfigError, load_config
+from schemas.tasks import FAMILIES
 from schemas.workspace import Workspace
 
 
@@ -47,8 +48,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     overrides = {"iterations": args.iterations} if args.iterations is not None else {}
     config = load_config(args.preset, args.config, overrides)
     from stages.generate_tasks import generate_tasks
+    from stages.train import check_trainable
 
-    generate_tasks(config.tasks, config.seed)  # unknown task ids are refused here, before any work
+    check_trainable(generate_tasks(config.tasks, config.seed))  # refused here, before any work
     workspace = Workspace.at(args.workspace)
     configure_environment(workspace)
     workspace.create()
@@ -154,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)
     listing = task_commands.add_parser("list", help="every task of the suite")
-    listing.add_argument("--family", choices=("robosuite", "metaworld"))
+    listing.add_argument("--family", choices=FAMILIES)
     listing.add_argument("--split", choices=("seen", "unseen"))
     listing.add_argument("--format", choices=("table", "json"), default="table")
     listing.set_defaults(handler=cmd_tasks_list)
@@ -164,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     experts = task_commands.add_parser("experts", help="measure each task's scripted expert, write the table")
     experts.add_argument("--episodes", type=int, default=10)
     experts.add_argument("--noise", type=float, default=0.1, help="expert action noise, as in exploration")
-    experts.add_argument("--family", choices=("robosuite", "metaworld"))
+    experts.add_argument("--family", choices=FAMILIES)
     experts.add_argument("--task", action="append", default=[], help="only these task ids")
     experts.add_argument("--workers", type=int, default=2)
     experts.add_argument("--out", type=Path, default=Path("docs/experts.md"))

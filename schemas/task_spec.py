@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from schemas.config import ConfigError, describe_validation_error
 from schemas.tasks import Colour, Family
 
-BUILTIN_FILES = ("robosuite.yaml", "metaworld.yaml")
+BUILTIN_FILES = ("robosuite.yaml", "metaworld.yaml", "navigation.yaml")
 
 
 class _Strict(BaseModel):
@@ -46,7 +46,7 @@ class TaskSpec(_Strict):
     templates: list[str] = Field(min_length=3, description="language templates; {role} is replaced by its colour")
     success: Literal["env"] = Field(default="env", description="'env': the environment's own success check")
     horizon: int = Field(gt=0)
-    expert: Literal["pick_place", "metaworld_policy"]
+    expert: Literal["pick_place", "metaworld_policy", "navigation_planner"]
     split: SplitSpec = SplitSpec()
 
     @model_validator(mode="after")

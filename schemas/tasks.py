@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -19,7 +19,8 @@ COLOUR_RGBA: dict[str, tuple[float, float, float, float]] = {
 }
 
 Split = Literal["seen", "unseen"]
-Family = Literal["robosuite", "metaworld"]
+Family = Literal["robosuite", "metaworld", "navigation"]
+FAMILIES: tuple[str, ...] = get_args(Family)
 
 
 class TaskRecord(BaseModel):

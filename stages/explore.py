@@ -7,6 +7,7 @@ mix in the redeployed policy. Workers write shards; this process registers them.
 
 from __future__ import annotations
 
+import atexit
 import io
 import logging
 from pathlib import Path
@@ -114,6 +115,13 @@ def plan_explore(
 # -- worker side ------------------------------------------------------------------------------
 
 _ENVS: dict[tuple[str, str, str], object] = {}
+
+
+@atexit.register
+def _close_envs() -> None:
+    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown)."""
+    for env in _ENVS.values():
+        env.close()
 
 
 def worker_env(task: TaskRecord, render: RenderConfig | None):

@@ -17,8 +17,9 @@ from envs.observation import ACTION_DIM, PROPRIO_DIM
 from policies.language import ENCODER_DIMS
 from policies.model import ModelDims, VLAModel, vla_loss
 from policies.policy import Normaliser, save_checkpoint
-from schemas.config import CampaignConfig
+from schemas.config import CampaignConfig, ConfigError
 from schemas.keys import derive_seed, unit_key
+from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages.index import IndexResult
 from warehouse.catalog import Catalog
@@ -36,6 +37,16 @@ class TrainResult(BaseModel):
     samples: int
     history: list[dict[str, float]]  # one entry per epoch (empty when skipped)
     skipped: bool
+
+
+def check_trainable(tasks: list[TaskRecord]) -> None:
+    """The model has the continuous (Gaussian) head only; discrete actions wait for the softmax head."""
+    discrete = sorted({t.spec for t in tasks if t.family == "navigation"})
+    if discrete:
+        raise ConfigError(
+            f"tasks.specs: {discrete[0]} is a navigation task with discrete actions, which campaigns cannot "
+            "train on yet (the softmax head is to come); explore its tasks with `sim2act tasks experts`"
+        )
 
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
