@@ -100,7 +100,10 @@ def redeploy_task(
 
 def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
     """Log what a stage did, right after it, and only when it did work (a re-run adds no points)."""
-    if stage == "explore" and result.episodes:
+    if stage == "generate_tasks" and not result.skipped:
+        tracking.log_metrics(run_id, {"tasks.count": len(result.task_ids), "tasks.proposals_valid": result.proposals_valid,
+                                      **{f"tasks.proposals_rejected.{k}": v for k, v in result.proposals_rejected.items()}})
+    elif stage == "explore" and result.episodes:
         tracking.log_metrics(run_id, {"explore.episodes": result.episodes, "explore.triplets": result.steps})
     elif stage == "filter" and result.reasons:
         total = sum(result.reasons.values())
@@ -134,6 +137,7 @@ def iteration_flow(
     tracking = Tracking(Workspace.at(workspace), config)
     run_id = tracking.iteration_run(campaign_run_id, iteration)
     tasks = generate_tasks_task(workspace, config)
+    _log_stage(tracking, run_id, "generate_tasks", tasks)
     explore = explore_task(workspace, config, iteration, tasks.unit_key, explorer)
     _log_stage(tracking, run_id, "explore", explore)
     filtered = filter_task(workspace, config, iteration, explore.unit_keys)

@@ -24,6 +24,19 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class ProposerConfig(_Strict):
+    """An OpenAI-compatible chat endpoint (Ollama, vLLM, llama.cpp server) that proposes tasks."""
+
+    url: str = Field(pattern=r"^https?://", description="base URL, e.g. http://127.0.0.1:11434/v1")
+    model: str = Field(min_length=1)
+    proposals: PositiveInt = 10
+    timeout_s: float = Field(default=60.0, gt=0)
+    retries: int = Field(default=2, ge=0)
+    temperature: float = Field(default=0.7, ge=0.0, le=2.0)
+    api_key_env: str | None = Field(default=None, description="environment variable holding the API key")
+    fallback_to_templates: bool = Field(default=False, description="if unreachable: templates only, not failure")
+
+
 class TasksConfig(_Strict):
     """Which task specs (schemas/task_specs/*.yaml, plus the user's spec_files) a campaign uses."""
 
@@ -35,6 +48,7 @@ class TasksConfig(_Strict):
     paraphrases: int = Field(default=3, ge=3, description="instructions per task, canonical included")
     include: list[str] | None = Field(default=None, description="keep only these task ids")
     horizon: dict[str, PositiveInt] = Field(default={}, description="per-spec horizon override")
+    proposer: ProposerConfig | None = Field(default=None, description="optional LLM task proposer")
 
 
 class RenderConfig(_Strict):

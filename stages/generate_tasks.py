@@ -34,6 +34,8 @@ class TasksResult(BaseModel):
     task_ids: list[str]
     instructions: int
     skipped: bool
+    proposals_valid: int = 0
+    proposals_rejected: dict[str, int] = {}
 
 
 def _bindings(spec: TaskSpec, allowed: list[str] | None) -> list[dict[str, str]]:
@@ -97,8 +99,10 @@ def suite_tasks(spec_files: list[Path] = (), seed: int = 0) -> list[TaskRecord]:
 
 
 def tasks_unit_key(config: CampaignConfig, tasks: list[TaskRecord]) -> str:
-    """Keyed by the tasks themselves, so editing a spec file makes new tasks."""
-    reads = {"campaign": config.name, "encoder": config.train.model.language_encoder}
+    """Keyed by the template tasks themselves (editing a spec file makes new tasks) and the
+    proposer settings: an LLM is asked once per key, and its answer is what gets registered."""
+    reads = {"campaign": config.name, "encoder": config.train.model.language_encoder,
+             "proposer": config.tasks.proposer}
     return unit_key(STAGE, VERSION, reads, [t.model_dump_json() for t in tasks])
 
 
@@ -108,11 +112,19 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
     catalog = Catalog(workspace.catalog)
     tasks = generate_tasks(config.tasks, config.seed)
     key = tasks_unit_key(config, tasks)
-    ids = [t.task_id for t in tasks]
     if catalog.is_registered(key):
-        log.info("generate_tasks: %d tasks already registered (%s), skipped", len(tasks), key)
+        ids = [t.task_id for t in load_tasks(workspace, key)]
+        log.info("generate_tasks: %d tasks already registered (%s), skipped", len(ids), key)
         return TasksResult(unit_key=key, task_ids=ids, instructions=0, skipped=True)
     started = time.monotonic()
+    proposals = None
+    if config.tasks.proposer is not None:
+        from stages.llm_proposer import propose
+
+        suite = load_specs(config.tasks.spec_files)
+        proposals = propose(config.tasks, {n: suite[n].spec for n in config.tasks.specs}, tasks)
+        tasks = proposals.tasks
+    ids = [t.task_id for t in tasks]
     pairs = [(t.task_id, text) for t in tasks for text in t.instructions]
     encoder = config.train.model.language_encoder
     log.info("generate_tasks: %d tasks, %d instructions; embedding them with %s", len(tasks), len(pairs), encoder)
@@ -148,11 +160,14 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
     ]
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=0,
-        summary={"tasks": len(tasks), "instructions": len(pairs)},
+        summary={"tasks": len(tasks), "instructions": len(pairs),
+                 **({"proposals": proposals.model_dump(exclude={"tasks"})} if proposals else {})},
         wall_s=time.monotonic() - started, shards=[shard], rows={"tasks": rows},
     )
     log.info("generate_tasks: registered %d tasks: %s", len(tasks), ", ".join(ids))
-    return TasksResult(unit_key=key, task_ids=ids, instructions=len(pairs), skipped=False)
+    return TasksResult(unit_key=key, task_ids=ids, instructions=len(pairs), skipped=False,
+                       proposals_valid=proposals.valid if proposals else 0,
+                       proposals_rejected=proposals.rejected if proposals else {})
 
 
 def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:

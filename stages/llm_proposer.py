@@ -1,0 +1,156 @@
+"""Optional LLM task proposer: any OpenAI-compatible chat endpoint proposes tasks over the
+campaign's specs. Every proposal is parsed against the task schema and the spec it names;
+invalid ones are rejected and counted by reason. Proposals of a new colour binding become new
+tasks; proposals of an existing one add paraphrases to it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import urllib.error
+import urllib.request
+from collections import Counter
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from schemas.config import ProposerConfig, TasksConfig
+from schemas.task_spec import TaskSpec
+from schemas.tasks import Colour, TaskRecord
+
+log = logging.getLogger("sim2act.stages.llm_proposer")
+
+
+class ProposerUnavailable(RuntimeError):
+    pass
+
+
+class Proposal(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    spec: str
+    colours: dict[str, Colour] = {}
+    instructions: list[str] = Field(min_length=3)
+
+
+class ProposalOutcome(BaseModel):
+    tasks: list[TaskRecord]
+    new_tasks: int
+    valid: int
+    rejected: dict[str, int]  # reason -> count
+
+
+def build_messages(specs: dict[str, TaskSpec], count: int) -> list[dict[str, str]]:
+    catalogue = [
+        {"spec": s.name, "example": s.templates[0],
+         "roles": {role: obj.colours for role, obj in s.objects.items()}}
+        for s in specs.values()
+    ]
+    return [
+        {"role": "system", "content": (
+            "You propose language-described robot tasks. Answer with JSON only: "
+            '{"tasks": [{"spec": <spec name>, "colours": {<role>: <colour>}, "instructions": [<3 or more '
+            "different ways to say the task, each naming every bound colour>]}]}. Use only the specs, roles and "
+            "colours given; bind distinct colours to distinct roles.")},
+        {"role": "user", "content": f"Propose {count} tasks over these specs:\n{json.dumps(catalogue, indent=1)}"},
+    ]
+
+
+def chat(config: ProposerConfig, messages: list[dict[str, str]]) -> str:
+    """One chat completion; retries on connection errors and 5xx; the answer's message content."""
+    body = json.dumps({"model": config.model, "messages": messages, "temperature": config.temperature,
+                       "response_format": {"type": "json_object"}}).encode()
+    headers = {"Content-Type": "application/json"}
+    if config.api_key_env and os.environ.get(config.api_key_env):
+        headers["Authorization"] = f"Bearer {os.environ[config.api_key_env]}"
+    url = config.url.rstrip("/") + "/chat/completions"
+    last_error = ""
+    for attempt in range(config.retries + 1):
+        request = urllib.request.Request(url, data=body, headers=headers, method="POST")
+        try:
+            with urllib.request.urlopen(request, timeout=config.timeout_s) as response:
+                return json.loads(response.read())["choices"][0]["message"]["content"]
+        except urllib.error.HTTPError as exc:
+            last_error = f"HTTP {exc.code}"
+            if exc.code < 500:
+                break
+        except (urllib.error.URLError, TimeoutError, ConnectionError) as exc:
+            last_error = str(getattr(exc, "reason", exc))
+        except (KeyError, IndexError, json.JSONDecodeError):
+            raise ProposerUnavailable(f"LLM proposer at {url} answered, but not in the chat-completions format")
+        if attempt < config.retries:
+            time.sleep(min(2.0**attempt, 10.0))
+    raise ProposerUnavailable(f"LLM proposer at {url} did not answer ({last_error}) after {config.retries + 1} tries")
+
+
+def _check(proposal: Proposal, specs: dict[str, TaskSpec]) -> str | None:
+    """None if the proposal fits its spec, else the reason it is rejected."""
+    spec = specs.get(proposal.spec)
+    if spec is None:
+        return "unknown_spec"
+    if set(proposal.colours) != set(spec.objects):
+        return "wrong_roles"
+    if any(c not in spec.objects[r].colours for r, c in proposal.colours.items()):
+        return "colour_not_allowed"
+    if len(set(proposal.colours.values())) != len(proposal.colours):
+        return "repeated_colour"
+    if any(c not in text for text in proposal.instructions for c in proposal.colours.values()):
+        return "colour_not_said"
+    return None
+
+
+def merge_proposals(
+    content: str, specs: dict[str, TaskSpec], config: TasksConfig, tasks: list[TaskRecord]
+) -> ProposalOutcome:
+    """Pure: the tasks after adding the valid proposals in `content` (the model's answer)."""
+    rejected: Counter[str] = Counter()
+    try:
+        raw = json.loads(content).get("tasks", [])
+    except (json.JSONDecodeError, AttributeError):
+        return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"not_json": 1})
+    by_id = {t.task_id: t for t in tasks}
+    valid = new = 0
+    for item in raw if isinstance(raw, list) else []:
+        try:
+            proposal = Proposal.model_validate(item)
+        except ValidationError:
+            rejected["schema"] += 1
+            continue
+        reason = _check(proposal, specs)
+        if reason:
+            rejected[reason] += 1
+            continue
+        valid += 1
+        spec = specs[proposal.spec]
+        colours = {role: proposal.colours[role] for role in spec.objects}  # the spec's role order
+        task_id = "-".join([spec.name, *colours.values()])
+        said = [text.strip() for text in proposal.instructions]
+        if task_id in by_id:
+            known = by_id[task_id]
+            extra = [text for text in said if text not in known.instructions]
+            by_id[task_id] = known.model_copy(update={"instructions": known.instructions + extra})
+        else:
+            unseen = set(spec.split.unseen_colours) | set(config.unseen_colours)
+            by_id[task_id] = TaskRecord(
+                task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colours,
+                instructions=list(dict.fromkeys(said)), split="unseen" if unseen & set(colours.values()) else "seen",
+                horizon=config.horizon.get(spec.name, spec.horizon),
+            )
+            new += 1
+    return ProposalOutcome(tasks=list(by_id.values()), new_tasks=new, valid=valid, rejected=dict(rejected))
+
+
+def propose(config: TasksConfig, specs: dict[str, TaskSpec], tasks: list[TaskRecord]) -> ProposalOutcome:
+    proposer = config.proposer
+    try:
+        content = chat(proposer, build_messages(specs, proposer.proposals))
+    except ProposerUnavailable as exc:
+        if not proposer.fallback_to_templates:
+            raise
+        log.warning("%s; tasks.proposer.fallback_to_templates is set: template tasks only", exc)
+        return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"unreachable": 1})
+    outcome = merge_proposals(content, specs, config, tasks)
+    log.info("generate_tasks: the LLM proposed %d valid tasks (%d new), rejected %s",
+             outcome.valid, outcome.new_tasks, outcome.rejected or "none")
+    return outcome
