@@ -14,30 +14,31 @@ from schemas.tasks import TaskRecord
 EXPERT_FAMILY = {"pick_place": "robosuite", "metaworld_policy": "metaworld", "navigation_planner": "navigation"}
 
 
-def known_envs(family: str) -> list[str]:
+def _roles_by_env(family: str) -> dict[str, dict[str, object]] | None:
+    """env -> object roles, for the families whose tasks bind colours to objects."""
     if family == "robosuite":
         from envs.robosuite_env import ROBOSUITE_ROLES
 
-        return list(ROBOSUITE_ROLES)
+        return ROBOSUITE_ROLES
     if family == "navigation":
         from envs.navigation_env import NAVIGATION_ROLES
 
-        return list(NAVIGATION_ROLES)
+        return NAVIGATION_ROLES
+    return None
+
+
+def known_envs(family: str) -> list[str]:
+    roles = _roles_by_env(family)
+    if roles is not None:
+        return list(roles)
     from envs.metaworld_env import known_envs as metaworld_envs
 
     return metaworld_envs()
 
 
 def env_roles(family: str, env_name: str) -> set[str]:
-    if family == "robosuite":
-        from envs.robosuite_env import ROBOSUITE_ROLES
-
-        return set(ROBOSUITE_ROLES[env_name])
-    if family == "navigation":
-        from envs.navigation_env import NAVIGATION_ROLES
-
-        return set(NAVIGATION_ROLES[env_name])
-    return set()
+    roles = _roles_by_env(family)
+    return set(roles[env_name]) if roles is not None else set()
 
 
 def check_spec(spec: TaskSpec, origin: str) -> None:

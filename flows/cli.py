@@ -111,7 +111,7 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_tasks_experts(args: argparse.Namespace) -> int:
-    from stages.expert_table import measure_experts, write_table
+    from stages.expert_table import TARGET, measure_experts, write_table
     from stages.generate_tasks import suite_tasks
 
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -129,8 +129,8 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
     rows = measure_experts(tasks, args.episodes, args.noise, args.workers, report)
     command = "sim2act tasks experts " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "sim2act tasks experts"
     write_table(rows, args.out, command.strip(), args.noise)
-    below = sum(r.success_rate < 0.9 for r in rows)
-    print(f"{len(rows)} tasks, {below} below 90%; table written to {args.out}")
+    below = sum(r.success_rate < TARGET for r in rows)
+    print(f"{len(rows)} tasks, {below} below {TARGET:.0%}; table written to {args.out}")
     return 0
 
 

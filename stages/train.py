@@ -8,7 +8,6 @@ import math
 import time
 
 import numpy as np
-import pyarrow as pa
 import torch
 from pydantic import BaseModel
 from torch.utils.data import DataLoader
@@ -64,15 +63,8 @@ def _collate(samples: list[Sample]) -> dict[str, np.ndarray]:
 
 
 def _normalisers(catalog: Catalog, dataset: IndexResult) -> tuple[Normaliser, Normaliser]:
-    """Action and proprio statistics over exactly the kept steps of the selection. Ordered: a
-    parallel scan returns rows in varying order, and float sums in another order differ in the
-    last bits, which would make a re-trained model differ from the first."""
-    table: pa.Table = catalog.query_arrow(
-        "SELECT action, proprio FROM steps WHERE episode_id IN "
-        "(SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)) "
-        "ORDER BY episode_id, step",
-        [dataset.filter_units],
-    )
+    """Action and proprio statistics over exactly the kept steps of the selection."""
+    table = dataset.selection.kept_steps(catalog, ["action", "proprio"])
     actions = np.asarray(table["action"].to_pylist(), dtype=np.float32)
     proprio = np.asarray(table["proprio"].to_pylist(), dtype=np.float32)
     return Normaliser.fit(actions), Normaliser.fit(proprio)

@@ -5,8 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import pyarrow as pa
+
 from schemas.keys import digest_of
 from warehouse.catalog import Catalog
+
+
+_KEPT = "SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)"
 
 
 @dataclass(frozen=True)
@@ -21,11 +26,16 @@ class Selection:
         return [path for path, _ in catalog.shard_paths("steps", "list_contains(?, unit_key)", [list(self.explore_units)])]
 
     def kept_episode_ids(self, catalog: Catalog) -> set[str]:
-        rows = catalog.query(
-            "SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)",
+        rows = catalog.query(f"SELECT episode_id FROM ({_KEPT})", [list(self.filter_units)])
+        return {row[0] for row in rows}
+
+    def kept_steps(self, catalog: Catalog, columns: list[str]) -> pa.Table:
+        """Columns of the kept steps, in a fixed order: a parallel scan returns rows in varying
+        order, and float sums in another order differ in the last bits."""
+        return catalog.query_arrow(
+            f"SELECT {', '.join(columns)} FROM steps WHERE episode_id IN ({_KEPT}) ORDER BY episode_id, step",
             [list(self.filter_units)],
         )
-        return {row[0] for row in rows}
 
     def digest(self, catalog: Catalog) -> str:
         """Digest of the exact shard files read: same digest, same training data."""
@@ -40,6 +50,7 @@ class Selection:
         [(episodes, kept, triplets)] = catalog.query(
             """
             WITH kept AS (SELECT episode_id FROM filter_decisions WHERE kept AND list_contains($2, filter_key))
+            -- the same selection as _KEPT, with the filter units as the second parameter
             SELECT (SELECT count(*) FROM episodes WHERE list_contains($1, shard_key)),
                    (SELECT count(*) FROM kept),
                    (SELECT count(*) FROM steps WHERE episode_id IN (SELECT episode_id FROM kept))
