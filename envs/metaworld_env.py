@@ -14,6 +14,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.observation import NO_IMAGE, Observation  # noqa: E402
+from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
 
@@ -37,6 +38,10 @@ def from_metaworld_action(action: np.ndarray) -> np.ndarray:
 
 
 class MetaWorldEnv:
+    # Objects keep their size: MetaWorld's scripted policies and success checks assume it.
+    # No colour jitter: its tasks are not told apart by colour.
+    RANDOMISES = (VISUAL_ASPECTS - {"colour_jitter"}) | {"mass", "friction"}
+
     def __init__(self, env_name: str, render: RenderConfig | None):
         """render=None: no camera at all (scripted experts need no pixels)."""
         import metaworld
@@ -46,16 +51,18 @@ class MetaWorldEnv:
         self.benchmark = metaworld.MT1(env_name, seed=BENCHMARK_SEED)
         if render is None:
             self.env = self.benchmark.train_classes[env_name]()
-            return
-        self.env = self.benchmark.train_classes[env_name](
-            render_mode="rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
-            height=render.image_size,
-        )
-        model = self.env.model
-        model.vis.quality.offsamples = render.multisamples  # read when the renderer is created
-        model.vis.global_.offwidth = render.image_size
-        model.vis.global_.offheight = render.image_size
-        self._scene_configured = False
+        else:
+            self.env = self.benchmark.train_classes[env_name](
+                render_mode="rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
+                height=render.image_size,
+            )
+            model = self.env.model
+            model.vis.quality.offsamples = render.multisamples  # read when the renderer is created
+            model.vis.global_.offwidth = render.image_size
+            model.vis.global_.offheight = render.image_size
+            self._scene_configured = False
+        self.randomiser = SceneRandomiser(self.env.model, CAMERAS[render.camera] if render else None,
+                                          task_geoms=[], object_bodies=free_bodies(self.env.model))
 
     def _render(self) -> np.ndarray:
         if self.render_config is None:
@@ -73,11 +80,12 @@ class MetaWorldEnv:
         proprio = np.concatenate([state[:3], IDENTITY_QUAT, [state[3], -state[3]]]).astype(np.float32)
         return Observation(self._render(), proprio, {"state": np.asarray(state, dtype=np.float64)})
 
-    def reset(self, task: TaskRecord, seed: int) -> Observation:
+    def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
         if task.env_name != self.env_name:
             raise ValueError(f"task {task.task_id} is for {task.env_name}, this environment is {self.env_name}")
         variations = self.benchmark.train_tasks
         self.env.set_task(variations[seed % len(variations)])
+        self.randomiser.apply(randomisation)
         state, _ = self.env.reset(seed=seed)
         return self._observation(state)
 

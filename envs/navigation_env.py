@@ -16,6 +16,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.observation import NO_IMAGE, PROPRIO_DIM, Observation  # noqa: E402
+from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
@@ -94,6 +95,9 @@ def room_of(x: float) -> int:
 
 
 class NavigationEnv:
+    # Balls and boxes vary in size; they are static markers, so mass and friction mean nothing.
+    RANDOMISES = VISUAL_ASPECTS | {"size"}
+
     def __init__(self, env_name: str, render: RenderConfig | None):
         self.env_name = env_name
         self.roles = NAVIGATION_ROLES[env_name]
@@ -106,17 +110,23 @@ class NavigationEnv:
             self.camera = CAMERAS[render.camera]
             self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(render.shadows)
             self.renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(render.reflections)
+        coloured = [self.model.geom(f"floor_{i}").id for i in range(ROOMS)] + [
+            self.model.geom(f"{shape}_{j}_geom").id for shape in SHAPES for j in range(OBJECTS_PER_SHAPE)]
+        markers = [self.model.body(f"{shape}_{j}").id for shape in SHAPES for j in range(OBJECTS_PER_SHAPE)]
+        self.randomiser = SceneRandomiser(self.model, CAMERAS[render.camera] if render else None,
+                                          task_geoms=coloured, object_bodies=markers)
 
     # -- episode set-up ---------------------------------------------------------------------
 
-    def _layout(self, task: TaskRecord, rng: np.random.Generator) -> None:
+    def _layout(self, task: TaskRecord, rng: np.random.Generator, randomisation: Randomisation | None) -> None:
         """Room colours and object placements, drawn from the seed around the task's colours."""
         palette = list(COLOUR_RGBA)
         needed_rooms = [c for role, c in task.object_colours.items() if self.roles[role] == "room"]
         others = [c for c in rng.permutation(palette) if c not in needed_rooms]
         self.room_colours = list(rng.permutation(needed_rooms + others[: ROOMS - len(needed_rooms)]))
         for i, colour in enumerate(self.room_colours):
-            self.model.geom_rgba[self.model.geom(f"floor_{i}").id] = np.array(COLOUR_RGBA[colour]) * [0.8, 0.8, 0.8, 1]
+            floor = np.array(COLOUR_RGBA[colour]) * [0.8, 0.8, 0.8, 1]
+            self.model.geom_rgba[self.model.geom(f"floor_{i}").id] = jitter_rgba(floor, randomisation)
         self.objects: dict[tuple[str, str], np.ndarray] = {}
         for shape in SHAPES:
             needed = [c for role, c in task.object_colours.items() if self.roles[role] == shape]
@@ -124,15 +134,17 @@ class NavigationEnv:
             for j, colour in enumerate(colours):
                 position = np.array([rng.uniform(0.6, ROOMS * ROOM_SIZE - 0.6), rng.uniform(0.6, ROOM_SIZE - 0.6)])
                 self.model.body_pos[self.model.body(f"{shape}_{j}").id][:2] = position
-                self.model.geom_rgba[self.model.geom(f"{shape}_{j}_geom").id] = COLOUR_RGBA[colour]
+                self.model.geom_rgba[self.model.geom(f"{shape}_{j}_geom").id] = jitter_rgba(COLOUR_RGBA[colour],
+                                                                                            randomisation)
                 self.objects[(shape, colour)] = position
 
-    def reset(self, task: TaskRecord, seed: int) -> Observation:
+    def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
         if task.env_name != self.env_name:
             raise ValueError(f"task {task.task_id} is for {task.env_name}, this environment is {self.env_name}")
         rng = np.random.default_rng(seed)
         self.task = task
-        self._layout(task, rng)
+        self.randomiser.apply(randomisation)
+        self._layout(task, rng, randomisation)
         mujoco.mj_resetData(self.model, self.data)
         self.stage = 0  # index of the goal being pursued (RoomSequence has two)
         while True:  # start away from the first goal, so no episode succeeds on its first step
@@ -188,6 +200,11 @@ class NavigationEnv:
         image = NO_IMAGE
         if self.renderer is not None:
             self.renderer.update_scene(self.data, camera=self.camera)
+            # Renderer.render() makes its context current but does not re-select the offscreen
+            # buffer; after another simulator's renderer (robosuite's) drew in this process it
+            # would read back black frames.
+            self.renderer._gl_context.make_current()
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.renderer._mjr_context)
             image = self.renderer.render().copy()
         x, y, yaw = self.data.qpos[:3]
         proprio = np.zeros(PROPRIO_DIM, dtype=np.float32)

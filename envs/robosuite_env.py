@@ -21,6 +21,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.observation import NO_IMAGE, Observation  # noqa: E402
+from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
@@ -37,6 +38,8 @@ PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 class RobosuiteEnv:
     """One robosuite environment, recoloured per task, rendered with the campaign's settings."""
+
+    RANDOMISES = frozenset(ASPECTS)
 
     def __init__(self, env_name: str, render: RenderConfig | None):
         """render=None: no camera at all (scripted experts need no pixels; 8x faster on CPU)."""
@@ -66,6 +69,11 @@ class RobosuiteEnv:
         )
         if render is not None:
             self._apply_render_settings()
+        model = self.env.sim.model._model
+        self.randomiser = SceneRandomiser(
+            model, render.camera if render else None,
+            task_geoms=[model.geom(visual).id for _, visual in self.roles.values()], object_bodies=free_bodies(model),
+        )
 
     def _apply_render_settings(self) -> None:
         model = self.env.sim.model
@@ -79,21 +87,27 @@ class RobosuiteEnv:
         context.scn.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(self.render_config.shadows)
         context.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.render_config.reflections)
 
-    def _apply_colours(self, task: TaskRecord) -> None:
-        model = self.env.sim.model
+    def _apply_colours(self, task: TaskRecord, randomisation: Randomisation | None) -> None:
+        model = self.env.sim.model._model
         for role, colour in task.object_colours.items():
-            geom_id = model.geom_name2id(self.roles[role][1])
-            model._model.geom_matid[geom_id] = -1  # drop the wood texture: the colour is the cue
-            model._model.geom_rgba[geom_id] = COLOUR_RGBA[colour]
+            geom_id = model.geom(self.roles[role][1]).id
+            model.geom_matid[geom_id] = -1  # drop the wood texture: the colour is the cue
+            model.geom_rgba[geom_id] = jitter_rgba(COLOUR_RGBA[colour], randomisation)
 
-    def reset(self, task: TaskRecord, seed: int) -> Observation:
+    def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
         if task.env_name != self.env_name:
             raise ValueError(f"task {task.task_id} is for {task.env_name}, this environment is {self.env_name}")
         # robosuite samples placements from env.rng (shared with its placement sampler): reseed it in place.
         self.env.rng.bit_generator.state = np.random.default_rng(seed).bit_generator.state
         np.random.seed(seed)
-        self._apply_colours(task)
-        return self._observation(self.env.reset())
+        self.randomiser.apply(randomisation)
+        self._apply_colours(task, randomisation)
+        raw = self.env.reset()
+        if randomisation is not None and randomisation.size is not None:
+            # robosuite places objects at their nominal height; rest resized ones on the table
+            self.randomiser.rest_on_support(self.env.sim.data._data, randomisation)
+            raw = self.env._get_observations(force_update=True)
+        return self._observation(raw)
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:
         raw, reward, _, _ = self.env.step(np.clip(action, -1.0, 1.0))

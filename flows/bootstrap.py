@@ -15,8 +15,9 @@ from pydantic import BaseModel
 
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
+from schemas.tasks import UNSEEN_PARAPHRASE
 from schemas.workspace import Workspace
-from stages.evaluate import EvaluateResult, run_evaluate
+from stages.evaluate import EvaluateResult, TaskEvaluation, run_evaluate
 from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
 from stages.generate_tasks import TasksResult, load_embeddings, load_tasks, run_generate_tasks
@@ -38,14 +39,16 @@ class IterationOutcome(BaseModel):
     dataset: IndexResult
     model_key: str
     champion: PolicyExplorer
-    success: dict[str, float]  # task_id -> success rate
-    seen_success: float
-    unseen_success: float | None
+    success: dict[str, float]  # task_id -> success rate, said canonically
+    split_success: dict[str, float]  # seen / unseen / unseen_paraphrase -> mean over its tasks
     stages_run: int  # how many stages did any work; 0 on a finished re-run
 
 
-def _mean(values: list[float]) -> float | None:
-    return sum(values) / len(values) if values else None
+def _split_success(evaluation: EvaluateResult) -> dict[str, float]:
+    by_split: dict[str, list[float]] = {}
+    for t in evaluation.tasks:
+        by_split.setdefault(t.split, []).append(t.success_rate)
+    return {split: sum(rates) / len(rates) for split, rates in sorted(by_split.items())}
 
 
 @stage_task(name="generate_tasks")
@@ -119,10 +122,14 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -
         for epoch, record in enumerate(result.history):
             tracking.log_metrics(run_id, {f"train.{k}": v for k, v in record.items()}, step=epoch)
     elif stage == "evaluate" and result.skipped_units < len(result.tasks):
-        tracking.log_metrics(run_id, {f"success.{t.task_id}": t.success_rate for t in result.tasks})
+        tracking.log_metrics(run_id, {_success_metric(t): t.success_rate for t in result.tasks})
         for t in result.tasks:
             if t.media_path:
                 tracking.log_artifact(run_id, t.media_path, f"evaluation/{t.task_id}")
+
+
+def _success_metric(t: TaskEvaluation) -> str:
+    return f"success.{t.task_id}" + (".paraphrase" if t.split == UNSEEN_PARAPHRASE else "")
 
 
 @flow(name="bootstrap-iteration", flow_run_name="{config.name}-iteration-{iteration}")
@@ -152,15 +159,14 @@ def iteration_flow(
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
     tracking.finish(run_id)
-    success = {t.task_id: t.success_rate for t in evaluation.tasks}
+    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split != UNSEEN_PARAPHRASE}
     stages_run = sum([
         not tasks.skipped, explore.skipped_units < len(explore.unit_keys), filtered.skipped_units < len(filtered.unit_keys),
         not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,
     ])
     return IterationOutcome(
         iteration=iteration, dataset=index, model_key=model.model_key, champion=deployment.champion, success=success,
-        seen_success=_mean([t.success_rate for t in evaluation.tasks if t.split == "seen"]) or 0.0,
-        unseen_success=_mean([t.success_rate for t in evaluation.tasks if t.split == "unseen"]),
+        split_success=_split_success(evaluation),
         stages_run=stages_run,
     )
 
@@ -182,20 +188,16 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
     for iteration in range(config.iterations):
         outcome = iteration_flow(config, iteration, str(ws.root), campaign_run_id, previous, explorer)
         tracking.log_metrics(
-            campaign_run_id,
-            {"success.seen": outcome.seen_success,
-             **({"success.unseen": outcome.unseen_success} if outcome.unseen_success is not None else {})},
-            step=iteration,
+            campaign_run_id, {f"success.{split}": rate for split, rate in outcome.split_success.items()}, step=iteration
         )
         outcomes.append(outcome)
         previous, explorer = outcome.dataset, outcome.champion
     tracking.finish(campaign_run_id)
     for outcome in outcomes:
-        unseen = "n/a" if outcome.unseen_success is None else f"{outcome.unseen_success:.0%}"
+        success = ", ".join(f"{split} {rate:.0%}" for split, rate in outcome.split_success.items())
         log.info(
-            "iteration %d: %d triplets in the dataset, success seen %.0f%% unseen %s, model %s, stages that ran: %d/7",
-            outcome.iteration, outcome.dataset.triplets, 100 * outcome.seen_success, unseen, outcome.model_key,
-            outcome.stages_run,
+            "iteration %d: %d triplets in the dataset, success %s, model %s, stages that ran: %d/7",
+            outcome.iteration, outcome.dataset.triplets, success, outcome.model_key, outcome.stages_run,
         )
     log.info("campaign %s done in %.1fs; workspace %s", config.name, time.monotonic() - started, ws.root)
     return outcomes

@@ -50,8 +50,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     from stages.generate_tasks import generate_tasks
     from stages.train import check_trainable
 
+    from warehouse.catalog import Catalog
+
     check_trainable(generate_tasks(config.tasks, config.seed))  # refused here, before any work
     workspace = Workspace.at(args.workspace)
+    Catalog(workspace.catalog).check_version()
     configure_environment(workspace)
     workspace.create()
     print(
@@ -126,9 +129,12 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
     def report(row) -> None:
         print(f"[{next(done)}/{len(tasks)}] {row.task_id}: {row.successes}/{row.episodes}", flush=True)
 
-    rows = measure_experts(tasks, args.episodes, args.noise, args.workers, report)
+    from schemas.config import RandomiseConfig
+
+    randomise = RandomiseConfig(enabled=not args.no_randomise)
+    rows = measure_experts(tasks, args.episodes, args.noise, randomise, args.workers, report)
     command = "sim2act tasks experts " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "sim2act tasks experts"
-    write_table(rows, args.out, command.strip(), args.noise)
+    write_table(rows, args.out, command.strip(), args.noise, randomise.enabled)
     below = sum(r.success_rate < TARGET for r in rows)
     print(f"{len(rows)} tasks, {below} below {TARGET:.0%}; table written to {args.out}")
     return 0
@@ -166,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     experts = task_commands.add_parser("experts", help="measure each task's scripted expert, write the table")
     experts.add_argument("--episodes", type=int, default=10)
     experts.add_argument("--noise", type=float, default=0.1, help="expert action noise, as in exploration")
+    experts.add_argument("--no-randomise", action="store_true", help="nominal scenes, no domain randomisation")
     experts.add_argument("--family", choices=FAMILIES)
     experts.add_argument("--task", action="append", default=[], help="only these task ids")
     experts.add_argument("--workers", type=int, default=2)
@@ -196,10 +203,10 @@ def main(argv: list[str] | None = None) -> int:
         print("sim2act: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     except Exception as exc:  # a known failure mode gets one line, not a traceback
-        from warehouse.catalog import CatalogMissing
+        from warehouse.catalog import CatalogMissing, CatalogVersionError
         from warehouse.sql import ReadOnlyViolation
 
-        if isinstance(exc, (CatalogMissing, ReadOnlyViolation)):
+        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

@@ -63,6 +63,35 @@ class RenderConfig(_Strict):
     multisamples: int = Field(default=0, ge=0, le=16)
 
 
+Scale = tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]
+
+
+class RandomiseConfig(_Strict):
+    """Domain randomisation, drawn per episode from its seed and recorded with the episode.
+
+    Scales multiply the simulator's own value; each adapter applies the parts that mean
+    something for it (a navigation ball has no mass that matters) and records the others as null.
+    """
+
+    enabled: bool = True
+    light: Scale = Field(default=(0.6, 1.4), description="diffuse light intensity scale")
+    camera_shift_m: float = Field(default=0.02, ge=0, le=0.2, description="max camera offset per axis, metres")
+    camera_rotation_deg: float = Field(default=2.0, ge=0, le=15, description="max camera rotation per axis")
+    tint: float = Field(default=0.15, ge=0, lt=1, description="max per-channel scale change of scene colours")
+    colour_jitter: float = Field(default=0.05, ge=0, le=0.2, description="max RGB offset of task object colours")
+    size: Scale = Field(default=(0.9, 1.1), description="object size scale")
+    mass: Scale = Field(default=(0.75, 1.25), description="object mass scale")
+    friction: Scale = Field(default=(0.75, 1.25), description="object sliding friction scale")
+
+    @model_validator(mode="after")
+    def _ranges_ordered(self) -> RandomiseConfig:
+        for name in ("light", "size", "mass", "friction"):
+            low, high = getattr(self, name)
+            if low > high:
+                raise ValueError(f"{name}: low {low} is above high {high}")
+        return self
+
+
 class ExploreConfig(_Strict):
     episodes_per_task: PositiveInt = 8
     episodes_per_shard: PositiveInt = 4
@@ -127,6 +156,7 @@ class CampaignConfig(_Strict):
     iterations: PositiveInt = 2
     tasks: TasksConfig = TasksConfig()
     render: RenderConfig = RenderConfig()
+    randomise: RandomiseConfig = RandomiseConfig()
     explore: ExploreConfig = ExploreConfig()
     filter: FilterConfig = FilterConfig()
     train: TrainConfig = TrainConfig()

@@ -9,6 +9,21 @@ from __future__ import annotations
 
 import pyarrow as pa
 
+# One episode's domain randomisation (envs.randomisation): null where its family does not apply
+# an aspect; the whole struct is null when the campaign turned randomisation off.
+RANDOMISATION = pa.struct(
+    [
+        ("light", pa.float32()),
+        ("camera_shift", pa.list_(pa.float32())),
+        ("camera_rotation_deg", pa.list_(pa.float32())),
+        ("tint", pa.list_(pa.float32())),
+        ("colour_jitter", pa.list_(pa.float32())),
+        ("size", pa.float32()),
+        ("mass", pa.float32()),
+        ("friction", pa.float32()),
+    ]
+)
+
 EPISODES = pa.schema(
     [
         ("campaign", pa.string()),
@@ -23,6 +38,7 @@ EPISODES = pa.schema(
         ("episode_return", pa.float64()),
         ("success", pa.bool_()),
         ("error", pa.string()),  # null, or why the environment failed mid-episode
+        ("randomisation", RANDOMISATION),
     ]
 )
 
@@ -88,7 +104,8 @@ CREATE TABLE IF NOT EXISTS shards (
     num_rows BIGINT, num_bytes BIGINT, sha256 VARCHAR, schema_version INTEGER);
 CREATE TABLE IF NOT EXISTS tasks (
     campaign VARCHAR, task_id VARCHAR, spec VARCHAR, family VARCHAR, env_name VARCHAR, instruction VARCHAR,
-    instructions VARCHAR[], object_colours JSON, split VARCHAR, horizon INTEGER, unit_key VARCHAR,
+    instructions VARCHAR[], unseen_instructions VARCHAR[], object_colours JSON, split VARCHAR, horizon INTEGER,
+    unit_key VARCHAR,
     PRIMARY KEY (unit_key, task_id));
 CREATE TABLE IF NOT EXISTS iterations (
     unit_key VARCHAR PRIMARY KEY, campaign VARCHAR, iteration INTEGER, dataset_digest VARCHAR,
@@ -102,7 +119,7 @@ CREATE TABLE IF NOT EXISTS deployments (
     champion_model_key VARCHAR, mlflow_run_id VARCHAR);
 CREATE TABLE IF NOT EXISTS evaluations (
     unit_key VARCHAR PRIMARY KEY, campaign VARCHAR, iteration INTEGER, model_key VARCHAR, task_id VARCHAR,
-    split VARCHAR, episodes INTEGER, successes INTEGER, success_rate DOUBLE, mean_return DOUBLE,
+    split VARCHAR, instruction VARCHAR, episodes INTEGER, successes INTEGER, success_rate DOUBLE, mean_return DOUBLE,
     mean_length DOUBLE, media_path VARCHAR);
 """
 

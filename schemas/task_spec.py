@@ -32,10 +32,12 @@ class ObjectSpec(_Strict):
 
 
 class SplitSpec(_Strict):
-    """What is held out: any binding that uses an unseen colour, or whole tasks by id."""
+    """What is held out: any binding that uses an unseen colour, whole tasks by id, and ways of
+    saying a task (templates never explored or trained on, only evaluated)."""
 
     unseen_colours: list[Colour] = []
     unseen_tasks: list[str] = []
+    unseen_templates: list[str] = []
 
 
 class TaskSpec(_Strict):
@@ -51,11 +53,14 @@ class TaskSpec(_Strict):
 
     @model_validator(mode="after")
     def _templates_name_roles(self) -> TaskSpec:
-        for template in self.templates:
+        for template in [*self.templates, *self.split.unseen_templates]:
             fields = {name for _, name, _, _ in string.Formatter().parse(template) if name}
             unknown = sorted(fields - set(self.objects))
             if unknown:
                 raise ValueError(f"template {template!r} names {unknown}, which are not in objects")
+        shared = sorted(set(self.templates) & set(self.split.unseen_templates))
+        if shared:
+            raise ValueError(f"template {shared[0]!r} is both seen and held out (split.unseen_templates)")
         return self
 
 

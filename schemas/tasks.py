@@ -19,6 +19,8 @@ COLOUR_RGBA: dict[str, tuple[float, float, float, float]] = {
 }
 
 Split = Literal["seen", "unseen"]
+# Evaluations add a third: a seen task said with one of its held-out paraphrases.
+UNSEEN_PARAPHRASE = "unseen_paraphrase"
 Family = Literal["robosuite", "metaworld", "navigation"]
 FAMILIES: tuple[str, ...] = get_args(Family)
 
@@ -36,6 +38,7 @@ class TaskRecord(BaseModel):
     object_colours: dict[str, Colour]
     instructions: list[str] = Field(min_length=3, description="first is canonical, the rest paraphrases")
     split: Split
+    unseen_instructions: list[str] = Field(default=[], description="held-out paraphrases, for evaluation only")
     horizon: int = Field(gt=0)
 
     @property

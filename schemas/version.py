@@ -1,3 +1,7 @@
-"""Version of the warehouse layout and of every table schema; written into each shard's metadata."""
+"""Version of the warehouse layout and of every table schema; written into each shard's metadata.
 
-SCHEMA_VERSION = 1
+2: episodes.randomisation (per-episode domain randomisation); tasks.unseen_instructions and
+   evaluations.instruction (held-out paraphrases).
+"""
+
+SCHEMA_VERSION = 2

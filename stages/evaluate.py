@@ -1,5 +1,6 @@
-"""evaluate: roll the trained policy out on every task, seen and unseen; success per task goes
-to the warehouse `evaluations` table, with a GIF of the first episode."""
+"""evaluate: roll the trained policy out on every task, seen and unseen, said canonically; and
+on each seen task said with a held-out paraphrase (split `unseen_paraphrase`). Success per
+(task, instruction) goes to the warehouse `evaluations` table, with a GIF of the first episode."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from schemas.config import CampaignConfig, RenderConfig
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
-from schemas.tasks import TaskRecord
+from schemas.tasks import UNSEEN_PARAPHRASE, TaskRecord
 from schemas.workspace import Workspace
 from stages.explore import rollout, worker_env
 from stages.pool import Progress, run_in_pool
@@ -24,16 +25,20 @@ log = logging.getLogger("sim2act.stages.evaluate")
 class EvalUnit(BaseModel):
     unit_key: str
     task: TaskRecord
+    split: str
+    instruction: str
     render: RenderConfig
+    randomise: RandomiseConfig
     checkpoint: str
     seeds: list[int]
-    embedding: list[float]  # of the canonical instruction
+    embedding: list[float]  # of the instruction
     gif_path: str | None
 
 
 class TaskEvaluation(BaseModel):
     task_id: str
     split: str
+    instruction: str
     episodes: int
     successes: int
     mean_return: float
@@ -55,6 +60,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     """Worker: the policy's mean action, episodes until success or the horizon."""
     import imageio.v3 as iio
 
+    from envs.randomisation import sample_randomisation
     from policies.policy import Policy
 
     policy = Policy.load(Path(unit.checkpoint))
@@ -63,7 +69,8 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     successes, returns, lengths = 0, [], []
     for index, seed in enumerate(unit.seeds):
         rows, final_image, success = rollout(
-            env, unit.task, seed, lambda obs: policy.act(obs.image, obs.proprio, embedding)
+            env, unit.task, seed, lambda obs: policy.act(obs.image, obs.proprio, embedding),
+            sample_randomisation(unit.randomise, seed, env.RANDOMISES),
         )
         successes += success
         returns.append(sum(r["reward"] for r in rows))
@@ -75,9 +82,18 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
             iio.imwrite(tmp, frames, duration=50, loop=0)
             tmp.replace(unit.gif_path)
     return TaskEvaluation(
-        task_id=unit.task.task_id, split=unit.task.split, episodes=len(unit.seeds), successes=successes,
+        task_id=unit.task.task_id, split=unit.split, instruction=unit.instruction, episodes=len(unit.seeds), successes=successes,
         mean_return=float(np.mean(returns)), mean_length=float(np.mean(lengths)), media_path=unit.gif_path,
     )
+
+
+def evaluation_cases(tasks: list[TaskRecord]) -> list[tuple[TaskRecord, str, str]]:
+    """(task, split, instruction): every task said canonically, and every seen task that has
+    held-out paraphrases said with the first of them (same seeds, so only the words differ)."""
+    cases = [(task, task.split, task.instruction) for task in tasks]
+    cases += [(task, UNSEEN_PARAPHRASE, task.unseen_instructions[0])
+              for task in tasks if task.split == "seen" and task.unseen_instructions]
+    return cases
 
 
 def run_evaluate(
@@ -91,14 +107,16 @@ def run_evaluate(
 ) -> EvaluateResult:
     catalog = Catalog(workspace.catalog)
     units = []
-    for task in tasks:
-        key = unit_key(STAGE, VERSION, {"evaluate": config.evaluate.model_dump(exclude={"workers"}),
-                                        "render": config.render}, [model_key, task.model_dump_json()])
+    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers"}), "render": config.render,
+             "randomise": config.randomise}
+    for task, split, instruction in evaluation_cases(tasks):
+        key = unit_key(STAGE, VERSION, reads, [model_key, task.model_dump_json(), instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)
                  for e in range(config.evaluate.episodes_per_task)]
         gif = str(workspace.media / f"{key}.gif") if config.evaluate.gif else None
-        units.append(EvalUnit(unit_key=key, task=task, render=config.render, checkpoint=checkpoint, seeds=seeds,
-                              embedding=embeddings[task.instruction].tolist(), gif_path=gif))
+        units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
+                              randomise=config.randomise, checkpoint=checkpoint, seeds=seeds,
+                              embedding=embeddings[instruction].tolist(), gif_path=gif))
     done = catalog.registered_keys([u.unit_key for u in units])
     todo = [u for u in units if u.unit_key not in done]
     log.info("evaluate it%d: %d tasks (%d already evaluated), %d episodes each",
@@ -112,16 +130,16 @@ def run_evaluate(
         catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
                               summary=result.model_dump(), wall_s=seconds, rows={"evaluations": [row]})
         progress.advance(result.episodes)
-        log.info("evaluate it%d: %s (%s) success %d/%d", iteration, result.task_id, result.split,
-                 result.successes, result.episodes)
+        log.info("evaluate it%d: %s (%s, %r) success %d/%d", iteration, result.task_id, result.split,
+                 result.instruction, result.successes, result.episodes)
     rows = catalog.query(
-        "SELECT task_id, split, episodes, successes, mean_return, mean_length, media_path FROM evaluations "
-        "WHERE list_contains(?, unit_key) ORDER BY task_id",
+        "SELECT task_id, split, instruction, episodes, successes, mean_return, mean_length, media_path "
+        "FROM evaluations WHERE list_contains(?, unit_key) ORDER BY task_id, split",
         [[u.unit_key for u in units]],
     )
     evaluations = [
-        TaskEvaluation(task_id=r[0], split=r[1], episodes=r[2], successes=r[3], mean_return=r[4], mean_length=r[5],
-                       media_path=r[6])
+        TaskEvaluation(task_id=r[0], split=r[1], instruction=r[2], episodes=r[3], successes=r[4], mean_return=r[5],
+                       mean_length=r[6], media_path=r[7])
         for r in rows
     ]
     return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=len(done))

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
+from schemas.config import RandomiseConfig
 from schemas.keys import derive_seed
 from schemas.tasks import TaskRecord
 from stages.explore import rollout, worker_env
@@ -21,6 +22,7 @@ class ExpertCheck(BaseModel):
     task: TaskRecord
     episodes: int
     noise: float
+    randomise: RandomiseConfig
 
 
 class ExpertRow(BaseModel):
@@ -38,21 +40,25 @@ class ExpertRow(BaseModel):
 
 def check_expert(check: ExpertCheck) -> ExpertRow:
     """Worker: the expert's episodes on one task, without a camera."""
+    from envs.randomisation import sample_randomisation
     from envs.registry import make_expert
 
     env = worker_env(check.task, None)
     successes, lengths = 0, []
     for episode in range(check.episodes):
         seed = derive_seed("expert-check", check.task.task_id, episode)
-        rows, _, success = rollout(env, check.task, seed, make_expert(check.task, check.noise, np.random.default_rng(seed)))
+        expert = make_expert(check.task, check.noise, np.random.default_rng(seed))
+        randomisation = sample_randomisation(check.randomise, seed, env.RANDOMISES)
+        rows, _, success = rollout(env, check.task, seed, expert, randomisation)
         successes += success
         lengths.append(len(rows))
     return ExpertRow(task_id=check.task.task_id, family=check.task.family, split=check.task.split,
                      episodes=check.episodes, successes=successes, mean_length=float(np.mean(lengths)))
 
 
-def measure_experts(tasks: list[TaskRecord], episodes: int, noise: float, workers: int, progress=None) -> list[ExpertRow]:
-    checks = [ExpertCheck(task=t, episodes=episodes, noise=noise) for t in tasks]
+def measure_experts(tasks: list[TaskRecord], episodes: int, noise: float, randomise: RandomiseConfig, workers: int,
+                    progress=None) -> list[ExpertRow]:
+    checks = [ExpertCheck(task=t, episodes=episodes, noise=noise, randomise=randomise) for t in tasks]
     rows = []
     for _, row, _ in run_in_pool(check_expert, checks, workers):
         rows.append(row)
@@ -62,12 +68,13 @@ def measure_experts(tasks: list[TaskRecord], episodes: int, noise: float, worker
     return sorted(rows, key=lambda r: order[r.task_id])
 
 
-def markdown(rows: list[ExpertRow], command: str, noise: float) -> str:
+def markdown(rows: list[ExpertRow], command: str, noise: float, randomised: bool) -> str:
     below = [r for r in rows if r.success_rate < TARGET]
     lines = [
         "# Scripted expert success per task",
         "",
         f"Made by `{command}` on {datetime.date.today().isoformat()}, expert action noise σ={noise}, "
+        f"{'the default domain randomisation (RandomiseConfig)' if randomised else 'no domain randomisation'}, "
         f"episode seeds derived per task. Target: ≥{TARGET:.0%}; {len(below)} of {len(rows)} tasks are below "
         "and are flagged here.",
         "",
@@ -81,8 +88,8 @@ def markdown(rows: list[ExpertRow], command: str, noise: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_table(rows: list[ExpertRow], path: Path, command: str, noise: float) -> None:
+def write_table(rows: list[ExpertRow], path: Path, command: str, noise: float, randomised: bool) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(markdown(rows, command, noise))
+    tmp.write_text(markdown(rows, command, noise, randomised))
     tmp.replace(path)

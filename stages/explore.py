@@ -17,7 +17,7 @@ import pyarrow as pa
 from PIL import Image
 from pydantic import BaseModel
 
-from schemas.config import CampaignConfig, RenderConfig
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
@@ -53,6 +53,7 @@ class ExploreUnit(BaseModel):
     iteration: int
     task: TaskRecord
     render: RenderConfig
+    randomise: RandomiseConfig
     expert_noise: float
     episodes: list[EpisodePlan]
     policy: PolicyExplorer | None
@@ -85,7 +86,7 @@ def plan_explore(
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
-        "explore": explore.model_dump(exclude={"workers"}), "policy": policy.model_key if policy else None,
+        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers"}), "policy": policy.model_key if policy else None,
     }
     units = []
     for task in (t for t in tasks if t.split == "seen"):
@@ -105,7 +106,7 @@ def plan_explore(
             units.append(
                 ExploreUnit(
                     unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
-                    task=task, render=config.render, expert_noise=explore.expert_noise, episodes=episodes,
+                    task=task, render=config.render, randomise=config.randomise, expert_noise=explore.expert_noise, episodes=episodes,
                     policy=policy, embeddings={text: embeddings[text].tolist() for text in said},
                 )
             )
@@ -134,9 +135,9 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     return _ENVS[key]
 
 
-def rollout(env, task: TaskRecord, seed: int, act) -> tuple[list[dict], np.ndarray, bool]:
+def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[list[dict], np.ndarray, bool]:
     """Run one episode until success or the horizon. -> (step rows, final image, success)."""
-    obs = env.reset(task, seed)
+    obs = env.reset(task, seed, randomisation)
     rows, success = [], False
     for step in range(task.horizon):
         qpos, qvel, sim_time = env.mujoco_state()
@@ -167,6 +168,8 @@ def _actor(unit: ExploreUnit, plan: EpisodePlan, policy):
 
 def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     """Worker: roll out the unit's episodes and write its episodes and steps shards."""
+    from envs.randomisation import sample_randomisation
+
     policy = None
     if unit.policy is not None:
         from policies.policy import Policy
@@ -177,8 +180,9 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     common = {"campaign": unit.campaign, "iteration": unit.iteration, "task_id": unit.task.task_id}
     for plan in unit.episodes:
         error = None
+        randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
         try:
-            rows, final_image, success = rollout(env, unit.task, plan.seed, _actor(unit, plan, policy))
+            rows, final_image, success = rollout(env, unit.task, plan.seed, _actor(unit, plan, policy), randomisation)
         except Exception as exc:  # a simulator failure marks the episode, not the shard
             rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         for row in rows:
@@ -192,6 +196,7 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
                 **common, "episode_id": plan.episode_id, "instruction": plan.instruction, "explorer": plan.explorer,
                 "seed": plan.seed, "shard_key": unit.unit_key, "num_steps": len(rows),
                 "episode_return": float(sum(r["reward"] for r in rows)), "success": success, "error": error,
+                "randomisation": randomisation.model_dump() if randomisation else None,
             }
         )
     workspace = Workspace.at(unit.workspace)

@@ -62,6 +62,7 @@ def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int) -> list[TaskReco
                 task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colouring,
                 instructions=[spec.templates[i].format(**colouring) for i in order[: config.paraphrases]],
                 split="unseen" if unseen else "seen", horizon=config.horizon.get(spec.name, spec.horizon),
+                unseen_instructions=[template.format(**colouring) for template in spec.split.unseen_templates],
             )
         )
     return tasks
@@ -125,7 +126,7 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
         proposals = propose(config.tasks, {n: suite[n].spec for n in config.tasks.specs}, tasks)
         tasks = proposals.tasks
     ids = [t.task_id for t in tasks]
-    pairs = [(t.task_id, text) for t in tasks for text in t.instructions]
+    pairs = [(t.task_id, text) for t in tasks for text in [*t.instructions, *t.unseen_instructions]]
     encoder = config.train.model.language_encoder
     log.info("generate_tasks: %d tasks, %d instructions; embedding them with %s", len(tasks), len(pairs), encoder)
     embeddings = encode(encoder, [text for _, text in pairs])
@@ -151,6 +152,7 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
             "env_name": t.env_name,
             "instruction": t.instruction,
             "instructions": t.instructions,
+            "unseen_instructions": t.unseen_instructions,
             "object_colours": json.dumps(t.object_colours),
             "split": t.split,
             "horizon": t.horizon,
@@ -172,14 +174,15 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
 
 def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:
     rows = Catalog(workspace.catalog).query(
-        "SELECT task_id, spec, family, env_name, object_colours, instructions, split, horizon FROM tasks "
+        "SELECT task_id, spec, family, env_name, object_colours, instructions, split, horizon, unseen_instructions "
+        "FROM tasks "
         "WHERE unit_key = ? ORDER BY task_id",
         [task_unit_key],
     )
     return [
         TaskRecord(
             task_id=r[0], spec=r[1], family=r[2], env_name=r[3], object_colours=json.loads(r[4]),
-            instructions=list(r[5]), split=r[6], horizon=r[7],
+            instructions=list(r[5]), split=r[6], horizon=r[7], unseen_instructions=list(r[8]),
         )
         for r in rows
     ]

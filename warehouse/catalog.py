@@ -29,6 +29,10 @@ class CatalogMissing(FileNotFoundError):
     pass
 
 
+class CatalogVersionError(RuntimeError):
+    """The warehouse was written by another layout version; nothing is touched."""
+
+
 def _is_lock_error(exc: Exception) -> bool:
     return "lock" in str(exc).lower()
 
@@ -60,6 +64,7 @@ class Catalog:
     # -- writer side -----------------------------------------------------------------------
 
     def initialise(self) -> None:
+        self.check_version()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.connect() as con:
             con.execute(CATALOG_DDL)
@@ -71,6 +76,21 @@ class Catalog:
                 con.execute(f"CREATE TABLE IF NOT EXISTS _empty_{name} AS SELECT * FROM empty_shard")
                 con.unregister("empty_shard")
             self._refresh_views(con)
+
+    def check_version(self) -> None:
+        """Refuse a warehouse of another layout version, before any work (no-op if none exists)."""
+        if not self.path.exists():
+            return
+        with self.connect(read_only=True) as con:
+            if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
+                return  # a first initialise that did not finish
+            stamped = con.execute("SELECT value FROM catalog_meta WHERE key = 'schema_version'").fetchone()
+        if stamped is not None and int(stamped[0]) != SCHEMA_VERSION:
+            found = stamped[0]
+            raise CatalogVersionError(
+                f"the warehouse at {self.warehouse} has layout version {found}, this sim2act writes "
+                f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
+            )
 
     def is_registered(self, unit_key: str) -> bool:
         if not self.path.exists():

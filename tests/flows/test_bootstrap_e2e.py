@@ -85,9 +85,17 @@ def test_campaign_fills_the_warehouse(finished_campaign):
     # the filter's reasons are counted, per iteration
     assert catalog.query("SELECT count(DISTINCT iteration) FROM filter_decisions WHERE reason IS NOT NULL") == [(2,)]
     # success per task per iteration is in the warehouse
-    assert catalog.query("SELECT count(*), count(DISTINCT task_id), count(DISTINCT iteration) FROM evaluations") == [
-        (6, 3, 2)
-    ]
+    assert catalog.query("SELECT split, count(*), count(DISTINCT task_id), count(DISTINCT iteration) FROM evaluations "
+                         "GROUP BY 1 ORDER BY 1") == [("seen", 6, 3, 2), ("unseen_paraphrase", 6, 3, 2)]
+    # held-out paraphrases are evaluated, never explored (so never trained on)
+    assert catalog.query(
+        "SELECT count(*) FROM episodes e JOIN (SELECT unnest(unseen_instructions) AS said FROM tasks) u "
+        "ON e.instruction = u.said") == [(0,)]
+    assert catalog.query("SELECT count(*) FROM evaluations v JOIN tasks t ON v.task_id = t.task_id "
+                         "WHERE v.split = 'unseen_paraphrase' AND list_contains(t.unseen_instructions, v.instruction)"
+                         ) == [(6,)]
+    # every episode carries its domain randomisation draw
+    assert catalog.query("SELECT count(*) FROM episodes WHERE randomisation.light IS NULL") == [(0,)]
     for stage in ("explore", "filter", "index", "train", "evaluate", "redeploy"):
         assert f"sim2act.stages.{stage}" in output
 
@@ -114,8 +122,8 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         metrics = child.data.metrics
         assert metrics["explore.episodes"] == 12 and metrics["dataset.triplets"] > 0
         assert "filter.pass_rate" in metrics and "train.loss" in metrics
-        assert {k for k in metrics if k.startswith("success.")} == {"success.lift-red", "success.lift-green",
-                                                                     "success.lift-blue"}
+        lifts = {f"success.lift-{colour}" for colour in ("red", "green", "blue")}
+        assert {k for k in metrics if k.startswith("success.")} == lifts | {f"{name}.paraphrase" for name in lifts}
         assert len(client.get_metric_history(child.info.run_id, "train.loss")) == 4  # one point per epoch
         artifacts = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red")]
         assert any(path.endswith(".gif") for path in artifacts)

@@ -39,6 +39,13 @@ def test_splits_hold_out_colours_and_whole_tasks():
     assert metaworld == {"mw-push-back": "unseen", "mw-push": "seen"}
 
 
+def test_held_out_paraphrases_are_kept_apart_from_the_ones_explored():
+    tasks = generate_tasks(TasksConfig(specs=["lift", "nav-room"], colours=["red"]), 0)
+    for task in tasks:
+        assert task.unseen_instructions and not set(task.unseen_instructions) & set(task.instructions)
+        assert task.object_colours.popitem()[1] in task.unseen_instructions[0]
+
+
 SPEC = """
 defaults: {family: robosuite, expert: pick_place, horizon: 50}
 specs:
@@ -66,6 +73,10 @@ def test_a_user_adds_tasks_by_writing_a_file(tmp_path):
         (("horizon: 50", "horizon: -5"), "specs.0.horizon: Input should be greater than 0"),
         (("colours: [red, purple]", "colours: [red, mauve]"), "specs.0.objects.target.colours.1"),
         (('"raise the {target} cube", ', ""), "specs.0.templates: List should have at least 3 items"),
+        (("env: Lift", 'env: Lift\n    split: {unseen_templates: ["lift the {target} one"]}'),
+         "'lift the {target} one' is both seen and held out"),
+        (("env: Lift", 'env: Lift\n    split: {unseen_templates: ["hoist the {colour} one"]}'),
+         "template 'hoist the {colour} one' names ['colour']"),
     ],
 )
 def test_a_broken_spec_is_refused_with_the_field_and_reason(tmp_path, change, words):

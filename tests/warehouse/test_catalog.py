@@ -4,7 +4,8 @@ import pytest
 
 from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
-from warehouse.catalog import Catalog, CatalogMissing
+from schemas.version import SCHEMA_VERSION
+from warehouse.catalog import Catalog, CatalogMissing, CatalogVersionError
 from warehouse.shard_writer import SchemaMismatch, write_shard
 from warehouse.sql import ReadOnlyViolation, run_sql
 
@@ -56,7 +57,18 @@ def test_shards_are_zstd_parquet_in_hive_folders(workspace):
 
     meta = pq.ParquetFile(path).metadata
     assert meta.row_group(0).column(0).compression == "ZSTD"
-    assert pq.read_schema(path).metadata[b"sim2act.schema_version"] == b"1"
+    assert pq.read_schema(path).metadata[b"sim2act.schema_version"] == str(SCHEMA_VERSION).encode()
+
+
+def test_a_warehouse_of_another_layout_version_is_refused_untouched(workspace):
+    catalog = Catalog(workspace.catalog)
+    with duckdb.connect(str(workspace.catalog)) as con:
+        con.execute("UPDATE catalog_meta SET value = '1' WHERE key = 'schema_version'")
+    before = workspace.catalog.read_bytes()
+    for check in (catalog.check_version, catalog.initialise):
+        with pytest.raises(CatalogVersionError, match=r"has layout version 1, this sim2act writes \d+: use a new"):
+            check()
+    assert workspace.catalog.read_bytes() == before
 
 
 def test_a_wrong_schema_is_refused_and_nothing_is_written(workspace):
