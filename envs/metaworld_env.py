@@ -93,6 +93,14 @@ class MetaWorldEnv:
         state, reward, _, _, info = self.env.step(to_metaworld_action(np.clip(action, -1.0, 1.0)))
         return self._observation(state), float(reward), bool(info["success"])
 
+    def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
+        """The MuJoCo model and data underneath, and the mj_steps one action takes (benchmarks)."""
+        return self.env.model, self.env.data, self.env.frame_skip
+
+    def native_step(self, action: np.ndarray) -> None:
+        """MetaWorld's own step, without our observation (benchmarks)."""
+        self.env.step(to_metaworld_action(action))
+
     def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         data = self.env.data
         return data.qpos.copy(), data.qvel.copy(), float(data.time)

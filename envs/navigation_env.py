@@ -212,6 +212,10 @@ class NavigationEnv:
         privileged = {"pose": self.data.qpos[:3].copy(), "goal": self.goal_point(), "stage": np.array([self.stage])}
         return Observation(image, proprio, privileged)
 
+    def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
+        """The MuJoCo model and data, and the mj_steps one action takes (benchmarks)."""
+        return self.model, self.data, SUBSTEPS
+
     def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         return self.data.qpos.copy(), self.data.qvel.copy(), float(self.data.time)
 

@@ -120,6 +120,15 @@ class RobosuiteEnv:
         privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
         return Observation(image, proprio, privileged)
 
+    def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
+        """The MuJoCo model and data underneath, and the mj_steps one action takes (benchmarks)."""
+        substeps = round(self.env.control_timestep / self.env.model_timestep)
+        return self.env.sim.model._model, self.env.sim.data._data, substeps
+
+    def native_step(self, action: np.ndarray) -> None:
+        """robosuite's own step, without our observation (benchmarks)."""
+        self.env.step(action)
+
     def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
         data = self.env.sim.data
         return data.qpos.copy(), data.qvel.copy(), float(data.time)

@@ -113,8 +113,16 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_report(path: Path, text: str) -> None:
+    """A docs table, whole or not at all."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def cmd_tasks_experts(args: argparse.Namespace) -> int:
-    from stages.expert_table import TARGET, measure_experts, write_table
+    from stages.expert_table import TARGET, markdown, measure_experts
     from stages.generate_tasks import suite_tasks
 
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -133,10 +141,24 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
 
     randomise = RandomiseConfig(enabled=not args.no_randomise)
     rows = measure_experts(tasks, args.episodes, args.noise, randomise, args.workers, report)
-    command = "sim2act tasks experts " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else "sim2act tasks experts"
-    write_table(rows, args.out, command.strip(), args.noise, randomise.enabled)
+    _write_report(args.out, markdown(rows, args.command_line, args.noise, randomise.enabled))
     below = sum(r.success_rate < TARGET for r in rows)
     print(f"{len(rows)} tasks, {below} below {TARGET:.0%}; table written to {args.out}")
+    return 0
+
+
+def cmd_bench_envs(args: argparse.Namespace) -> int:
+    from bench.envs import bench_envs, markdown
+
+    if args.steps < 1:
+        raise ConfigError(f"bench envs: --steps must be at least 1, got {args.steps}")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    rows = bench_envs(args.family or list(FAMILIES), args.steps)
+    table = markdown(rows, args.command_line)
+    print(table)
+    if args.out:
+        _write_report(args.out, table)
+        print(f"written to {args.out}")
     return 0
 
 
@@ -184,6 +206,14 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("file", type=Path)
     validate.set_defaults(handler=cmd_tasks_validate)
 
+    bench = commands.add_parser("bench", help="benchmarks: speed side by side, as ratios")
+    bench_commands = bench.add_subparsers(dest="bench_command", required=True)
+    bench_env = bench_commands.add_parser("envs", help="env steps/s per family: raw physics, env, adapter, render")
+    bench_env.add_argument("--steps", type=int, default=500, help="timed control steps per layer")
+    bench_env.add_argument("--family", choices=FAMILIES, action="append", help="default: every family")
+    bench_env.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_env.set_defaults(handler=cmd_bench_envs)
+
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")
     sql.add_argument("--format", choices=("table", "csv", "json"), default="table")
@@ -193,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
+    args.command_line = " ".join(["sim2act", *argv])  # reports say the command that made them
     try:
         return args.handler(args)
     except ConfigError as exc:

@@ -4,7 +4,6 @@ campaign may use (target: >= 90% success per task)."""
 from __future__ import annotations
 
 import datetime
-from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
@@ -87,9 +86,3 @@ def markdown(rows: list[ExpertRow], command: str, noise: float, randomised: bool
                      f"{r.mean_length:.0f} | {flag} |")
     return "\n".join(lines) + "\n"
 
-
-def write_table(rows: list[ExpertRow], path: Path, command: str, noise: float, randomised: bool) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(markdown(rows, command, noise, randomised))
-    tmp.replace(path)

@@ -1,0 +1,107 @@
+"""`sim2act bench envs`: environment steps per second, one layer at a time.
+
+For each family, side by side in one run: the raw MuJoCo physics of one control step
+(`mj_step` times the substeps the simulator takes per action), the simulator's own env step
+without a camera, our adapter without a camera, and our adapter rendering 84x84 frames.
+Ratios to the raw step show what each wrapper layer costs. Every family runs in a fresh
+process, one after the other, so GL contexts and core use do not mix.
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from collections.abc import Callable
+
+import mujoco
+import numpy as np
+from pydantic import BaseModel
+
+from schemas.config import RenderConfig, TasksConfig
+from stages.pool import run_in_pool
+
+# one representative task per family
+BENCH_SPECS = {"robosuite": "lift", "metaworld": "mw-pick-place", "navigation": "nav-room-sequence"}
+LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render")
+EPISODE_STEPS = 100  # reset this often, outside the timed calls
+
+
+class BenchCase(BaseModel):
+    family: str
+    steps: int
+    image_size: int = 84
+
+
+class BenchRow(BaseModel):
+    family: str
+    env: str
+    layer: str
+    steps_per_s: float
+    relative_to_raw: float
+
+
+def _rate(step: Callable[[int], None], reset: Callable[[], None], steps: int) -> float:
+    """Control steps per second of `step`, resetting every EPISODE_STEPS steps off the clock."""
+    elapsed, done = 0.0, 0
+    while done < steps:
+        reset()
+        chunk = min(EPISODE_STEPS, steps - done)
+        started = time.perf_counter()
+        for i in range(chunk):
+            step(i)
+        elapsed += time.perf_counter() - started
+        done += chunk
+    return steps / elapsed
+
+
+def measure_family(case: BenchCase) -> list[BenchRow]:
+    """Worker: every layer of one family, the same actions for each."""
+    from envs.registry import make_env
+    from stages.generate_tasks import generate_tasks
+
+    task = generate_tasks(TasksConfig(specs=[BENCH_SPECS[case.family]]), seed=0)[0]
+    rng = np.random.default_rng(0)
+    if case.family == "navigation":
+        actions = rng.integers(0, 4, size=(EPISODE_STEPS, 1)).astype(np.float32)
+    else:
+        actions = rng.uniform(-1, 1, size=(EPISODE_STEPS, 7)).astype(np.float32)
+    plain = make_env(case.family, task.env_name, None)
+    model, data, substeps = plain.physics()
+    rates: dict[str, float] = {}
+
+    def reset_plain() -> None:
+        plain.reset(task, seed=0)
+
+    rates[LAYERS[0]] = _rate(lambda i: mujoco.mj_step(model, data, nstep=substeps), reset_plain, case.steps)
+    if hasattr(plain, "native_step"):  # navigation is ours all the way down
+        rates[LAYERS[1]] = _rate(lambda i: plain.native_step(actions[i]), reset_plain, case.steps)
+    rates[LAYERS[2]] = _rate(lambda i: plain.step(actions[i]), reset_plain, case.steps)
+    plain.close()
+    rendered = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size))
+    rates[LAYERS[3]] = _rate(lambda i: rendered.step(actions[i]), lambda: rendered.reset(task, seed=0), case.steps)
+    raw = rates[LAYERS[0]]
+    return [BenchRow(family=case.family, env=task.env_name, layer=layer, steps_per_s=rate, relative_to_raw=rate / raw)
+            for layer, rate in rates.items()]
+
+
+def bench_envs(families: list[str], steps: int) -> list[BenchRow]:
+    rows = []
+    for family in families:  # one fresh process per family, one at a time
+        for _, family_rows, _ in run_in_pool(measure_family, [BenchCase(family=family, steps=steps)], workers=1):
+            rows.extend(family_rows)
+    return rows
+
+
+def markdown(rows: list[BenchRow], command: str) -> str:
+    lines = [
+        "# Environment steps per second, layer by layer",
+        "",
+        f"Made by `{command}` on {datetime.date.today().isoformat()}: one process, one core per family, "
+        "random actions, resets off the clock. A step is one control step (one action).",
+        "",
+        "| family | env | layer | steps/s | × raw |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [f"| {r.family} | {r.env} | {r.layer} | {r.steps_per_s:,.0f} | {r.relative_to_raw:.3f} |" for r in rows]
+    return "\n".join(lines) + "\n"
+
