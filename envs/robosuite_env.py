@@ -33,6 +33,7 @@ ROBOSUITE_ROLES: dict[str, dict[str, tuple[str, str]]] = {
 }
 
 MODEL_SEED = 0
+FINGERS = ("gripper0_right_leftfinger", "gripper0_right_rightfinger")
 PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 
 
@@ -118,6 +119,8 @@ class RobosuiteEnv:
         proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
         privileged = {role: np.asarray(raw[f"{name}_pos"], dtype=np.float64) for role, (name, _) in self.roles.items()}
         privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
+        data = self.env.sim.data._data  # the fingers open along this line (world frame)
+        privileged["finger_axis"] = data.body(FINGERS[1]).xpos - data.body(FINGERS[0]).xpos
         return Observation(image, proprio, privileged)
 
     def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:

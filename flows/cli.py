@@ -70,12 +70,19 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_tasks_list(args: argparse.Namespace) -> int:
     import pyarrow as pa
 
+    from schemas.experts import load_expert_table
     from stages.generate_tasks import suite_tasks
     from warehouse.sql import format_rows
 
+    experts = load_expert_table().rows
+
+    def expert(task_id: str) -> str:
+        row = experts.get(task_id)
+        return "not measured" if row is None else f"{row.success_rate:.0%}" + (" flagged" if row.below_target else "")
+
     rows = [
         {"task_id": t.task_id, "family": t.family, "env": t.env_name, "split": t.split, "horizon": t.horizon,
-         "instruction": t.instruction}
+         "expert": expert(t.task_id), "instruction": t.instruction}
         for t in suite_tasks(args.spec_file)
         if (args.family is None or t.family == args.family) and (args.split is None or t.split == args.split)
     ]
@@ -122,12 +129,15 @@ def _write_report(path: Path, text: str) -> None:
 
 
 def cmd_tasks_experts(args: argparse.Namespace) -> int:
-    from stages.expert_table import TARGET, markdown, measure_experts
+    from schemas.config import RandomiseConfig
+    from schemas.experts import TARGET, default_table_path, load_expert_table, save_expert_table
+    from stages.expert_table import markdown, measure_experts
     from stages.generate_tasks import suite_tasks
 
     os.environ.setdefault("MUJOCO_GL", "egl")
+    suite = suite_tasks(args.spec_file)
     tasks = [
-        t for t in suite_tasks(args.spec_file)
+        t for t in suite
         if (args.family is None or t.family == args.family) and (not args.task or t.task_id in args.task)
     ]
     if not tasks:
@@ -137,13 +147,16 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
     def report(row) -> None:
         print(f"[{next(done)}/{len(tasks)}] {row.task_id}: {row.successes}/{row.episodes}", flush=True)
 
-    from schemas.config import RandomiseConfig
-
     randomise = RandomiseConfig(enabled=not args.no_randomise)
-    rows = measure_experts(tasks, args.episodes, args.noise, randomise, args.workers, report)
-    _write_report(args.out, markdown(rows, args.command_line, args.noise, randomise.enabled))
-    below = sum(r.success_rate < TARGET for r in rows)
-    print(f"{len(rows)} tasks, {below} below {TARGET:.0%}; table written to {args.out}")
+    rows = measure_experts(tasks, args.episodes, args.noise, randomise, args.workers, args.command_line, report)
+    record = args.record or default_table_path()
+    table = load_expert_table(record).merged(rows)  # a partial run replaces only its own rows
+    save_expert_table(table, record)
+    shown = record.relative_to(Path.cwd()) if record.is_relative_to(Path.cwd()) else record
+    _write_report(args.out, markdown(table, [t.task_id for t in suite], str(shown)))
+    below = sum(r.below_target for r in rows)
+    print(f"{len(rows)} tasks measured, {below} below {TARGET:.0%}; record {record}, "
+          f"table written to {args.out}")
     return 0
 
 
@@ -199,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     experts.add_argument("--task", action="append", default=[], help="only these task ids")
     experts.add_argument("--workers", type=int, default=2)
     experts.add_argument("--out", type=Path, default=Path("docs/experts.md"))
+    experts.add_argument("--record", type=Path, help="default: the suite's own schemas/task_specs/experts.json")
     experts.set_defaults(handler=cmd_tasks_experts)
     for sub in (listing, show, experts):
         sub.add_argument("--spec-file", type=Path, action="append", default=[], help="extra YAML spec file")

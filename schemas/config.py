@@ -49,6 +49,9 @@ class TasksConfig(_Strict):
     include: list[str] | None = Field(default=None, description="keep only these task ids")
     horizon: dict[str, PositiveInt] = Field(default={}, description="per-spec horizon override")
     proposer: ProposerConfig | None = Field(default=None, description="optional LLM task proposer")
+    weak_experts: Literal["skip", "keep"] = Field(
+        default="skip", description="tasks whose scripted expert is below 90% in docs/experts.md: skip or keep"
+    )
 
 
 class RenderConfig(_Strict):

@@ -1,5 +1,6 @@
-"""How well each task's scripted expert does: the table that decides which tasks a default
-campaign may use (target: >= 90% success per task)."""
+"""How well each task's scripted expert does, measured in worker processes without a camera,
+under the campaign's domain randomisation; and the docs table made from the record
+(schemas.experts) that decides which tasks campaigns may use (target: >= 90% per task)."""
 
 from __future__ import annotations
 
@@ -9,12 +10,11 @@ import numpy as np
 from pydantic import BaseModel
 
 from schemas.config import RandomiseConfig
+from schemas.experts import TARGET, ExpertRow, ExpertTable
 from schemas.keys import derive_seed
 from schemas.tasks import TaskRecord
 from stages.explore import rollout, worker_env
 from stages.pool import run_in_pool
-
-TARGET = 0.9
 
 
 class ExpertCheck(BaseModel):
@@ -22,19 +22,7 @@ class ExpertCheck(BaseModel):
     episodes: int
     noise: float
     randomise: RandomiseConfig
-
-
-class ExpertRow(BaseModel):
-    task_id: str
-    family: str
-    split: str
-    episodes: int
-    successes: int
-    mean_length: float
-
-    @property
-    def success_rate(self) -> float:
-        return self.successes / self.episodes
+    command: str
 
 
 def check_expert(check: ExpertCheck) -> ExpertRow:
@@ -51,13 +39,16 @@ def check_expert(check: ExpertCheck) -> ExpertRow:
         rows, _, success = rollout(env, check.task, seed, expert, randomisation)
         successes += success
         lengths.append(len(rows))
-    return ExpertRow(task_id=check.task.task_id, family=check.task.family, split=check.task.split,
-                     episodes=check.episodes, successes=successes, mean_length=float(np.mean(lengths)))
+    return ExpertRow(
+        task_id=check.task.task_id, family=check.task.family, split=check.task.split, episodes=check.episodes,
+        successes=successes, mean_length=float(np.mean(lengths)), noise=check.noise,
+        randomised=check.randomise.enabled, command=check.command, measured_on=datetime.date.today().isoformat(),
+    )
 
 
 def measure_experts(tasks: list[TaskRecord], episodes: int, noise: float, randomise: RandomiseConfig, workers: int,
-                    progress=None) -> list[ExpertRow]:
-    checks = [ExpertCheck(task=t, episodes=episodes, noise=noise, randomise=randomise) for t in tasks]
+                    command: str, progress=None) -> list[ExpertRow]:
+    checks = [ExpertCheck(task=t, episodes=episodes, noise=noise, randomise=randomise, command=command) for t in tasks]
     rows = []
     for _, row, _ in run_in_pool(check_expert, checks, workers):
         rows.append(row)
@@ -67,22 +58,27 @@ def measure_experts(tasks: list[TaskRecord], episodes: int, noise: float, random
     return sorted(rows, key=lambda r: order[r.task_id])
 
 
-def markdown(rows: list[ExpertRow], command: str, noise: float, randomised: bool) -> str:
-    below = [r for r in rows if r.success_rate < TARGET]
-    lines = [
-        "# Scripted expert success per task",
+def markdown(table: ExpertTable, suite_order: list[str], record: str) -> str:
+    rows = sorted(table.rows.values(), key=lambda r: (r.task_id not in suite_order,
+                                                       suite_order.index(r.task_id) if r.task_id in suite_order else 0,
+                                                       r.task_id))
+    below = [r for r in rows if r.below_target]
+    made_by = sorted({(r.command, r.measured_on, r.noise, r.randomised) for r in rows})
+    lines = ["# Scripted expert success per task", ""]
+    for command, day, noise, randomised in made_by:
+        conditions = "the default domain randomisation" if randomised else "no domain randomisation"
+        lines.append(f"- `{command}` on {day}: expert action noise σ={noise}, {conditions}")
+    lines += [
         "",
-        f"Made by `{command}` on {datetime.date.today().isoformat()}, expert action noise σ={noise}, "
-        f"{'the default domain randomisation (RandomiseConfig)' if randomised else 'no domain randomisation'}, "
-        f"episode seeds derived per task. Target: ≥{TARGET:.0%}; {len(below)} of {len(rows)} tasks are below "
-        "and are flagged here.",
+        f"Episode seeds are derived per task. Target: ≥{TARGET:.0%}; {len(below)} of {len(rows)} tasks are below "
+        "it, flagged here, and left out of campaigns unless a config sets `tasks.weak_experts: keep`. "
+        f"The record behind this page is `{record}`.",
         "",
         "| task | family | split | success | episodes | mean length | flag |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        flag = "below target" if r.success_rate < TARGET else ""
+        flag = "below target" if r.below_target else ""
         lines.append(f"| {r.task_id} | {r.family} | {r.split} | {r.success_rate:.0%} | {r.episodes} | "
                      f"{r.mean_length:.0f} | {flag} |")
     return "\n".join(lines) + "\n"
-

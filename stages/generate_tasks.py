@@ -17,6 +17,7 @@ import pyarrow as pa
 from pydantic import BaseModel
 
 from schemas.config import CampaignConfig, ConfigError, TasksConfig
+from schemas.experts import load_expert_table
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import INSTRUCTIONS
 from schemas.task_spec import TaskSpec, load_specs
@@ -45,15 +46,21 @@ def _bindings(spec: TaskSpec, allowed: list[str] | None) -> list[dict[str, str]]
     return [dict(zip(roles, combo)) for combo in itertools.product(*choices) if len(set(combo)) == len(combo)]
 
 
-def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int) -> list[TaskRecord]:
-    """Pure: the concrete tasks one spec yields under a tasks config."""
+def _task_id(spec: TaskSpec, colouring: dict[str, str]) -> str:
+    return "-".join([spec.name, *colouring.values()])
+
+
+def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int, skip: frozenset[str] = frozenset()) -> list[TaskRecord]:
+    """Pure: the concrete tasks one spec yields under a tasks config, leaving out `skip` ids
+    before max_tasks_per_spec counts."""
     if len(spec.templates) < config.paraphrases:
         raise ConfigError(f"tasks.paraphrases: spec {spec.name} has {len(spec.templates)} templates, "
                           f"{config.paraphrases} asked")
     unseen_colours = set(spec.split.unseen_colours) | set(config.unseen_colours)
     tasks = []
-    for colouring in _bindings(spec, config.colours)[: config.max_tasks_per_spec]:
-        task_id = "-".join([spec.name, *colouring.values()])
+    kept = [b for b in _bindings(spec, config.colours) if _task_id(spec, b) not in skip]
+    for colouring in kept[: config.max_tasks_per_spec]:
+        task_id = _task_id(spec, colouring)
         rng = np.random.default_rng(derive_seed(seed, task_id, "paraphrases"))
         order = [0, *(1 + rng.permutation(len(spec.templates) - 1))]
         unseen = task_id in spec.split.unseen_tasks or any(c in unseen_colours for c in colouring.values())
@@ -73,12 +80,17 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
     from envs.registry import check_spec
 
     suite = load_specs(config.spec_files)
+    flagged = frozenset(load_expert_table().flagged() if config.weak_experts == "skip" else ())
+    weak = sorted(set(config.include or ()) & flagged)
+    if weak:
+        raise ConfigError(f"tasks.include: {weak[0]!r} has a scripted expert below target (docs/experts.md); "
+                          "set tasks.weak_experts: keep to use it")
     tasks = []
     for name in config.specs:
         if name not in suite:
             raise ConfigError(f"tasks.specs: unknown spec {name!r} (`sim2act tasks list` shows the suite)")
         check_spec(suite[name].spec, suite[name].origin)
-        tasks.extend(expand_spec(suite[name].spec, config, seed))
+        tasks.extend(expand_spec(suite[name].spec, config, seed, skip=flagged))
     unknown_horizons = sorted(set(config.horizon) - set(config.specs))
     if unknown_horizons:
         raise ConfigError(f"tasks.horizon: {unknown_horizons[0]!r} is not one of tasks.specs")
@@ -96,7 +108,7 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
 def suite_tasks(spec_files: list[Path] = (), seed: int = 0) -> list[TaskRecord]:
     """Every task of the built-in suite and the given files, all colours bound."""
     names = list(load_specs(list(spec_files)))
-    return generate_tasks(TasksConfig(specs=names, spec_files=list(spec_files)), seed)
+    return generate_tasks(TasksConfig(specs=names, spec_files=list(spec_files), weak_experts="keep"), seed)
 
 
 def tasks_unit_key(config: CampaignConfig, tasks: list[TaskRecord]) -> str:

@@ -98,3 +98,28 @@ def test_an_episode_depends_on_its_seed_only_not_on_what_the_worker_ran_before(l
         assert episode(lift_env) == episode(fresh)
     finally:
         fresh.close()
+
+
+def test_the_stack_expert_turns_its_fingers_away_from_a_close_neighbour():
+    """These seeds put the two cubes ~5 cm apart along the fingers' opening line: without
+    turning the wrist, a finger lands on the other cube and the grasp never closes."""
+    from envs.randomisation import sample_randomisation
+    from schemas.config import RandomiseConfig
+    from schemas.keys import derive_seed
+
+    task = TaskRecord(task_id="stack-blue-red", spec="stack", family="robosuite", env_name="Stack",
+                      object_colours={"pick": "blue", "place": "red"}, instructions=["a", "b", "c"], split="seen",
+                      horizon=160)
+    env = RobosuiteEnv("Stack", None)
+    try:
+        for episode in (2, 6):
+            seed = derive_seed("expert-check", task.task_id, episode)
+            expert = PickPlaceExpert.for_env("Stack", noise=0.1, rng=np.random.default_rng(seed))
+            draw = sample_randomisation(RandomiseConfig(), seed, env.RANDOMISES)
+            start = env.reset(task, seed, draw).privileged
+            assert np.linalg.norm((start["pick"] - start["place"])[:2]) < 0.08
+            rows, _, success = rollout(env, task, seed, expert.act, draw)
+            assert success, episode
+            assert abs(np.mean([r["action"][5] for r in rows[:10]])) > 0.3  # it turned the wrist first
+    finally:
+        env.close()

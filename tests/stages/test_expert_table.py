@@ -1,21 +1,44 @@
-from schemas.config import RandomiseConfig, TasksConfig
-from stages.expert_table import ExpertRow, markdown, measure_experts
+import pytest
+
+from schemas.config import ConfigError, RandomiseConfig, TasksConfig
+from schemas.experts import ExpertRow, ExpertTable, load_expert_table, save_expert_table
+from stages import generate_tasks as generate_module
+from stages.expert_table import markdown, measure_experts
 from stages.generate_tasks import generate_tasks
 
 
-def test_experts_are_measured_per_task_in_worker_processes():
+def _row(task_id: str, successes: int, command: str = "sim2act tasks experts") -> ExpertRow:
+    return ExpertRow(task_id=task_id, family="robosuite", split="seen", episodes=10, successes=successes,
+                     mean_length=40, noise=0.1, randomised=True, command=command, measured_on="2026-11-22")
+
+
+def test_experts_are_measured_per_task_in_worker_processes_under_randomisation():
     tasks = generate_tasks(TasksConfig(specs=["lift", "mw-reach"], colours=["red"]), seed=0)
-    rows = measure_experts(tasks, episodes=2, noise=0.1, randomise=RandomiseConfig(), workers=2)
+    rows = measure_experts(tasks, episodes=2, noise=0.1, randomise=RandomiseConfig(), workers=2, command="test")
     assert [r.task_id for r in rows] == ["lift-red", "mw-reach"]
-    assert all(r.episodes == 2 and r.successes == 2 and 0 < r.mean_length < 80 for r in rows)
+    assert all(r.episodes == 2 and r.successes == 2 and 0 < r.mean_length < 80 and r.randomised for r in rows)
 
 
-def test_the_table_flags_tasks_below_target():
-    rows = [
-        ExpertRow(task_id="good", family="robosuite", split="seen", episodes=10, successes=10, mean_length=40),
-        ExpertRow(task_id="weak", family="metaworld", split="seen", episodes=10, successes=7, mean_length=150),
-    ]
-    text = markdown(rows, "sim2act tasks experts", 0.1, randomised=True)
-    assert "1 of 2 tasks are below" in text and "`sim2act tasks experts`" in text
-    assert "| weak | metaworld | seen | 70% | 10 | 150 | below target |" in text
-    assert "| good | robosuite | seen | 100% | 10 | 40 |  |" in text
+def test_a_partial_run_replaces_only_its_rows_and_the_table_names_every_command(tmp_path):
+    record = tmp_path / "experts.json"
+    save_expert_table(ExpertTable().merged([_row("good", 10), _row("weak", 7)]), record)
+    table = load_expert_table(record).merged([_row("weak", 9, command="sim2act tasks experts --task weak")])
+    assert table.rows["good"].successes == 10 and table.rows["weak"].successes == 9
+    save_expert_table(table.merged([_row("worse", 8)]), record)
+    text = markdown(load_expert_table(record), ["weak", "good", "worse"], "experts.json")
+    assert "`sim2act tasks experts --task weak`" in text and "`sim2act tasks experts` on 2026-11-22" in text
+    assert "1 of 3 tasks are below" in text
+    lines = [line for line in text.splitlines() if line.startswith("| ") and "task |" not in line]
+    assert [line.split(" | ")[0] for line in lines] == ["| weak", "| good", "| worse"]  # suite order
+    assert lines[2].endswith("| 80% | 10 | 40 | below target |")
+
+
+def test_campaigns_leave_out_tasks_whose_expert_is_below_target(monkeypatch):
+    flagged = ExpertTable().merged([_row("lift-green", 6)])
+    monkeypatch.setattr(generate_module, "load_expert_table", lambda: flagged)
+    config = TasksConfig(specs=["lift"], colours=["red", "green", "blue"], max_tasks_per_spec=2)
+    assert [t.task_id for t in generate_tasks(config, 0)] == ["lift-red", "lift-blue"]  # still two
+    kept = config.model_copy(update={"weak_experts": "keep"})
+    assert [t.task_id for t in generate_tasks(kept, 0)] == ["lift-red", "lift-green"]
+    with pytest.raises(ConfigError, match="'lift-green' has a scripted expert below target"):
+        generate_tasks(config.model_copy(update={"include": ["lift-green"]}), 0)

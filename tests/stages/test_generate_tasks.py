@@ -7,7 +7,7 @@ from stages.generate_tasks import generate_tasks
 
 def test_the_suite_has_over_100_tasks_in_three_families_each_said_three_ways():
     suite = load_specs()
-    tasks = generate_tasks(TasksConfig(specs=list(suite)), seed=0)
+    tasks = generate_tasks(TasksConfig(specs=list(suite), weak_experts="keep"), seed=0)
     by_family = {}
     for task in tasks:
         by_family[task.family] = by_family.get(task.family, 0) + 1
@@ -19,7 +19,7 @@ def test_the_suite_has_over_100_tasks_in_three_families_each_said_three_ways():
 
 
 def test_colour_bindings_come_from_the_environment_roles():
-    tasks = generate_tasks(TasksConfig(specs=["lift", "stack"], colours=["red", "green", "blue"]), seed=0)
+    tasks = generate_tasks(TasksConfig(specs=["lift", "stack"], colours=["red", "green", "blue"], weak_experts="keep"), seed=0)
     ids = [t.task_id for t in tasks]
     assert "lift-red" in ids and "stack-red-green" in ids and "stack-red-red" not in ids
     assert len(tasks) == 3 + 6  # 3 colours for Lift's one cube; ordered pairs for Stack's two
@@ -35,7 +35,7 @@ def test_generation_is_deterministic_for_a_seed():
 def test_splits_hold_out_colours_and_whole_tasks():
     tasks = generate_tasks(TasksConfig(specs=["lift"], colours=["red", "blue", "orange"], unseen_colours=["blue"]), 0)
     assert {t.task_id: t.split for t in tasks} == {"lift-red": "seen", "lift-blue": "unseen", "lift-orange": "unseen"}
-    metaworld = {t.task_id: t.split for t in generate_tasks(TasksConfig(specs=["mw-push-back", "mw-push"]), 0)}
+    metaworld = {t.task_id: t.split for t in generate_tasks(TasksConfig(specs=["mw-push-back", "mw-push"], weak_experts="keep"), 0)}
     assert metaworld == {"mw-push-back": "unseen", "mw-push": "seen"}
 
 
