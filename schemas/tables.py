@@ -13,14 +13,14 @@ import pyarrow as pa
 # an aspect; the whole struct is null when the campaign turned randomisation off.
 RANDOMISATION = pa.struct(
     [
-        ("light", pa.float32()),
-        ("camera_shift", pa.list_(pa.float32())),
-        ("camera_rotation_deg", pa.list_(pa.float32())),
-        ("tint", pa.list_(pa.float32())),
-        ("colour_jitter", pa.list_(pa.float32())),
-        ("size", pa.float32()),
-        ("mass", pa.float32()),
-        ("friction", pa.float32()),
+        ("light", pa.float64()),
+        ("camera_shift", pa.list_(pa.float64())),
+        ("camera_rotation_deg", pa.list_(pa.float64())),
+        ("tint", pa.list_(pa.float64())),
+        ("colour_jitter", pa.list_(pa.float64())),
+        ("size", pa.float64()),
+        ("mass", pa.float64()),
+        ("friction", pa.float64()),
     ]
 )
 
