@@ -84,3 +84,20 @@ def test_campaigns_refuse_navigation_until_the_discrete_head_exists(tmp_path):
                              str(tmp_path / "ws")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "nav-room is a navigation task" in result.stderr
     assert not (tmp_path / "ws").exists()
+
+
+def test_frames_stay_real_when_robosuite_renders_in_the_same_worker():
+    """A worker caches one env per family; robosuite's renderer used to leave ours reading black."""
+    from envs.robosuite_env import RobosuiteEnv
+
+    task = _task("nav-room-red")
+    navigation, robosuite = NavigationEnv("GoToRoom", RenderConfig()), RobosuiteEnv("Lift", RenderConfig())
+    try:
+        [lift] = generate_tasks(TasksConfig(specs=["lift"], include=["lift-red"]), seed=0)
+        before = navigation.reset(task, seed=3).image
+        robosuite.reset(lift, seed=3)
+        after = navigation.reset(task, seed=3).image
+        assert before.mean() > 20 and np.array_equal(before, after)
+    finally:
+        robosuite.close()
+        navigation.close()
