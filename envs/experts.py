@@ -99,7 +99,8 @@ class PickPlaceExpert:
         if self.phase is Phase.CARRY:
             carry = stacked + np.array([0.0, 0.0, 0.06])
             offset = cube - eef  # keep the grasp offset so the cube, not the hand, is aligned
-            if abs(carry[2] - cube[2]) < 0.02 and self._converged(float(np.linalg.norm((carry - cube)[:2])), 0.008, 0.015):
+            off_line = float(np.linalg.norm((carry - cube)[:2]))
+            if abs(carry[2] - cube[2]) < 0.02 and self._converged(off_line, 0.008, 0.015):
                 self._go(Phase.LOWER)
             return self._towards(obs, carry - offset, CLOSED)
         if self.phase is Phase.LOWER:

@@ -71,6 +71,7 @@ class RobosuiteEnv:
         if render is not None:
             self._apply_render_settings()
         model = self.env.sim.model._model
+        self.fingers = [model.body(name).id for name in FINGERS]
         self.randomiser = SceneRandomiser(
             model, render.camera if render else None,
             task_geoms=[model.geom(visual).id for _, visual in self.roles.values()], object_bodies=free_bodies(model),
@@ -119,8 +120,8 @@ class RobosuiteEnv:
         proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
         privileged = {role: np.asarray(raw[f"{name}_pos"], dtype=np.float64) for role, (name, _) in self.roles.items()}
         privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
-        data = self.env.sim.data._data  # the fingers open along this line (world frame)
-        privileged["finger_axis"] = data.body(FINGERS[1]).xpos - data.body(FINGERS[0]).xpos
+        left, right = self.env.sim.data._data.xpos[self.fingers]  # the fingers open along this line
+        privileged["finger_axis"] = right - left
         return Observation(image, proprio, privileged)
 
     def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:

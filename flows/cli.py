@@ -14,7 +14,7 @@ from pathlib import Path
 
 from schemas.config import PRESETS, ConfigError, load_config
 from schemas.tasks import FAMILIES
-from schemas.workspace import Workspace
+from schemas.workspace import Workspace, write_text_atomically
 
 
 def _default_workspace() -> str:
@@ -49,7 +49,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.preset, args.config, overrides)
     from stages.generate_tasks import generate_tasks
     from stages.train import check_trainable
-
     from warehouse.catalog import Catalog
 
     check_trainable(generate_tasks(config.tasks, config.seed))  # refused here, before any work
@@ -120,14 +119,6 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_report(path: Path, text: str) -> None:
-    """A docs table, whole or not at all."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def cmd_tasks_experts(args: argparse.Namespace) -> int:
     from schemas.config import RandomiseConfig
     from schemas.experts import TARGET, default_table_path, load_expert_table, save_expert_table
@@ -153,7 +144,7 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
     table = load_expert_table(record).merged(rows)  # a partial run replaces only its own rows
     save_expert_table(table, record)
     shown = record.relative_to(Path.cwd()) if record.is_relative_to(Path.cwd()) else record
-    _write_report(args.out, markdown(table, [t.task_id for t in suite], str(shown)))
+    write_text_atomically(args.out, markdown(table, [t.task_id for t in suite], str(shown)))
     below = sum(r.below_target for r in rows)
     print(f"{len(rows)} tasks measured, {below} below {TARGET:.0%}; record {record}, "
           f"table written to {args.out}")
@@ -170,7 +161,7 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     table = markdown(rows, args.command_line)
     print(table)
     if args.out:
-        _write_report(args.out, table)
+        write_text_atomically(args.out, table)
         print(f"written to {args.out}")
     return 0
 

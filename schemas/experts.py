@@ -9,6 +9,8 @@ from pathlib import Path
 
 from pydantic import BaseModel
 
+from schemas.workspace import write_text_atomically
+
 TARGET = 0.9
 
 
@@ -54,8 +56,4 @@ def load_expert_table(path: Path | None = None) -> ExpertTable:
 
 
 def save_expert_table(table: ExpertTable, path: Path | None = None) -> None:
-    path = path or default_table_path()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(table.model_dump_json(indent=1) + "\n")
-    tmp.replace(path)
+    write_text_atomically(path or default_table_path(), table.model_dump_json(indent=1) + "\n")

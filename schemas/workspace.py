@@ -61,3 +61,11 @@ class Workspace:
         for folder in (self.shards, self.models, self.media, self.artifact_root, self.prefect_home):
             folder.mkdir(parents=True, exist_ok=True)
         return self
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    """A report or record, whole or not at all: written beside, then moved into place."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)

@@ -82,8 +82,9 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
             iio.imwrite(tmp, frames, duration=50, loop=0)
             tmp.replace(unit.gif_path)
     return TaskEvaluation(
-        task_id=unit.task.task_id, split=unit.split, instruction=unit.instruction, episodes=len(unit.seeds), successes=successes,
-        mean_return=float(np.mean(returns)), mean_length=float(np.mean(lengths)), media_path=unit.gif_path,
+        task_id=unit.task.task_id, split=unit.split, instruction=unit.instruction, episodes=len(unit.seeds),
+        successes=successes, mean_return=float(np.mean(returns)), mean_length=float(np.mean(lengths)),
+        media_path=unit.gif_path,
     )
 
 

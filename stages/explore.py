@@ -86,7 +86,8 @@ def plan_explore(
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
-        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers"}), "policy": policy.model_key if policy else None,
+        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers"}),
+        "policy": policy.model_key if policy else None,
     }
     units = []
     for task in (t for t in tasks if t.split == "seen"):
@@ -106,7 +107,8 @@ def plan_explore(
             units.append(
                 ExploreUnit(
                     unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
-                    task=task, render=config.render, randomise=config.randomise, expert_noise=explore.expert_noise, episodes=episodes,
+                    task=task, render=config.render, randomise=config.randomise, expert_noise=explore.expert_noise,
+                    episodes=episodes,
                     policy=policy, embeddings={text: embeddings[text].tolist() for text in said},
                 )
             )
@@ -182,7 +184,8 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
         error = None
         randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
         try:
-            rows, final_image, success = rollout(env, unit.task, plan.seed, _actor(unit, plan, policy), randomisation)
+            act = _actor(unit, plan, policy)
+            rows, final_image, success = rollout(env, unit.task, plan.seed, act, randomisation)
         except Exception as exc:  # a simulator failure marks the episode, not the shard
             rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         for row in rows:

@@ -46,8 +46,22 @@ def _bindings(spec: TaskSpec, allowed: list[str] | None) -> list[dict[str, str]]
     return [dict(zip(roles, combo)) for combo in itertools.product(*choices) if len(set(combo)) == len(combo)]
 
 
-def _task_id(spec: TaskSpec, colouring: dict[str, str]) -> str:
+def task_id_of(spec: TaskSpec, colouring: dict[str, str]) -> str:
     return "-".join([spec.name, *colouring.values()])
+
+
+def bind_task(spec: TaskSpec, colouring: dict[str, str], instructions: list[str], config: TasksConfig) -> TaskRecord:
+    """The task one binding of colours to a spec's roles makes, said with `instructions`: its
+    split, horizon and held-out paraphrases follow from the spec and the config alone."""
+    task_id = task_id_of(spec, colouring)
+    unseen_colours = set(spec.split.unseen_colours) | set(config.unseen_colours)
+    unseen = task_id in spec.split.unseen_tasks or any(c in unseen_colours for c in colouring.values())
+    return TaskRecord(
+        task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colouring,
+        instructions=instructions, split="unseen" if unseen else "seen",
+        horizon=config.horizon.get(spec.name, spec.horizon),
+        unseen_instructions=[template.format(**colouring) for template in spec.split.unseen_templates],
+    )
 
 
 def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int, skip: frozenset[str] = frozenset()) -> list[TaskRecord]:
@@ -56,22 +70,13 @@ def expand_spec(spec: TaskSpec, config: TasksConfig, seed: int, skip: frozenset[
     if len(spec.templates) < config.paraphrases:
         raise ConfigError(f"tasks.paraphrases: spec {spec.name} has {len(spec.templates)} templates, "
                           f"{config.paraphrases} asked")
-    unseen_colours = set(spec.split.unseen_colours) | set(config.unseen_colours)
     tasks = []
-    kept = [b for b in _bindings(spec, config.colours) if _task_id(spec, b) not in skip]
+    kept = [b for b in _bindings(spec, config.colours) if task_id_of(spec, b) not in skip]
     for colouring in kept[: config.max_tasks_per_spec]:
-        task_id = _task_id(spec, colouring)
-        rng = np.random.default_rng(derive_seed(seed, task_id, "paraphrases"))
+        rng = np.random.default_rng(derive_seed(seed, task_id_of(spec, colouring), "paraphrases"))
         order = [0, *(1 + rng.permutation(len(spec.templates) - 1))]
-        unseen = task_id in spec.split.unseen_tasks or any(c in unseen_colours for c in colouring.values())
-        tasks.append(
-            TaskRecord(
-                task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colouring,
-                instructions=[spec.templates[i].format(**colouring) for i in order[: config.paraphrases]],
-                split="unseen" if unseen else "seen", horizon=config.horizon.get(spec.name, spec.horizon),
-                unseen_instructions=[template.format(**colouring) for template in spec.split.unseen_templates],
-            )
-        )
+        said = [spec.templates[i].format(**colouring) for i in order[: config.paraphrases]]
+        tasks.append(bind_task(spec, colouring, said, config))
     return tasks
 
 

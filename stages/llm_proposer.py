@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import Colour, TaskRecord
+from stages.generate_tasks import bind_task, task_id_of
 
 log = logging.getLogger("sim2act.stages.llm_proposer")
 
@@ -124,19 +125,14 @@ def merge_proposals(
         valid += 1
         spec = specs[proposal.spec]
         colours = {role: proposal.colours[role] for role in spec.objects}  # the spec's role order
-        task_id = "-".join([spec.name, *colours.values()])
+        task_id = task_id_of(spec, colours)
         said = [text.strip() for text in proposal.instructions]
         if task_id in by_id:
             known = by_id[task_id]
             extra = [text for text in said if text not in known.instructions]
             by_id[task_id] = known.model_copy(update={"instructions": known.instructions + extra})
         else:
-            unseen = set(spec.split.unseen_colours) | set(config.unseen_colours)
-            by_id[task_id] = TaskRecord(
-                task_id=task_id, spec=spec.name, family=spec.family, env_name=spec.env, object_colours=colours,
-                instructions=list(dict.fromkeys(said)), split="unseen" if unseen & set(colours.values()) else "seen",
-                horizon=config.horizon.get(spec.name, spec.horizon),
-            )
+            by_id[task_id] = bind_task(spec, colours, list(dict.fromkeys(said)), config)
             new += 1
     return ProposalOutcome(tasks=list(by_id.values()), new_tasks=new, valid=valid, rejected=dict(rejected))
 

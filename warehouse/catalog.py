@@ -86,9 +86,8 @@ class Catalog:
                 return  # a first initialise that did not finish
             stamped = con.execute("SELECT value FROM catalog_meta WHERE key = 'schema_version'").fetchone()
         if stamped is not None and int(stamped[0]) != SCHEMA_VERSION:
-            found = stamped[0]
             raise CatalogVersionError(
-                f"the warehouse at {self.warehouse} has layout version {found}, this sim2act writes "
+                f"the warehouse at {self.warehouse} has layout version {stamped[0]}, this sim2act writes "
                 f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
             )
 

@@ -26,7 +26,7 @@ class Selection:
         return [path for path, _ in catalog.shard_paths("steps", "list_contains(?, unit_key)", [list(self.explore_units)])]
 
     def kept_episode_ids(self, catalog: Catalog) -> set[str]:
-        rows = catalog.query(f"SELECT episode_id FROM ({_KEPT})", [list(self.filter_units)])
+        rows = catalog.query(_KEPT, [list(self.filter_units)])
         return {row[0] for row in rows}
 
     def kept_steps(self, catalog: Catalog, columns: list[str]) -> pa.Table:
