@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from enum import Enum, auto
 
+import mujoco
 import numpy as np
 
 from envs.observation import ACTION_DIM, Observation
@@ -16,6 +17,15 @@ OPEN, CLOSED = -1.0, 1.0
 PATIENCE = 25
 DROPPED = 0.04  # cube this far from the fingers while carrying: it is not in the hand
 TURN_GAIN, ALIGNED = 3.0, 0.1  # wrist yaw: action per radian of error; radians counted as aligned
+BACK_OFF = 12  # steps spent letting go and rising between placements
+GRASP_STEPS = 10  # fingers take ~0.5 s to close on a thin nut handle
+
+
+def _matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a robosuite quaternion (x, y, z, w order)."""
+    matrix = np.zeros(9)
+    mujoco.mju_quat2Mat(matrix, np.roll(quat_xyzw, 1))
+    return matrix.reshape(3, 3)
 
 
 class Phase(Enum):
@@ -29,40 +39,50 @@ class Phase(Enum):
 
 
 class PickPlaceExpert:
-    """Pick the `pick` object; then lift it (Lift) or set it on the `place` object (Stack)."""
+    """Grasp, then lift and hold (no goal) or carry to the goal and let go: the robosuite scenes
+    describe what to grasp and where it goes (envs.robosuite_env), this follows them."""
 
-    def __init__(self, pick_role: str, place_role: str | None, noise: float, rng: np.random.Generator):
-        self.pick_role, self.place_role = pick_role, place_role
+    def __init__(self, noise: float, rng: np.random.Generator):
         self.noise, self.rng = noise, rng
-        self.phase, self.hold, self.waited = Phase.APPROACH, 0, 0
-
-    @classmethod
-    def for_env(cls, env_name: str, noise: float, rng: np.random.Generator) -> PickPlaceExpert:
-        if env_name == "Lift":
-            return cls("target", None, noise, rng)
-        if env_name == "Stack":
-            return cls("pick", "place", noise, rng)
-        raise ValueError(f"no pick_place expert for {env_name}")
+        self.phase, self.hold, self.waited, self.stage, self.next_stage = Phase.APPROACH, 0, 0, None, False
+        self.wrist, self.finger_angle = 0.0, None  # radians turned since the start; the fingers' last heading
+        self.aim: float | None = None  # the wrist angle this phase turns to
 
     def _towards(self, obs: Observation, target: np.ndarray, gripper: float, turn: float = 0.0) -> np.ndarray:
         action = np.zeros(ACTION_DIM)
         action[:3] = np.clip(GAIN * (target - obs.privileged["gripper"]), -1.0, 1.0)
+        # keep the hand pointing straight down: noise on the rotation actions random-walks its tilt,
+        # and over a long task a tilted hand puts a finger on the object
+        pointing = _matrix(obs.privileged["gripper_quat"])[:, 2]
+        action[3:5] = np.clip(TURN_GAIN * np.cross(pointing, [0.0, 0.0, -1.0])[:2], -1.0, 1.0)
         action[5] = np.clip(TURN_GAIN * turn, -1.0, 1.0)
         action[6] = gripper
         return action
 
+    def _track_wrist(self, obs: Observation) -> None:
+        axis = obs.privileged["finger_axis"]
+        angle = float(np.arctan2(axis[1], axis[0]))
+        if self.finger_angle is not None:
+            self.wrist += (angle - self.finger_angle + np.pi) % (2 * np.pi) - np.pi
+        self.finger_angle = angle
+
     def _yaw_error(self, obs: Observation) -> float:
-        """Radians to turn the wrist so the fingers close across the line to the place object:
-        beside a neighbouring cube, fingers opening towards it land on it."""
-        if self.place_role is None:
+        """Radians to turn the wrist so the fingers open along the scene's grip axis (two fingers
+        look the same every half turn)."""
+        wanted = obs.privileged["grip_axis"]
+        if not wanted[:2].any():
             return 0.0
-        between = (obs.privileged[self.place_role] - obs.privileged[self.pick_role])[:2]
-        wanted = np.arctan2(between[0], -between[1])  # perpendicular to `between`
-        axis = obs.privileged["finger_axis"][:2]
-        return float((wanted - np.arctan2(axis[1], axis[0]) + np.pi / 2) % np.pi - np.pi / 2)  # fingers: mod pi
+        turn = float((np.arctan2(wanted[1], wanted[0]) - self.finger_angle + np.pi / 2) % np.pi - np.pi / 2)
+        ways = (turn, turn - np.pi, turn + np.pi)
+        if self.aim is not None:  # keep the way chosen: at a right angle both are equally near, and noise flips them
+            turn = min(ways, key=lambda way: abs(self.wrist + way - self.aim))
+        else:  # the way that ends nearest the wrist's start: its last joint has ~2 rad of travel each way
+            turn = min(ways, key=lambda way: abs(self.wrist + way))
+        self.aim = self.wrist + turn
+        return turn
 
     def _go(self, phase: Phase) -> None:
-        self.phase, self.hold, self.waited = phase, 0, 0
+        self.phase, self.hold, self.waited, self.aim = phase, 0, 0, None
 
     def _converged(self, error: float, tolerance: float, fallback: float) -> bool:
         """Within tolerance; or, after PATIENCE steps in this phase, within the looser fallback."""
@@ -70,49 +90,156 @@ class PickPlaceExpert:
         return error < tolerance or (self.waited > PATIENCE and error < fallback)
 
     def _advance(self, obs: Observation) -> np.ndarray:
-        cube = obs.privileged[self.pick_role]
-        eef = obs.privileged["gripper"]
-        above = cube + np.array([0.0, 0.0, 0.08])
+        seen = obs.privileged
+        self._track_wrist(obs)
+        if "stage" in seen and seen["stage"][0] != self.stage:
+            if self.stage is not None:  # the next placement: let go, back off, start over
+                self.next_stage = True
+                self._go(Phase.RELEASE)
+            self.stage = float(seen["stage"][0])
+        grasp, eef = seen["grasp"], seen["gripper"]
+        above = grasp + np.array([0.0, 0.0, 0.08])
         if self.phase is Phase.APPROACH:
             turn = self._yaw_error(obs)
             if np.linalg.norm((above - eef)[:2]) < 0.01 and abs(above[2] - eef[2]) < 0.02 and abs(turn) < ALIGNED:
                 self._go(Phase.DESCEND)
             return self._towards(obs, above, OPEN, turn)
+        grasp_point = grasp + np.array([0.0, 0.0, -0.005])
         if self.phase is Phase.DESCEND:
-            grasp_point = cube + np.array([0.0, 0.0, -0.005])
             if self._converged(float(np.linalg.norm(grasp_point - eef)), 0.012, 0.025):
                 self._go(Phase.GRASP)
             return self._towards(obs, grasp_point, OPEN, self._yaw_error(obs))
         if self.phase is Phase.GRASP:
             self.hold += 1
-            if self.hold >= 6:
-                self._go(Phase.LIFT if self.place_role is None else Phase.CARRY)
-            return self._towards(obs, eef, CLOSED)
-        if self.phase in (Phase.LIFT, Phase.CARRY) and np.linalg.norm(cube - eef) > DROPPED:
+            if self.hold >= GRASP_STEPS:
+                self._go(Phase.CARRY if "goal" in seen else Phase.LIFT)
+            # keep reaching for the grasp point while closing: a low handle is held by its whole height
+            return self._towards(obs, grasp_point, CLOSED)
+        if self.phase in (Phase.LIFT, Phase.CARRY) and np.linalg.norm(grasp - eef) > DROPPED:
             self._go(Phase.APPROACH)  # the grasp missed or slipped: open and try again
             return self._towards(obs, above, OPEN)
         if self.phase is Phase.LIFT:
-            return self._towards(obs, np.array([cube[0], cube[1], cube[2] + 0.25]), CLOSED)
-        place = obs.privileged[self.place_role]
-        # cube centre sits at the place object's top plus its own half-size (~2 cm each)
-        stacked = place + np.array([0.0, 0.0, 0.045])
+            return self._towards(obs, np.array([grasp[0], grasp[1], grasp[2] + 0.25]), CLOSED)
+        if self.phase is Phase.RELEASE:
+            self.hold += 1
+            if self.next_stage and self.hold > BACK_OFF:
+                self.next_stage = False
+                self._go(Phase.APPROACH)
+            return self._towards(obs, eef + np.array([0.0, 0.0, 0.02 if self.hold > 4 else 0.0]), OPEN)
+        carried = seen["carried"]
+        offset = carried - eef  # keep the grasp offset so the object, not the hand, is aligned
+        # turning the object to fit its goal (a square nut onto a square peg)
+        fit = -float(seen["goal_yaw"][0]) if "goal_yaw" in seen else 0.0
         if self.phase is Phase.CARRY:
-            carry = stacked + np.array([0.0, 0.0, 0.06])
-            offset = cube - eef  # keep the grasp offset so the cube, not the hand, is aligned
-            off_line = float(np.linalg.norm((carry - cube)[:2]))
-            if abs(carry[2] - cube[2]) < 0.02 and self._converged(off_line, 0.008, 0.015):
+            waypoint = seen["above_goal"]
+            if waypoint[2] - carried[2] > 0.02:  # up first: the way over may be lined with walls and pegs
+                waypoint = np.array([carried[0], carried[1], waypoint[2]])
+                return self._towards(obs, waypoint - offset, CLOSED, fit)
+            off_line = float(np.linalg.norm((waypoint - carried)[:2]))
+            if abs(fit) < ALIGNED and self._converged(off_line, 0.008, 0.015):
                 self._go(Phase.LOWER)
-            return self._towards(obs, carry - offset, CLOSED)
-        if self.phase is Phase.LOWER:
-            offset = cube - eef
-            if self._converged(abs(cube[2] - stacked[2]), 0.008, 0.015):
-                self._go(Phase.RELEASE)
-            return self._towards(obs, stacked - offset, CLOSED)
-        self.hold += 1
-        return self._towards(obs, eef + np.array([0.0, 0.0, 0.02 if self.hold > 4 else 0.0]), OPEN)
+            return self._towards(obs, waypoint - offset, CLOSED, fit)
+        goal = seen["goal"]
+        target = goal - offset
+        if "goal_fit" in seen and np.linalg.norm((goal - carried)[:2]) > seen["goal_fit"][0]:
+            target[2] = eef[2]  # come back over the goal's line before going further down
+        if self._converged(abs(carried[2] - goal[2]), 0.008, 0.015):
+            self._go(Phase.RELEASE)
+        return self._towards(obs, target, CLOSED, fit)
 
     def act(self, obs: Observation) -> np.ndarray:
         action = self._advance(obs)
+        if self.noise:
+            action[:6] += self.rng.normal(0.0, self.noise, size=6)
+        return np.clip(action, -1.0, 1.0)
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    quat, matrix = np.zeros(4), np.zeros(9)
+    mujoco.mju_axisAngle2Quat(quat, axis, angle)
+    mujoco.mju_quat2Mat(matrix, quat)
+    return matrix.reshape(3, 3)
+
+
+def _rotation_error(wanted: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """The world-frame rotation vector that turns the gripper to `wanted`."""
+    quat, error = np.zeros(4), np.zeros(3)
+    mujoco.mju_mat2Quat(quat, (wanted @ _matrix(quat_xyzw).T).ravel())
+    mujoco.mju_quat2Vel(error, quat, 1.0)
+    return error
+
+
+class DoorPhase(Enum):
+    APPROACH = auto()
+    REACH = auto()
+    GRASP = auto()
+    TURN = auto()
+    PULL = auto()
+
+
+class DoorExpert:
+    """Open robosuite's latched door: grasp the lever from the front (fingers closing on its
+    height), turn it down about the latch's axis until the latch clears (~1.3 rad), then pull
+    along the door's swing."""
+
+    TURNED, TURN_STEP, MAX_TURN = 1.3, 0.06, 1.5  # radians of handle turn; per step; commanded at most
+    STANDOFF, TOWARD_PIVOT = 0.12, 0.04  # metres in front of the lever to line up; grasp this far in from its end
+
+    def __init__(self, noise: float, rng: np.random.Generator):
+        self.noise, self.rng = noise, rng
+        self.phase, self.steps, self.turn = DoorPhase.APPROACH, 0, 0.0
+        self.grasp_pose: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @staticmethod
+    def _facing(latch_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Out of the door (towards the robot), and the gripper orientation that points into it
+        with the fingers opening vertically."""
+        out = -latch_axis * np.array([1.0, 1.0, 0.0])
+        out /= np.linalg.norm(out)
+        fingers = np.array([0.0, 0.0, 1.0])
+        return out, np.stack([np.cross(fingers, -out), fingers, -out], axis=1)
+
+    def _advance(self, obs: Observation) -> tuple[np.ndarray, np.ndarray, float]:
+        seen = obs.privileged
+        eef, handle, pivot, axis = seen["gripper"], seen["handle"], seen["latch_pivot"], seen["latch_axis"]
+        out, facing = self._facing(axis)
+        grasp = handle + self.TOWARD_PIVOT * ((pivot - handle) * np.array([1.0, 1.0, 0.0])
+                                              / np.linalg.norm((pivot - handle)[:2]))
+        self.steps += 1
+        if self.phase is DoorPhase.APPROACH:
+            target = grasp + self.STANDOFF * out
+            lined_up = np.linalg.norm(_rotation_error(facing, seen["gripper_quat"])) < ALIGNED
+            if np.linalg.norm(target - eef) < 0.015 and lined_up:
+                self.phase = DoorPhase.REACH
+            return target, facing, OPEN
+        if self.phase is DoorPhase.REACH:
+            if np.linalg.norm(grasp - eef) < 0.012:
+                self.phase, self.steps = DoorPhase.GRASP, 0
+            return grasp, facing, OPEN
+        if self.phase is DoorPhase.GRASP:
+            if self.steps >= 6:
+                self.phase, self.steps, self.grasp_pose = DoorPhase.TURN, 0, (eef.copy(), pivot.copy(), axis.copy(), facing)
+            return eef, facing, CLOSED
+        if self.phase is DoorPhase.TURN:
+            start, start_pivot, start_axis, start_facing = self.grasp_pose
+            self.turn = min(self.turn + self.TURN_STEP, self.MAX_TURN)
+            turned = _rotation(start_axis, self.turn)  # the hand follows the lever's arc about the latch
+            if seen["handle_turn"][0] > self.TURNED or self.steps > 60:
+                self.phase = DoorPhase.PULL
+            return start_pivot + turned @ (start - start_pivot), turned @ start_facing, CLOSED
+        # along the door's swing about its hinge, the way that opens it
+        swing = np.cross([0.0, 0.0, 1.0], eef - seen["hinge_pivot"]) * np.array([1.0, 1.0, 0.0])
+        swing /= np.linalg.norm(swing)
+        if swing @ out < 0:
+            swing = -swing
+        return eef + 0.1 * swing, _rotation(axis, self.turn) @ facing, CLOSED
+
+    def act(self, obs: Observation) -> np.ndarray:
+        target, orientation, gripper = self._advance(obs)
+        action = np.zeros(ACTION_DIM)
+        action[:3] = np.clip(GAIN * (target - obs.privileged["gripper"]), -1.0, 1.0)
+        action[3:6] = np.clip(TURN_GAIN * _rotation_error(orientation, obs.privileged["gripper_quat"]), -1.0, 1.0)
+        action[6] = gripper
         if self.noise:
             action[:6] += self.rng.normal(0.0, self.noise, size=6)
         return np.clip(action, -1.0, 1.0)

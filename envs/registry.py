@@ -11,15 +11,16 @@ from schemas.config import ConfigError, RenderConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import TaskRecord
 
-EXPERT_FAMILY = {"pick_place": "robosuite", "metaworld_policy": "metaworld", "navigation_planner": "navigation"}
+EXPERT_FAMILY = {"pick_place": "robosuite", "open_door": "robosuite", "metaworld_policy": "metaworld",
+                 "navigation_planner": "navigation"}
 
 
 def _roles_by_env(family: str) -> dict[str, dict[str, object]] | None:
     """env -> object roles, for the families whose tasks bind colours to objects."""
     if family == "robosuite":
-        from envs.robosuite_env import ROBOSUITE_ROLES
+        from envs.robosuite_env import ROBOSUITE_SCENES
 
-        return ROBOSUITE_ROLES
+        return {name: scene.colourable for name, scene in ROBOSUITE_SCENES.items()}
     if family == "navigation":
         from envs.navigation_env import NAVIGATION_ROLES
 
@@ -54,6 +55,12 @@ def check_spec(spec: TaskSpec, origin: str) -> None:
         )
     if EXPERT_FAMILY[spec.expert] != spec.family:
         raise ConfigError(f"{origin}: {spec.name}.expert: {spec.expert} does not drive {spec.family} environments")
+    if spec.family == "robosuite":
+        from envs.robosuite_env import ROBOSUITE_SCENES
+
+        solver = ROBOSUITE_SCENES[spec.env].expert
+        if spec.expert != solver:
+            raise ConfigError(f"{origin}: {spec.name}.expert: {spec.env} is solved by {solver}, not {spec.expert}")
 
 
 def make_env(family: str, env_name: str, render: RenderConfig | None):
@@ -71,10 +78,13 @@ def make_env(family: str, env_name: str, render: RenderConfig | None):
 
 
 def make_expert(task: TaskRecord, noise: float, rng: np.random.Generator) -> Callable[[Observation], np.ndarray]:
-    from envs.experts import MetaWorldExpert, PickPlaceExpert
+    from envs.experts import DoorExpert, MetaWorldExpert, PickPlaceExpert
 
     if task.family == "robosuite":
-        return PickPlaceExpert.for_env(task.env_name, noise, rng).act
+        from envs.robosuite_env import ROBOSUITE_SCENES
+
+        solver = {"pick_place": PickPlaceExpert, "open_door": DoorExpert}[ROBOSUITE_SCENES[task.env_name].expert]
+        return solver(noise, rng).act
     if task.family == "navigation":
         from envs.navigation_env import NavigationExpert
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 import os
 import sys
 import types
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 # robosuite reads overrides from robosuite.macros_private; ours keeps its console to errors
@@ -26,10 +29,116 @@ from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
 
-# object role -> (robosuite object name, its visual geom): what task specs may bind colours to.
-ROBOSUITE_ROLES: dict[str, dict[str, tuple[str, str]]] = {
-    "Lift": {"target": ("cube", "cube_g0_vis")},
-    "Stack": {"pick": ("cubeA", "cubeA_g0_vis"), "place": ("cubeB", "cubeB_g0_vis")},
+Privileged = dict[str, np.ndarray]
+
+
+def _horizontal(vector: np.ndarray) -> np.ndarray:
+    flat = np.array([vector[0], vector[1], 0.0])
+    return flat / max(float(np.linalg.norm(flat)), 1e-9)
+
+
+def _across(vector: np.ndarray) -> np.ndarray:
+    """The horizontal direction at right angles to `vector`."""
+    return _horizontal(np.array([-vector[1], vector[0], 0.0]))
+
+
+# What the pick-and-place expert reads (envs.experts.PickPlaceExpert): "grasp", where the
+# fingertips close; "grip_axis", the horizontal line the fingers should open along (zero: any);
+# "carried", the object point brought to the goal; "goal", where that point is let go, and
+# "above_goal", the waypoint it is carried through (both absent: lift and hold); "goal_yaw", how
+# far the carried object is turned from a fitting orientation; "goal_fit", how far off the goal's
+# vertical line it may be while going down (a nut over its peg); "stage", which of several
+# placements is under way. The scene knows its objects; the expert knows only these points.
+
+def _lift(env, raw: dict) -> Privileged:
+    cube = raw["cube_pos"]
+    return {"grasp": cube, "carried": cube, "grip_axis": np.zeros(3)}
+
+
+def _stack(env, raw: dict) -> Privileged:
+    cube, base = raw["cubeA_pos"], raw["cubeB_pos"]
+    # cube centre sits at the base's top plus its own half-size (~2 cm each); fingers close
+    # across the line to the base, or beside a close neighbour one lands on it
+    goal = base + np.array([0.0, 0.0, 0.045])
+    return {"grasp": cube, "carried": cube, "grip_axis": _across(base - cube),
+            "goal": goal, "above_goal": goal + np.array([0.0, 0.0, 0.06])}
+
+
+def _pick_place(obj: str):
+    def privileged(env, raw: dict) -> Privileged:
+        model, data = env.sim.model._model, env.sim.data._data
+        geom = model.geom(f"{obj}_g0").id
+        half = model.geom_aabb[geom, 3:]  # in the mesh's own frame
+        centre = np.asarray(raw[f"{obj}_pos"], dtype=np.float64)
+        # grasp tall objects near the top, short ones at the middle; close on the narrow side
+        grasp = centre + np.array([0.0, 0.0, max(0.0, half[2] - 0.03)])
+        narrow = data.geom_xmat[geom].reshape(3, 3)[:, int(np.argmin(half[:2]))]
+        # the object's quarter of the bin, 5 cm in from its centre towards the robot: the far
+        # quarters' centres are at the edge of the arm's reach (success allows a quarter's half-size)
+        target = env.target_bin_placements[env.object_id]
+        inward = np.array([-0.05, -0.05 * np.sign(target[1])])
+        goal = np.array([*(target[:2] + inward), env.bin2_pos[2] + half[2] + 0.05])  # dropped the last few cm
+        return {"grasp": grasp, "carried": centre, "grip_axis": _horizontal(narrow),
+                "goal": goal, "above_goal": goal + np.array([0.0, 0.0, 0.12])}
+
+    return privileged
+
+
+NUT_PEGS = (("SquareNut", "peg1"), ("RoundNut", "peg2"))  # robosuite's nut order: id 0, 1
+
+
+def _nuts(env, raw: dict) -> Privileged:
+    """The first nut of the scene not yet on its peg."""
+    model, data = env.sim.model._model, env.sim.data._data
+    active = [(i, nut, peg) for i, (nut, peg) in enumerate(NUT_PEGS) if f"{nut}_pos" in raw]
+    stage, nut, peg = next(((i, n, p) for i, n, p in active if not env.on_peg(raw[f"{n}_pos"], i)), active[-1])
+    handle, centre = (data.site_xpos[model.site(f"{nut}_{site}_site").id].copy() for site in ("handle", "center"))
+    radial = handle - centre
+    # let go once the nut is around the peg (3 cm below its top, 10 cm above its base): held by its
+    # handle the nut hangs tilted and jams; let go, it drops flat
+    goal = np.array([*data.xpos[model.body(peg).id][:2], data.xpos[model.body(peg).id][2] + 0.07])
+    # the handle ends up pointing away from the peg along -x, +y or -y (a square nut fits that way):
+    # pointing +x would put the hand out of the arm's reach beyond the pegs
+    heading = np.arctan2(radial[1], radial[0])
+    fit = min(((heading - way + np.pi) % (2 * np.pi) - np.pi for way in (np.pi, np.pi / 2, -np.pi / 2)), key=abs)
+    return {"grasp": handle, "carried": centre, "grip_axis": _across(radial), "goal": goal,
+            "above_goal": goal + np.array([0.0, 0.0, 0.09]), "goal_fit": np.array([0.01]),
+            "goal_yaw": np.array([fit]),
+            "stage": np.array([float(stage)])}
+
+
+def _door(env, raw: dict) -> Privileged:
+    model, data = env.sim.model._model, env.sim.data._data
+    latch, hinge = model.joint(env.door.joints[1]).id, model.joint(env.door.joints[0]).id
+    return {"handle": np.asarray(raw["handle_pos"], dtype=np.float64), "latch_pivot": data.xanchor[latch].copy(),
+            "latch_axis": data.xaxis[latch].copy(), "hinge_pivot": data.xanchor[hinge].copy(),
+            "handle_turn": np.atleast_1d(raw["handle_qpos"]).astype(np.float64)}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One robosuite environment as task specs and experts see it."""
+
+    colourable: dict[str, tuple[str, ...]]  # role a spec may colour -> the visual geoms that show it
+    expert: str  # the task-spec expert that solves it
+    privileged: Callable[[Any, dict], Privileged]  # (robosuite env, its observation) -> what the expert reads
+    options: dict[str, Any] = field(default_factory=dict)  # robosuite.make arguments
+    # Mesh objects keep their size: MuJoCo scales primitive geoms only.
+    randomises: frozenset[str] = frozenset(ASPECTS)
+
+
+_MESH_OBJECT = frozenset(ASPECTS) - {"size"}
+_NUT_GEOMS = {nut: tuple(f"{nut}_g{i}_visual" for i in range(count)) for nut, count in (("SquareNut", 5), ("RoundNut", 9))}
+ROBOSUITE_SCENES: dict[str, Scene] = {
+    "Lift": Scene({"target": ("cube_g0_vis",)}, "pick_place", _lift),
+    "Stack": Scene({"pick": ("cubeA_g0_vis",), "place": ("cubeB_g0_vis",)}, "pick_place", _stack),
+    **{f"PickPlace{obj}": Scene({}, "pick_place", _pick_place(obj), randomises=_MESH_OBJECT)
+       for obj in ("Milk", "Bread", "Cereal", "Can")},
+    "NutAssemblySquare": Scene({"nut": _NUT_GEOMS["SquareNut"]}, "pick_place", _nuts),
+    "NutAssemblyRound": Scene({"nut": _NUT_GEOMS["RoundNut"]}, "pick_place", _nuts),
+    "NutAssembly": Scene({"square": _NUT_GEOMS["SquareNut"], "round": _NUT_GEOMS["RoundNut"]}, "pick_place", _nuts),
+    # the latched door: its handle must be turned before it opens
+    "Door": Scene({"door": ("Door_panel_visual",)}, "open_door", _door, {"use_latch": True}, _MESH_OBJECT),
 }
 
 MODEL_SEED = 0
@@ -40,15 +149,14 @@ PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
 class RobosuiteEnv:
     """One robosuite environment, recoloured per task, rendered with the campaign's settings."""
 
-    RANDOMISES = frozenset(ASPECTS)
-
     def __init__(self, env_name: str, render: RenderConfig | None):
         """render=None: no camera at all (scripted experts need no pixels; 8x faster on CPU)."""
         import robosuite
 
         self.env_name = env_name
         self.render_config = render
-        self.roles = ROBOSUITE_ROLES[env_name]
+        self.scene = ROBOSUITE_SCENES[env_name]
+        self.RANDOMISES = self.scene.randomises
         camera = {} if render is None else {
             "camera_names": render.camera, "camera_heights": render.image_size, "camera_widths": render.image_size,
         }
@@ -67,6 +175,7 @@ class RobosuiteEnv:
             # robosuite samples object sizes when it builds the model, from env.rng: a fixed seed
             # makes every worker's model identical, so an episode depends on its own seed only.
             seed=MODEL_SEED,
+            **self.scene.options,
         )
         if render is not None:
             self._apply_render_settings()
@@ -74,7 +183,7 @@ class RobosuiteEnv:
         self.fingers = [model.body(name).id for name in FINGERS]
         self.randomiser = SceneRandomiser(
             model, render.camera if render else None,
-            task_geoms=[model.geom(visual).id for _, visual in self.roles.values()], object_bodies=free_bodies(model),
+            task_geoms=[model.geom(g).id for geoms in self.scene.colourable.values() for g in geoms], object_bodies=free_bodies(model),
         )
 
     def _apply_render_settings(self) -> None:
@@ -92,9 +201,10 @@ class RobosuiteEnv:
     def _apply_colours(self, task: TaskRecord, randomisation: Randomisation | None) -> None:
         model = self.env.sim.model._model
         for role, colour in task.object_colours.items():
-            geom_id = model.geom(self.roles[role][1]).id
-            model.geom_matid[geom_id] = -1  # drop the wood texture: the colour is the cue
-            model.geom_rgba[geom_id] = jitter_rgba(COLOUR_RGBA[colour], randomisation)
+            for geom in self.scene.colourable[role]:
+                geom_id = model.geom(geom).id
+                model.geom_matid[geom_id] = -1  # drop the texture: the colour is the cue
+                model.geom_rgba[geom_id] = jitter_rgba(COLOUR_RGBA[colour], randomisation)
 
     def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
         if task.env_name != self.env_name:
@@ -118,8 +228,9 @@ class RobosuiteEnv:
     def _observation(self, raw: dict[str, np.ndarray]) -> Observation:
         image = NO_IMAGE if self.render_config is None else raw[f"{self.render_config.camera}_image"][::-1].copy()
         proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
-        privileged = {role: np.asarray(raw[f"{name}_pos"], dtype=np.float64) for role, (name, _) in self.roles.items()}
+        privileged = self.scene.privileged(self.env, raw)
         privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
+        privileged["gripper_quat"] = np.asarray(raw["robot0_eef_quat"], dtype=np.float64)  # x, y, z, w
         left, right = self.env.sim.data._data.xpos[self.fingers]  # the fingers open along this line
         privileged["finger_axis"] = right - left
         return Observation(image, proprio, privileged)

@@ -48,7 +48,7 @@ class TaskSpec(_Strict):
     templates: list[str] = Field(min_length=3, description="language templates; {role} is replaced by its colour")
     success: Literal["env"] = Field(default="env", description="'env': the environment's own success check")
     horizon: int = Field(gt=0)
-    expert: Literal["pick_place", "metaworld_policy", "navigation_planner"]
+    expert: Literal["pick_place", "open_door", "metaworld_policy", "navigation_planner"]
     split: SplitSpec = SplitSpec()
 
     @model_validator(mode="after")

@@ -82,7 +82,7 @@ def test_the_expert_still_lifts_under_randomisation(lift_env):
     config = RandomiseConfig()
     for seed in (1, 2):
         draw = sample_randomisation(config, seed, lift_env.RANDOMISES)
-        expert = PickPlaceExpert.for_env("Lift", noise=0.1, rng=np.random.default_rng(seed))
+        expert = PickPlaceExpert(noise=0.1, rng=np.random.default_rng(seed))
         _, _, success = rollout(lift_env, LIFT, seed, expert.act, draw)
         assert success
 

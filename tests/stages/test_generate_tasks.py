@@ -15,7 +15,8 @@ def test_the_suite_has_over_100_tasks_in_three_families_each_said_three_ways():
         for colour in task.object_colours.values():
             assert all(colour in text for text in task.instructions)
     assert len({t.task_id for t in tasks}) == len(tasks) >= 100
-    assert by_family == {"robosuite": 6 + 30, "metaworld": 50, "navigation": 6 + 6 + 6 + 30}
+    # robosuite: lift, stack, four PickPlace objects, square nut, round nut, both nuts, door
+    assert by_family == {"robosuite": 6 + 30 + 4 + 6 + 6 + 12 + 6, "metaworld": 50, "navigation": 6 + 6 + 6 + 30}
 
 
 def test_colour_bindings_come_from_the_environment_roles():
@@ -70,6 +71,7 @@ def test_a_user_adds_tasks_by_writing_a_file(tmp_path):
         (("env: Lift", "env: Lifft"), "my-lift.env: unknown robosuite environment 'Lifft'"),
         (("{target: {colours", "{cube: {colours"), "template 'lift the {target} one' names ['target']"),
         (("expert: pick_place", "expert: metaworld_policy"), "my-lift.expert: metaworld_policy does not drive"),
+        (("expert: pick_place", "expert: open_door"), "my-lift.expert: Lift is solved by pick_place, not open_door"),
         (("horizon: 50", "horizon: -5"), "specs.0.horizon: Input should be greater than 0"),
         (("colours: [red, purple]", "colours: [red, mauve]"), "specs.0.objects.target.colours.1"),
         (('"raise the {target} cube", ', ""), "specs.0.templates: List should have at least 3 items"),
