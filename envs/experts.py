@@ -15,10 +15,16 @@ OPEN, CLOSED = -1.0, 1.0
 # finger resting on a randomly turned cube's corner, or a cube shifted in the grasp, would
 # otherwise hold the expert in one phase until the horizon.
 PATIENCE = 25
-DROPPED = 0.04  # cube this far from the fingers while carrying: it is not in the hand
+DROPPED = 0.04  # grasp point this far from the fingers while carrying: the object is not in the hand
 TURN_GAIN, ALIGNED = 3.0, 0.1  # wrist yaw: action per radian of error; radians counted as aligned
 BACK_OFF = 12  # steps spent letting go and rising between placements
 GRASP_STEPS = 10  # fingers take ~0.5 s to close on a thin nut handle
+
+
+def horizontal(vector: np.ndarray) -> np.ndarray:
+    """`vector` flattened onto the floor, as a unit vector."""
+    flat = np.array([vector[0], vector[1], 0.0])
+    return flat / max(float(np.linalg.norm(flat)), 1e-9)
 
 
 def _matrix(quat_xyzw: np.ndarray) -> np.ndarray:
@@ -66,9 +72,9 @@ class PickPlaceExpert:
             self.wrist += (angle - self.finger_angle + np.pi) % (2 * np.pi) - np.pi
         self.finger_angle = angle
 
-    def _yaw_error(self, obs: Observation) -> float:
+    def _turn_to_grip(self, obs: Observation) -> float:
         """Radians to turn the wrist so the fingers open along the scene's grip axis (two fingers
-        look the same every half turn)."""
+        look the same every half turn); the way chosen is kept for the rest of the phase."""
         wanted = obs.privileged["grip_axis"]
         if not wanted[:2].any():
             return 0.0
@@ -100,7 +106,7 @@ class PickPlaceExpert:
         grasp, eef = seen["grasp"], seen["gripper"]
         above = grasp + np.array([0.0, 0.0, 0.08])
         if self.phase is Phase.APPROACH:
-            turn = self._yaw_error(obs)
+            turn = self._turn_to_grip(obs)
             if np.linalg.norm((above - eef)[:2]) < 0.01 and abs(above[2] - eef[2]) < 0.02 and abs(turn) < ALIGNED:
                 self._go(Phase.DESCEND)
             return self._towards(obs, above, OPEN, turn)
@@ -108,7 +114,7 @@ class PickPlaceExpert:
         if self.phase is Phase.DESCEND:
             if self._converged(float(np.linalg.norm(grasp_point - eef)), 0.012, 0.025):
                 self._go(Phase.GRASP)
-            return self._towards(obs, grasp_point, OPEN, self._yaw_error(obs))
+            return self._towards(obs, grasp_point, OPEN, self._turn_to_grip(obs))
         if self.phase is Phase.GRASP:
             self.hold += 1
             if self.hold >= GRASP_STEPS:
@@ -184,6 +190,7 @@ class DoorExpert:
 
     TURNED, TURN_STEP, MAX_TURN = 1.3, 0.06, 1.5  # radians of handle turn; per step; commanded at most
     STANDOFF, TOWARD_PIVOT = 0.12, 0.04  # metres in front of the lever to line up; grasp this far in from its end
+    GRASP_STEPS = 6  # the lever is as tall as a cube is wide: the fingers close on it in 6 steps
 
     def __init__(self, noise: float, rng: np.random.Generator):
         self.noise, self.rng = noise, rng
@@ -194,8 +201,7 @@ class DoorExpert:
     def _facing(latch_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Out of the door (towards the robot), and the gripper orientation that points into it
         with the fingers opening vertically."""
-        out = -latch_axis * np.array([1.0, 1.0, 0.0])
-        out /= np.linalg.norm(out)
+        out = horizontal(-latch_axis)
         fingers = np.array([0.0, 0.0, 1.0])
         return out, np.stack([np.cross(fingers, -out), fingers, -out], axis=1)
 
@@ -203,8 +209,7 @@ class DoorExpert:
         seen = obs.privileged
         eef, handle, pivot, axis = seen["gripper"], seen["handle"], seen["latch_pivot"], seen["latch_axis"]
         out, facing = self._facing(axis)
-        grasp = handle + self.TOWARD_PIVOT * ((pivot - handle) * np.array([1.0, 1.0, 0.0])
-                                              / np.linalg.norm((pivot - handle)[:2]))
+        grasp = handle + self.TOWARD_PIVOT * horizontal(pivot - handle)
         self.steps += 1
         if self.phase is DoorPhase.APPROACH:
             target = grasp + self.STANDOFF * out
@@ -217,7 +222,7 @@ class DoorExpert:
                 self.phase, self.steps = DoorPhase.GRASP, 0
             return grasp, facing, OPEN
         if self.phase is DoorPhase.GRASP:
-            if self.steps >= 6:
+            if self.steps >= self.GRASP_STEPS:
                 self.phase, self.steps, self.grasp_pose = DoorPhase.TURN, 0, (eef.copy(), pivot.copy(), axis.copy(), facing)
             return eef, facing, CLOSED
         if self.phase is DoorPhase.TURN:
@@ -228,8 +233,7 @@ class DoorExpert:
                 self.phase = DoorPhase.PULL
             return start_pivot + turned @ (start - start_pivot), turned @ start_facing, CLOSED
         # along the door's swing about its hinge, the way that opens it
-        swing = np.cross([0.0, 0.0, 1.0], eef - seen["hinge_pivot"]) * np.array([1.0, 1.0, 0.0])
-        swing /= np.linalg.norm(swing)
+        swing = horizontal(np.cross([0.0, 0.0, 1.0], eef - seen["hinge_pivot"]))
         if swing @ out < 0:
             swing = -swing
         return eef + 0.1 * swing, _rotation(axis, self.turn) @ facing, CLOSED

@@ -23,6 +23,7 @@ sys.modules.setdefault("robosuite.macros_private", _macros)
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from envs.experts import horizontal  # noqa: E402
 from envs.observation import NO_IMAGE, Observation  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -32,14 +33,9 @@ from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 Privileged = dict[str, np.ndarray]
 
 
-def _horizontal(vector: np.ndarray) -> np.ndarray:
-    flat = np.array([vector[0], vector[1], 0.0])
-    return flat / max(float(np.linalg.norm(flat)), 1e-9)
-
-
 def _across(vector: np.ndarray) -> np.ndarray:
     """The horizontal direction at right angles to `vector`."""
-    return _horizontal(np.array([-vector[1], vector[0], 0.0]))
+    return horizontal(np.array([-vector[1], vector[0], 0.0]))
 
 
 # What the pick-and-place expert reads (envs.experts.PickPlaceExpert): "grasp", where the
@@ -78,7 +74,7 @@ def _pick_place(obj: str):
         target = env.target_bin_placements[env.object_id]
         inward = np.array([-0.05, -0.05 * np.sign(target[1])])
         goal = np.array([*(target[:2] + inward), env.bin2_pos[2] + half[2] + 0.05])  # dropped the last few cm
-        return {"grasp": grasp, "carried": centre, "grip_axis": _horizontal(narrow),
+        return {"grasp": grasp, "carried": centre, "grip_axis": horizontal(narrow),
                 "goal": goal, "above_goal": goal + np.array([0.0, 0.0, 0.12])}
 
     return privileged
@@ -96,7 +92,7 @@ def _nuts(env, raw: dict) -> Privileged:
     radial = handle - centre
     # let go once the nut is around the peg (3 cm below its top, 10 cm above its base): held by its
     # handle the nut hangs tilted and jams; let go, it drops flat
-    goal = np.array([*data.xpos[model.body(peg).id][:2], data.xpos[model.body(peg).id][2] + 0.07])
+    goal = data.xpos[model.body(peg).id] + np.array([0.0, 0.0, 0.07])
     # the handle ends up pointing away from the peg along -x, +y or -y (a square nut fits that way):
     # pointing +x would put the hand out of the arm's reach beyond the pegs
     heading = np.arctan2(radial[1], radial[0])
