@@ -13,7 +13,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from envs.observation import NO_IMAGE, Observation  # noqa: E402
+from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
@@ -101,9 +101,8 @@ class MetaWorldEnv:
         """MetaWorld's own step, without our observation (benchmarks)."""
         self.env.step(to_metaworld_action(action))
 
-    def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
-        data = self.env.data
-        return data.qpos.copy(), data.qvel.copy(), float(data.time)
+    def mujoco_state(self) -> MujocoState:
+        return MujocoState.of(self.env.data)
 
     def close(self) -> None:
         self.env.close()

@@ -15,7 +15,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from envs.observation import NO_IMAGE, PROPRIO_DIM, Observation  # noqa: E402
+from envs.observation import NO_IMAGE, PROPRIO_DIM, MujocoState, Observation  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
@@ -216,8 +216,8 @@ class NavigationEnv:
         """The MuJoCo model and data, and the mj_steps one action takes (benchmarks)."""
         return self.model, self.data, SUBSTEPS
 
-    def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
-        return self.data.qpos.copy(), self.data.qvel.copy(), float(self.data.time)
+    def mujoco_state(self) -> MujocoState:
+        return MujocoState.of(self.data)
 
     def close(self) -> None:
         if self.renderer is not None:

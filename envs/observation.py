@@ -22,3 +22,22 @@ class Observation:
     image: np.ndarray  # uint8 (H, W, 3), upright; OpenGL rows run bottom-up, adapters flip them
     proprio: np.ndarray  # float32 (PROPRIO_DIM,)
     privileged: dict[str, np.ndarray]  # simulator state only scripted experts may read
+
+
+@dataclass
+class MujocoState:
+    """What replay sets back into the model to reproduce a step (stored per step, float64)."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    act: np.ndarray  # actuator activations; empty for models without stateful actuators
+    mocap: np.ndarray  # mocap body positions (3 each) then quaternions (4 each)
+    time: float
+
+    @classmethod
+    def of(cls, data) -> MujocoState:
+        """Copy the state out of a mujoco.MjData."""
+        return cls(
+            data.qpos.copy(), data.qvel.copy(), data.act.copy(),
+            np.concatenate([data.mocap_pos.ravel(), data.mocap_quat.ravel()]), float(data.time),
+        )

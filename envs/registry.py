@@ -28,6 +28,16 @@ def _roles_by_env(family: str) -> dict[str, dict[str, object]] | None:
     return None
 
 
+def action_bounds(family: str) -> tuple[float, float]:
+    """The range every action component of a family lies in: end-effector deltas and gripper in
+    [-1, 1]; navigation's discrete action index."""
+    if family == "navigation":
+        from envs.navigation_env import ACTIONS
+
+        return 0.0, float(len(ACTIONS) - 1)
+    return -1.0, 1.0
+
+
 def known_envs(family: str) -> list[str]:
     roles = _roles_by_env(family)
     if roles is not None:

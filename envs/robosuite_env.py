@@ -24,7 +24,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
-from envs.observation import NO_IMAGE, Observation  # noqa: E402
+from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
@@ -240,9 +240,8 @@ class RobosuiteEnv:
         """robosuite's own step, without our observation (benchmarks)."""
         self.env.step(action)
 
-    def mujoco_state(self) -> tuple[np.ndarray, np.ndarray, float]:
-        data = self.env.sim.data
-        return data.qpos.copy(), data.qvel.copy(), float(data.time)
+    def mujoco_state(self) -> MujocoState:
+        return MujocoState.of(self.env.sim.data._data)
 
     def close(self) -> None:
         self.env.close()

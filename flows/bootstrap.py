@@ -101,7 +101,7 @@ def redeploy_task(
     return run_redeploy(Workspace.at(workspace), config, iteration, model.model_key, model.checkpoint, mlflow_run_id)
 
 
-def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
+def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel, workspace: Workspace) -> None:
     """Log what a stage did, right after it, and only when it did work (a re-run adds no points)."""
     if stage == "generate_tasks" and not result.skipped:
         tracking.log_metrics(run_id, {"tasks.count": len(result.task_ids), "tasks.proposals_valid": result.proposals_valid,
@@ -118,7 +118,12 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -
     elif stage == "index" and not result.skipped:
         tracking.log_metrics(run_id, {f"dataset.{k}": getattr(result, k) for k in ("episodes", "kept_episodes", "triplets")})
         tracking.set_tags(run_id, {"sim2act.dataset_digest": result.dataset_digest})
-    elif stage == "train":
+    elif stage == "train" and not result.skipped:
+        tracking.log_training_dataset(
+            run_id, result.dataset_digest,
+            source={"warehouse": str(workspace.warehouse), "digest": result.dataset_digest, "shards": result.dataset_shards},
+            profile={"triplets": result.samples, "shards": len(result.dataset_shards)},
+        )
         for epoch, record in enumerate(result.history):
             tracking.log_metrics(run_id, {f"train.{k}": v for k, v in record.items()}, step=epoch)
     elif stage == "evaluate" and result.skipped_units < len(result.tasks):
@@ -141,20 +146,21 @@ def iteration_flow(
     previous: IndexResult | None = None,
     explorer: PolicyExplorer | None = None,
 ) -> IterationOutcome:
-    tracking = Tracking(Workspace.at(workspace), config)
+    ws = Workspace.at(workspace)
+    tracking = Tracking(ws, config)
     run_id = tracking.iteration_run(campaign_run_id, iteration)
     tasks = generate_tasks_task(workspace, config)
-    _log_stage(tracking, run_id, "generate_tasks", tasks)
+    _log_stage(tracking, run_id, "generate_tasks", tasks, ws)
     explore = explore_task(workspace, config, iteration, tasks.unit_key, explorer)
-    _log_stage(tracking, run_id, "explore", explore)
+    _log_stage(tracking, run_id, "explore", explore, ws)
     filtered = filter_task(workspace, config, iteration, explore.unit_keys)
-    _log_stage(tracking, run_id, "filter", filtered)
+    _log_stage(tracking, run_id, "filter", filtered, ws)
     index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
-    _log_stage(tracking, run_id, "index", index)
+    _log_stage(tracking, run_id, "index", index, ws)
     model = train_task(workspace, config, iteration, index, tasks.unit_key)
-    _log_stage(tracking, run_id, "train", model)
+    _log_stage(tracking, run_id, "train", model, ws)
     evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
-    _log_stage(tracking, run_id, "evaluate", evaluation)
+    _log_stage(tracking, run_id, "evaluate", evaluation, ws)
     deployment = redeploy_task(workspace, config, iteration, model, run_id)
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
@@ -181,6 +187,8 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
     orphans = catalog.clean_orphans()
     if orphans:
         log.info("removed %d unregistered file(s) left by an interrupted run", len(orphans))
+    for path, reason in catalog.verify():
+        log.warning("quarantined %s (%s); its unit will be redone", path, reason)
     tracking = Tracking(ws, config)
     campaign_run_id = tracking.campaign_run()
     outcomes: list[IterationOutcome] = []

@@ -166,12 +166,71 @@ def cmd_bench_envs(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_warehouse(args: argparse.Namespace) -> int:
+    from bench.warehouse import QUICK, BenchSizes, bench_warehouse, markdown
+
+    sizes = QUICK if args.quick else BenchSizes()
+    if args.sql_steps:
+        if min(args.sql_steps) < 1:
+            raise ConfigError(f"bench warehouse: --sql-steps must be positive, got {args.sql_steps}")
+        sizes = sizes.model_copy(update={"sql_steps": args.sql_steps})
+    measures = bench_warehouse(sizes, args.scratch)
+    if args.json:
+        print(json.dumps([m.model_dump() for m in measures], indent=1))
+    else:
+        print(markdown(measures, args.command_line))
+    if args.out:
+        write_text_atomically(args.out, markdown(measures, args.command_line))
+    return 0
+
+
 def cmd_sql(args: argparse.Namespace) -> int:
+    import duckdb
+
     from warehouse.catalog import Catalog
     from warehouse.sql import run_sql
 
-    print(run_sql(Catalog(Workspace.at(args.workspace).catalog), args.query, args.format))
+    if args.as_of_iteration is not None and args.as_of_iteration < 0:
+        raise ConfigError(f"sql: --as-of-iteration must be 0 or more, got {args.as_of_iteration}")
+    try:
+        print(run_sql(Catalog(Workspace.at(args.workspace).catalog), args.query, args.format, args.as_of_iteration))
+    except duckdb.Error as exc:
+        print(f"sim2act: SQL error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
     return 0
+
+
+def cmd_export_lerobot(args: argparse.Namespace) -> int:
+    from warehouse.catalog import Catalog
+    from warehouse.export_lerobot import export_lerobot
+
+    if args.fps < 1:
+        raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
+    catalog = Catalog(Workspace.at(args.workspace).catalog)
+    catalog.check_version()
+
+    def report(done: int, total: int) -> None:
+        print(f"\r[{done}/{total}] episodes", end="" if done < total else "\n", flush=True)
+
+    summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
+                             repo_id=args.repo_id, progress=report)
+    print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
+          f"{summary.bytes / 1e6:.1f} MB: LeRobotDataset v3.0 at {summary.out_dir}")
+    return 0
+
+
+def cmd_warehouse_verify(args: argparse.Namespace) -> int:
+    from warehouse.catalog import Catalog
+
+    catalog = Catalog(Workspace.at(args.workspace).catalog)
+    catalog.check_version()
+    bad = catalog.verify(full=args.full)
+    for path, reason in bad:
+        print(f"quarantined {path}: {reason}")
+    [(shards,)] = catalog.query("SELECT count(*) FROM shards")
+    print(f"{shards} registered shard(s) verified{' (sha256 too)' if args.full else ''}, {len(bad)} quarantined "
+          f"to {catalog.quarantine_folder}; the next `sim2act run` redoes their units")
+    return 1 if bad else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -219,11 +278,38 @@ def build_parser() -> argparse.ArgumentParser:
     bench_env.add_argument("--out", type=Path, help="also write the table as markdown here")
     bench_env.set_defaults(handler=cmd_bench_envs)
 
+    bench_wh = bench_commands.add_parser("warehouse", help="ingest, SQL and training-read speed vs bare references")
+    bench_wh.add_argument("--json", action="store_true", help="print the measures as JSON")
+    bench_wh.add_argument("--quick", action="store_true", help="small sizes (seconds, for a smoke check)")
+    bench_wh.add_argument("--sql-steps", type=int, nargs="+", help="warehouse sizes for the SQL measure")
+    bench_wh.add_argument("--scratch", type=Path, help="folder for the throwaway warehouses (default: $TMPDIR)")
+    bench_wh.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_wh.set_defaults(handler=cmd_bench_warehouse)
+
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")
     sql.add_argument("--format", choices=("table", "csv", "json"), default="table")
     sql.add_argument("--workspace", default=_default_workspace())
+    sql.add_argument("--as-of-iteration", type=int, metavar="K", help="see the warehouse as it was after iteration K")
     sql.set_defaults(handler=cmd_sql)
+
+    export = commands.add_parser("export", help="write a warehouse selection in another project's format")
+    export_commands = export.add_subparsers(dest="export_command", required=True)
+    lerobot = export_commands.add_parser("lerobot", help="a LeRobotDataset v3.0 (Parquet + MP4), kept episodes")
+    lerobot.add_argument("out_dir", type=Path, help="a new or empty folder")
+    lerobot.add_argument("--where", help="SQL over the steps columns; whole episodes with a matching step go out")
+    lerobot.add_argument("--include-rejected", action="store_true", help="also episodes the filter rejected")
+    lerobot.add_argument("--fps", type=int, default=20, help="control rate of the episodes (robosuite: 20)")
+    lerobot.add_argument("--repo-id", default="sim2act/export")
+    lerobot.add_argument("--workspace", default=_default_workspace())
+    lerobot.set_defaults(handler=cmd_export_lerobot)
+
+    warehouse = commands.add_parser("warehouse", help="warehouse upkeep")
+    warehouse_commands = warehouse.add_subparsers(dest="warehouse_command", required=True)
+    verify = warehouse_commands.add_parser("verify", help="check every registered shard, quarantine bad ones")
+    verify.add_argument("--full", action="store_true", help="also compare each file's sha256 with the catalog's")
+    verify.add_argument("--workspace", default=_default_workspace())
+    verify.set_defaults(handler=cmd_warehouse_verify)
     return parser
 
 
@@ -241,9 +327,10 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as exc:  # a known failure mode gets one line, not a traceback
         from warehouse.catalog import CatalogMissing, CatalogVersionError
+        from warehouse.export_lerobot import ExportError
         from warehouse.sql import ReadOnlyViolation
 
-        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation)):
+        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

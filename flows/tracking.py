@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Mapping
 
 from mlflow import MlflowClient
-from mlflow.entities import Metric, Param, RunTag
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunTag
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
@@ -73,6 +74,14 @@ class Tracking:
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
+
+    def log_training_dataset(self, run_id: str, digest: str, source: Mapping, profile: Mapping) -> None:
+        """The exact data a training run read, as the run's MLflow dataset input."""
+        dataset = Dataset(
+            name=f"{self.config.name}-warehouse", digest=digest, source_type="sim2act-warehouse",
+            source=json.dumps(source), schema=None, profile=json.dumps(profile),
+        )
+        self.client.log_inputs(run_id, [DatasetInput(dataset, [InputTag("mlflow.data.context", "training")])])
 
     def finish(self, run_id: str) -> None:
         self.client.set_terminated(run_id, "FINISHED")

@@ -14,7 +14,8 @@ MODEL_CODE = __file__
 
 
 class PolicyModel(mlflow.pyfunc.PythonModel):
-    """Input: a DataFrame with `image` (PNG bytes), `proprio` (list of floats), `instruction` (str)."""
+    """Input: a DataFrame with `image` (a frame's bytes as the warehouse stores them: schemas.frames),
+    `proprio` (list of floats), `instruction` (str)."""
 
     def load_context(self, context) -> None:
         from policies.policy import Policy
@@ -23,12 +24,12 @@ class PolicyModel(mlflow.pyfunc.PythonModel):
 
     def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> np.ndarray:
         from policies.language import encode
-        from warehouse.training_reader import decode_png
+        from schemas.frames import decode_frame
 
         embeddings = encode(self.policy.language_encoder, list(model_input["instruction"]))
         return np.stack(
             [
-                self.policy.act(decode_png(image), np.asarray(proprio, dtype=np.float32), embedding)
+                self.policy.act(decode_frame(image), np.asarray(proprio, dtype=np.float32), embedding)
                 for image, proprio, embedding in zip(model_input["image"], model_input["proprio"], embeddings)
             ]
         )

@@ -1,13 +1,25 @@
-"""Arrow schemas of the Parquet tables and DDL of the catalog's own tables.
+"""Arrow schemas of every warehouse table, the catalog DDL derived from them, and the views.
 
-Layout version: schemas.version.SCHEMA_VERSION, stamped into every shard's metadata.
-Big, append-only data (episodes, steps, filter decisions, instruction embeddings) lives in
-immutable Parquet shards; small bookkeeping tables live inside the DuckDB catalog file.
+Layout version: schemas.version.SCHEMA_VERSION, stamped into every shard's metadata and into
+the catalog. Big, append-only data (episodes, steps, filter decisions, instruction embeddings)
+lives in immutable Parquet shards; small bookkeeping tables live inside the DuckDB catalog
+file. Both kinds are declared here, once, as Arrow schemas: the shard writer checks shards
+against them, the catalog creates its tables from them and checks rows before inserting.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import pyarrow as pa
+
+# A JSON document in a string column; the catalog types it JSON so `summary->>'x'` works.
+_SQL_TYPE = b"sql_type"
+
+
+def _json(name: str) -> pa.Field:
+    return pa.field(name, pa.string(), metadata={_SQL_TYPE: b"JSON"})
+
 
 # One episode's domain randomisation (envs.randomisation): null where its family does not apply
 # an aspect; the whole struct is null when the campaign turned randomisation off.
@@ -23,6 +35,8 @@ RANDOMISATION = pa.struct(
         ("friction", pa.float64()),
     ]
 )
+
+# -- shard tables: immutable Parquet files ---------------------------------------------------
 
 EPISODES = pa.schema(
     [
@@ -43,7 +57,9 @@ EPISODES = pa.schema(
 )
 
 # One row per transition (o_t, l, a_t, o_{t+1}). o_{t+1} is the next row's `image`; the last
-# step of an episode carries it in `next_image`. The `triplets` view joins them.
+# step of an episode carries it in `next_image`. The `triplets` view joins them. The MuJoCo
+# state before the action (qpos, qvel, act, mocap, sim_time) is what replay and re-rendering
+# set back into the model.
 STEPS = pa.schema(
     [
         ("campaign", pa.string()),
@@ -52,15 +68,17 @@ STEPS = pa.schema(
         ("task_id", pa.string()),
         ("step", pa.int32()),
         ("instruction", pa.string()),
-        ("image", pa.binary()),  # PNG, RGB, image_size x image_size, upright
+        ("image", pa.binary()),  # raw RGB frame, image_size x image_size, upright (schemas.frames)
         ("proprio", pa.list_(pa.float32())),
         ("action", pa.list_(pa.float32())),
         ("reward", pa.float32()),
         ("done", pa.bool_()),
         ("success", pa.bool_()),
         ("next_image", pa.binary()),
-        ("qpos", pa.list_(pa.float64())),  # MuJoCo state, for replay and re-rendering
+        ("qpos", pa.list_(pa.float64())),
         ("qvel", pa.list_(pa.float64())),
+        ("act", pa.list_(pa.float64())),  # actuator activations (empty for models without any)
+        ("mocap", pa.list_(pa.float64())),  # mocap body pos (3 each) then quat (4 each): MetaWorld's hand
         ("sim_time", pa.float64()),
     ]
 )
@@ -72,7 +90,11 @@ FILTER_DECISIONS = pa.schema(
         ("episode_id", pa.string()),
         ("task_id", pa.string()),
         ("kept", pa.bool_()),
-        ("reason", pa.string()),  # "kept", "low_return", "not_successful", "env_error"
+        # "kept", "env_error", "invalid_values", "action_out_of_bounds", "bad_image",
+        # "duplicate", "not_successful", "low_return"
+        ("reason", pa.string()),
+        ("detail", pa.string()),  # what exactly failed, for the rejections that have one
+        ("episode_digest", pa.string()),  # of its actions and observations: identical episodes match
         ("episode_return", pa.float64()),
         ("filter_key", pa.string()),
     ]
@@ -94,37 +116,117 @@ SHARD_TABLES: dict[str, pa.Schema] = {
     "instructions": INSTRUCTIONS,
 }
 
-CATALOG_DDL = """
-CREATE TABLE IF NOT EXISTS catalog_meta (key VARCHAR PRIMARY KEY, value VARCHAR);
-CREATE TABLE IF NOT EXISTS stage_runs (
-    unit_key VARCHAR PRIMARY KEY, stage VARCHAR, campaign VARCHAR, iteration INTEGER,
-    finished_at TIMESTAMP, wall_s DOUBLE, summary JSON);
-CREATE TABLE IF NOT EXISTS shards (
-    path VARCHAR PRIMARY KEY, table_name VARCHAR, unit_key VARCHAR, campaign VARCHAR, iteration INTEGER,
-    num_rows BIGINT, num_bytes BIGINT, sha256 VARCHAR, schema_version INTEGER);
-CREATE TABLE IF NOT EXISTS tasks (
-    campaign VARCHAR, task_id VARCHAR, spec VARCHAR, family VARCHAR, env_name VARCHAR, instruction VARCHAR,
-    instructions VARCHAR[], unseen_instructions VARCHAR[], object_colours JSON, split VARCHAR, horizon INTEGER,
-    unit_key VARCHAR,
-    PRIMARY KEY (unit_key, task_id));
-CREATE TABLE IF NOT EXISTS iterations (
-    unit_key VARCHAR PRIMARY KEY, campaign VARCHAR, iteration INTEGER, dataset_digest VARCHAR,
-    explore_units VARCHAR[], filter_units VARCHAR[], episodes BIGINT, kept_episodes BIGINT, triplets BIGINT);
-CREATE TABLE IF NOT EXISTS models (
-    model_key VARCHAR PRIMARY KEY, campaign VARCHAR, iteration INTEGER, checkpoint_path VARCHAR,
-    dataset_digest VARCHAR, train_samples BIGINT, final_loss DOUBLE, unit_key VARCHAR);
-CREATE TABLE IF NOT EXISTS deployments (
-    unit_key VARCHAR PRIMARY KEY, model_key VARCHAR, campaign VARCHAR, iteration INTEGER,
-    registered_model VARCHAR, version INTEGER, alias VARCHAR, champion_version INTEGER,
-    champion_model_key VARCHAR, mlflow_run_id VARCHAR);
-CREATE TABLE IF NOT EXISTS evaluations (
-    unit_key VARCHAR PRIMARY KEY, campaign VARCHAR, iteration INTEGER, model_key VARCHAR, task_id VARCHAR,
-    split VARCHAR, instruction VARCHAR, episodes INTEGER, successes INTEGER, success_rate DOUBLE, mean_return DOUBLE,
-    mean_length DOUBLE, media_path VARCHAR);
-"""
+# -- catalog tables: rows inside the DuckDB file ---------------------------------------------
 
-# Views built over the tables above once shards are registered (see warehouse.catalog).
-DERIVED_VIEWS = {
+
+@dataclass(frozen=True)
+class CatalogTable:
+    schema: pa.Schema
+    primary_key: tuple[str, ...] = ()
+
+
+CATALOG_TABLES: dict[str, CatalogTable] = {
+    "catalog_meta": CatalogTable(pa.schema([("key", pa.string()), ("value", pa.string())]), ("key",)),
+    "stage_runs": CatalogTable(
+        pa.schema([
+            ("unit_key", pa.string()), ("stage", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
+            ("finished_at", pa.timestamp("us")), ("wall_s", pa.float64()), _json("summary"),
+        ]),
+        ("unit_key",),
+    ),
+    "shards": CatalogTable(
+        pa.schema([
+            ("path", pa.string()),  # relative to the warehouse folder
+            ("table_name", pa.string()), ("unit_key", pa.string()), ("campaign", pa.string()),
+            ("iteration", pa.int32()), ("num_rows", pa.int64()), ("num_bytes", pa.int64()), ("sha256", pa.string()),
+            ("schema_version", pa.int32()),
+        ]),
+        ("path",),
+    ),
+    # Shards found corrupt or unreadable, moved aside to warehouse/quarantine/<path>.
+    "quarantine": CatalogTable(
+        pa.schema([
+            ("path", pa.string()), ("table_name", pa.string()), ("unit_key", pa.string()),
+            ("iteration", pa.int32()), ("reason", pa.string()), ("quarantined_at", pa.timestamp("us")),
+        ]),
+    ),
+    "tasks": CatalogTable(
+        pa.schema([
+            ("campaign", pa.string()), ("task_id", pa.string()), ("spec", pa.string()), ("family", pa.string()),
+            ("env_name", pa.string()), ("instruction", pa.string()), ("instructions", pa.list_(pa.string())),
+            ("unseen_instructions", pa.list_(pa.string())), _json("object_colours"), ("split", pa.string()),
+            ("horizon", pa.int32()), ("unit_key", pa.string()),
+        ]),
+        ("unit_key", "task_id"),
+    ),
+    "iterations": CatalogTable(
+        pa.schema([
+            ("unit_key", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
+            ("dataset_digest", pa.string()), ("explore_units", pa.list_(pa.string())),
+            ("filter_units", pa.list_(pa.string())), ("episodes", pa.int64()), ("kept_episodes", pa.int64()),
+            ("triplets", pa.int64()),
+        ]),
+        ("unit_key",),
+    ),
+    "models": CatalogTable(
+        pa.schema([
+            ("model_key", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
+            ("checkpoint_path", pa.string()), ("dataset_digest", pa.string()),
+            ("dataset_shards", pa.list_(pa.string())),  # the steps shards training read, exactly
+            ("train_samples", pa.int64()),
+            ("final_loss", pa.float64()), ("unit_key", pa.string()),
+        ]),
+        ("model_key",),
+    ),
+    "deployments": CatalogTable(
+        pa.schema([
+            ("unit_key", pa.string()), ("model_key", pa.string()), ("campaign", pa.string()),
+            ("iteration", pa.int32()), ("registered_model", pa.string()), ("version", pa.int32()),
+            ("alias", pa.string()), ("champion_version", pa.int32()), ("champion_model_key", pa.string()),
+            ("mlflow_run_id", pa.string()),
+        ]),
+        ("unit_key",),
+    ),
+    "evaluations": CatalogTable(
+        pa.schema([
+            ("unit_key", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
+            ("model_key", pa.string()), ("task_id", pa.string()), ("split", pa.string()),
+            ("instruction", pa.string()), ("episodes", pa.int32()), ("successes", pa.int32()),
+            ("success_rate", pa.float64()), ("mean_return", pa.float64()), ("mean_length", pa.float64()),
+            ("media_path", pa.string()),
+        ]),
+        ("unit_key",),
+    ),
+}
+
+_SQL_TYPES = {
+    pa.string(): "VARCHAR", pa.int32(): "INTEGER", pa.int64(): "BIGINT", pa.float32(): "FLOAT",
+    pa.float64(): "DOUBLE", pa.bool_(): "BOOLEAN", pa.timestamp("us"): "TIMESTAMP", pa.binary(): "BLOB",
+}
+
+
+def sql_type(field: pa.Field) -> str:
+    """The DuckDB type a catalog column of this Arrow field has."""
+    if field.metadata and _SQL_TYPE in field.metadata:
+        return field.metadata[_SQL_TYPE].decode()
+    if pa.types.is_list(field.type):
+        return sql_type(field.type.value_field) + "[]"
+    return _SQL_TYPES[field.type]
+
+
+def catalog_ddl(name: str) -> str:
+    table = CATALOG_TABLES[name]
+    columns = [f"{f.name} {sql_type(f)}" for f in table.schema]
+    if table.primary_key:
+        columns.append(f"PRIMARY KEY ({', '.join(table.primary_key)})")
+    return f"CREATE TABLE IF NOT EXISTS {name} ({', '.join(columns)})"
+
+
+# Tables a snapshot (`--as-of-iteration K`) cuts at iteration K. `tasks` are per campaign.
+ITERATION_TABLES = ("stage_runs", "shards", "quarantine", "iterations", "models", "deployments", "evaluations")
+
+# Views over the tables above, ready for `sim2act sql` and the dashboards.
+VIEWS = {
     "triplets": """
         SELECT s.campaign, s.iteration, s.episode_id, s.task_id, s.step, s.instruction,
                s.image AS obs, s.action, s.reward, s.done, s.success,
@@ -133,4 +235,26 @@ DERIVED_VIEWS = {
     "kept_steps": """
         SELECT s.* FROM steps s
         JOIN filter_decisions f ON f.episode_id = s.episode_id AND f.kept""",
+    # Which task does an id name: one row per (campaign, task), whatever generated it.
+    "task_families": """
+        SELECT DISTINCT campaign, task_id, family, spec, split FROM tasks""",
+    "task_success": """
+        SELECT e.campaign, e.iteration, e.task_id, t.family, t.split, e.explorer,
+               count(*) AS episodes, count(*) FILTER (WHERE e.success) AS successes,
+               avg(e.success::INTEGER) AS success_rate, avg(e.episode_return) AS mean_return,
+               avg(e.num_steps) AS mean_length
+        FROM episodes e LEFT JOIN task_families t USING (campaign, task_id)
+        GROUP BY ALL""",
+    "filter_pass_rates": """
+        SELECT campaign, iteration, reason, count(*) AS episodes,
+               count(*) / sum(count(*)) OVER (PARTITION BY campaign, iteration) AS fraction
+        FROM filter_decisions GROUP BY campaign, iteration, reason""",
+    "dataset_composition": """
+        SELECT e.campaign, e.iteration, t.family, e.task_id, e.explorer,
+               count(*) AS episodes, count(*) FILTER (WHERE f.kept) AS kept_episodes,
+               sum(e.num_steps) AS triplets, coalesce(sum(e.num_steps) FILTER (WHERE f.kept), 0) AS kept_triplets
+        FROM episodes e
+        LEFT JOIN task_families t USING (campaign, task_id)
+        LEFT JOIN filter_decisions f USING (episode_id)
+        GROUP BY ALL""",
 }

@@ -8,16 +8,15 @@ mix in the redeployed policy. Workers write shards; this process registers them.
 from __future__ import annotations
 
 import atexit
-import io
 import logging
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-from PIL import Image
 from pydantic import BaseModel
 
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
+from schemas.frames import encode_frame
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
@@ -66,12 +65,6 @@ class ExploreResult(BaseModel):
     episodes: int
     steps: int
     skipped_units: int
-
-
-def encode_png(image: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="PNG", compress_level=1)
-    return buffer.getvalue()
 
 
 def plan_explore(
@@ -142,7 +135,7 @@ def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[
     obs = env.reset(task, seed, randomisation)
     rows, success = [], False
     for step in range(task.horizon):
-        qpos, qvel, sim_time = env.mujoco_state()
+        state = env.mujoco_state()
         action = np.asarray(act(obs), dtype=np.float32)
         next_obs, reward, success = env.step(action)
         done = success or step == task.horizon - 1
@@ -150,7 +143,8 @@ def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[
             {
                 "step": step, "image": obs.image, "proprio": obs.proprio.tolist(), "action": action.tolist(),
                 "reward": reward, "done": done, "success": success,
-                "qpos": qpos.tolist(), "qvel": qvel.tolist(), "sim_time": sim_time,
+                "qpos": state.qpos.tolist(), "qvel": state.qvel.tolist(), "act": state.act.tolist(),
+                "mocap": state.mocap.tolist(), "sim_time": state.time,
             }
         )
         obs = next_obs
@@ -190,9 +184,9 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         for row in rows:
             row.update(common, episode_id=plan.episode_id, instruction=plan.instruction,
-                       image=encode_png(row["image"]), next_image=None)
+                       image=encode_frame(row["image"]), next_image=None)
         if rows:
-            rows[-1]["next_image"] = encode_png(final_image)
+            rows[-1]["next_image"] = encode_frame(final_image)
         step_rows.extend(rows)
         episode_rows.append(
             {

@@ -1,22 +1,30 @@
-"""filter: rejection sampling. Every explored episode gets a decision and a reason."""
+"""filter: validation, dedupe and rejection sampling. Every explored episode gets a decision and
+its reason in `filter_decisions`."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import math
+import struct
 import time
 from collections import Counter
+from dataclasses import dataclass
 
 import pyarrow as pa
 from pydantic import BaseModel
 
+from envs.registry import action_bounds
 from schemas.config import CampaignConfig, FilterConfig
+from schemas.frames import frame_side
 from schemas.keys import unit_key
 from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import read_shard, write_shard
 
-STAGE, VERSION = "filter", 1
+STAGE, VERSION = "filter", 2
+STEP_COLUMNS = ["episode_id", "image", "proprio", "action", "reward"]
 log = logging.getLogger("sim2act.stages.filter")
 
 
@@ -26,36 +34,93 @@ class FilterResult(BaseModel):
     skipped_units: int
 
 
-def decide(episode: dict, config: FilterConfig) -> str:
-    """Pure: 'kept' or the reason an episode is rejected."""
+@dataclass(frozen=True)
+class EpisodeFacts:
+    """What validation and dedupe need from an episode's steps."""
+
+    digest: str
+    invalid: str | None  # the first non-finite value, named
+    out_of_bounds: str | None  # the first action component outside the family's range
+    bad_image: str | None  # the first frame that is not an RGB frame of the campaign's size
+
+
+def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: int) -> EpisodeFacts:
+    """Pure: facts about one episode's steps (rows with STEP_COLUMNS, in step order)."""
+    digest = hashlib.blake2b(digest_size=16)
+    invalid = out_of_bounds = bad_image = None
+    low, high = bounds
+    for index, row in enumerate(steps):
+        digest.update(row["image"])
+        digest.update(struct.pack(f"{len(row['action'])}f", *row["action"]))
+        for column in ("proprio", "action", "reward"):
+            values = row[column] if isinstance(row[column], list) else [row[column]]
+            if invalid is None and not all(math.isfinite(v) for v in values):
+                invalid = f"step {index}: non-finite {column}"
+        if out_of_bounds is None and any(not low <= v <= high for v in row["action"]):
+            out_of_bounds = f"step {index}: action {[round(v, 3) for v in row['action']]} outside [{low:g}, {high:g}]"
+        if bad_image is None and frame_side(row["image"]) != image_size:
+            bad_image = f"step {index}: image of {len(row['image'])} bytes is not a {image_size}x{image_size} RGB frame"
+    return EpisodeFacts(digest.hexdigest(), invalid, out_of_bounds, bad_image)
+
+
+def decide(episode: dict, facts: EpisodeFacts, config: FilterConfig, kept_digests: dict[str, str]) -> tuple[str, str | None]:
+    """Pure: ('kept', None) or the reason an episode is rejected and what exactly failed.
+    `kept_digests` maps the digests of episodes already kept to their ids."""
     if episode["error"]:
-        return "env_error"
+        return "env_error", episode["error"]
+    for reason, detail in (("invalid_values", facts.invalid), ("action_out_of_bounds", facts.out_of_bounds),
+                           ("bad_image", facts.bad_image)):
+        if detail:
+            return reason, detail
+    if facts.digest in kept_digests:
+        return "duplicate", f"same actions and observations as {kept_digests[facts.digest]}"
     if config.require_success and not episode["success"]:
-        return "not_successful"
+        return "not_successful", None
     if episode["episode_return"] < config.min_return:
-        return "low_return"
-    return "kept"
+        return "low_return", f"return {episode['episode_return']:.3f} < {config.min_return:g}"
+    return "kept", None
+
+
+def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
+    by_episode: dict[str, list[dict]] = {}
+    for row in steps.select(STEP_COLUMNS).to_pylist():
+        by_episode.setdefault(row["episode_id"], []).append(row)
+    return by_episode
 
 
 def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
     catalog = Catalog(workspace.catalog)
-    keys = {explore_key: unit_key(STAGE, VERSION, config.filter, [explore_key]) for explore_key in explore_keys}
+    reads = {"filter": config.filter, "image_size": config.render.image_size}
+    keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
     done = catalog.registered_keys(list(keys.values()))
+    families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
+    # Units are decided in a fixed order, so a resumed run dedupes exactly as an uninterrupted one.
+    kept_digests = dict(catalog.query(
+        "SELECT episode_digest, min(episode_id) FROM filter_decisions WHERE kept AND campaign = ? GROUP BY 1",
+        [config.name],
+    ))
     reasons: Counter[str] = Counter()
     for explore_key, key in keys.items():
         if key in done:
             continue
         started = time.monotonic()
-        [(path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
+        [(episodes_path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
+        [(steps_path, _)] = catalog.shard_paths("steps", "unit_key = ?", [explore_key])
+        steps = _steps_by_episode(read_shard("steps", steps_path))
         decisions = []
-        for episode in read_shard("episodes", path).to_pylist():
-            reason = decide(episode, config.filter)
+        for episode in read_shard("episodes", episodes_path).to_pylist():
+            bounds = action_bounds(families[episode["task_id"]])
+            facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size)
+            reason, detail = decide(episode, facts, config.filter, kept_digests)
+            if reason == "kept":
+                kept_digests[facts.digest] = episode["episode_id"]
             reasons[reason] += 1
             decisions.append(
                 {
                     "campaign": episode["campaign"], "iteration": episode["iteration"],
                     "episode_id": episode["episode_id"], "task_id": episode["task_id"], "kept": reason == "kept",
-                    "reason": reason, "episode_return": episode["episode_return"], "filter_key": key,
+                    "reason": reason, "detail": detail, "episode_digest": facts.digest,
+                    "episode_return": episode["episode_return"], "filter_key": key,
                 }
             )
         shard = write_shard(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -34,6 +35,7 @@ class TrainResult(BaseModel):
     checkpoint: str
     dataset_digest: str
     samples: int
+    dataset_shards: list[str]  # relative to the warehouse
     history: list[dict[str, float]]  # one entry per epoch (empty when skipped)
     skipped: bool
 
@@ -81,21 +83,21 @@ def run_train(
     catalog = Catalog(workspace.catalog)
     key = train_unit_key(config, dataset, tasks_key)
     checkpoint = workspace.checkpoint(key)
-    existing = catalog.query("SELECT train_samples FROM models WHERE model_key = ?", [key])
+    existing = catalog.query("SELECT train_samples, dataset_shards FROM models WHERE model_key = ?", [key])
     if existing:
         log.info("train it%d: model %s already trained on dataset %s, skipped", iteration, key, dataset.dataset_digest[:12])
         return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=dataset.dataset_digest,
-                           samples=existing[0][0], history=[], skipped=True)
+                           samples=existing[0][0], dataset_shards=existing[0][1], history=[], skipped=True)
 
     cfg = config.train
     started = time.monotonic()
     torch.manual_seed(derive_seed(config.name, config.seed, "train", key))
     torch.set_num_threads(cfg.threads)
     action_norm, proprio_norm = _normalisers(catalog, dataset)
-    selection = dataset.selection
+    rows = dataset.selection.rows(catalog)
+    shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     stream = StepStream(
-        selection.step_shards(catalog), selection.kept_episode_ids(catalog), embeddings,
-        cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"),
+        rows, embeddings, cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"),
     )
     dims = ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, ENCODER_DIMS[cfg.model.language_encoder])
     model = VLAModel(cfg.model, dims)
@@ -152,8 +154,8 @@ def run_train(
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,
             "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": dataset.dataset_digest,
-            "train_samples": dataset.triplets, "final_loss": history[-1]["loss"], "unit_key": key,
+            "dataset_shards": shards_read, "train_samples": dataset.triplets, "final_loss": history[-1]["loss"], "unit_key": key,
         }]},
     )
     return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=dataset.dataset_digest,
-                       samples=dataset.triplets, history=history, skipped=False)
+                       samples=dataset.triplets, dataset_shards=shards_read, history=history, skipped=False)

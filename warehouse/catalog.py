@@ -1,13 +1,16 @@
 """The DuckDB catalog: the single point of truth for what the warehouse holds.
 
-One process writes (the registrar, inside the flow); readers open it read-only. A unit of
-work is done exactly when its key is in `stage_runs`; its shards are visible exactly when
-they are in `shards`. Files the catalog does not know are ignored and cleaned up.
+One registrar commits at a time (DuckDB lets one process write; others wait for the lock);
+readers open it read-only. A unit of work is done exactly when its key is in `stage_runs`;
+its shards are visible exactly when they are in `shards`. Files the catalog does not know
+are ignored and cleaned up; registered files found corrupt are moved to quarantine.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import shutil
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -18,11 +21,11 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
-from schemas.tables import CATALOG_DDL, DERIVED_VIEWS, SHARD_TABLES
+from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
 from schemas.version import SCHEMA_VERSION
-from warehouse.shard_writer import ShardFile
+from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, sha256_of
 
-LOCK_WAIT_S = 60.0
+LOCK_WAIT_S = 120.0
 
 
 class CatalogMissing(FileNotFoundError):
@@ -37,14 +40,39 @@ def _is_lock_error(exc: Exception) -> bool:
     return "lock" in str(exc).lower()
 
 
+def check_rows(table: str, rows: Sequence[Mapping[str, Any]]) -> pa.Table:
+    """Catalog rows as an Arrow table of the declared schema: a missing, extra or mistyped
+    column is refused, naming it."""
+    schema = CATALOG_TABLES[table].schema
+    for row in rows:
+        for name in schema.names:
+            if name not in row:
+                raise SchemaMismatch(f"{table}: column {name!r} is missing from a row")
+        for name in row:
+            if name not in schema.names:
+                raise SchemaMismatch(f"{table}: column {name!r} is not in the schema (schemas/tables.py)")
+    try:
+        return pa.Table.from_pylist(list(rows), schema=schema)
+    except (pa.ArrowException, TypeError, ValueError) as exc:
+        raise SchemaMismatch(f"{table}: a value does not fit the schema: {exc}") from None
+
+
 class Catalog:
     def __init__(self, path: Path):
         self.path = path
         self.warehouse = path.parent
 
+    @property
+    def quarantine_folder(self) -> Path:
+        return self.warehouse / "quarantine"
+
     @contextmanager
-    def connect(self, read_only: bool = False) -> Iterator[duckdb.DuckDBPyConnection]:
-        """Open briefly and close: DuckDB lets one process write, so nobody holds it for long."""
+    def connect(self, read_only: bool = False, as_of_iteration: int | None = None) -> Iterator[duckdb.DuckDBPyConnection]:
+        """Open briefly and close: DuckDB lets one process write, so nobody holds it for long.
+
+        With `as_of_iteration=K` the connection sees the warehouse as it was after iteration K:
+        temporary views shadow every table and shard view, cut at iteration <= K.
+        """
         if read_only and not self.path.exists():
             raise CatalogMissing(f"no warehouse catalog at {self.path} (run `sim2act run` first)")
         deadline = time.monotonic() + LOCK_WAIT_S
@@ -55,8 +83,10 @@ class Catalog:
             except duckdb.IOException as exc:
                 if not _is_lock_error(exc) or time.monotonic() > deadline:
                     raise
-                time.sleep(0.2)
+                time.sleep(0.05)
         try:
+            if as_of_iteration is not None:
+                self._snapshot_views(con, as_of_iteration)
             yield con
         finally:
             con.close()
@@ -67,7 +97,8 @@ class Catalog:
         self.check_version()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.connect() as con:
-            con.execute(CATALOG_DDL)
+            for name in CATALOG_TABLES:
+                con.execute(catalog_ddl(name))
             con.execute(
                 "INSERT INTO catalog_meta VALUES ('schema_version', ?) ON CONFLICT DO NOTHING", [str(SCHEMA_VERSION)]
             )
@@ -75,7 +106,10 @@ class Catalog:
                 con.register("empty_shard", pa.Table.from_batches([], schema=schema))
                 con.execute(f"CREATE TABLE IF NOT EXISTS _empty_{name} AS SELECT * FROM empty_shard")
                 con.unregister("empty_shard")
-            self._refresh_views(con)
+            self._refresh_views(con, SHARD_TABLES)
+            for name, query in VIEWS.items():
+                con.execute(f"CREATE OR REPLACE VIEW {name} AS {query}")
+        self.check_layout()
 
     def check_version(self) -> None:
         """Refuse a warehouse of another layout version, before any work (no-op if none exists)."""
@@ -91,11 +125,23 @@ class Catalog:
                 f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
             )
 
-    def is_registered(self, unit_key: str) -> bool:
-        if not self.path.exists():
-            return False
+    def check_layout(self) -> None:
+        """Every catalog table has exactly the declared columns and types."""
         with self.connect(read_only=True) as con:
-            return con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone() is not None
+            for name, table in CATALOG_TABLES.items():
+                found = con.execute(
+                    "SELECT column_name, data_type FROM duckdb_columns() WHERE table_name = ? AND schema_name = 'main' "
+                    "ORDER BY column_index", [name]
+                ).fetchall()
+                want = [(f.name, sql_type(f)) for f in table.schema]
+                for declared, present in itertools.zip_longest(want, found):
+                    if declared != present:
+                        raise CatalogVersionError(
+                            f"catalog table {name}: column {present} where schemas/tables.py declares {declared}"
+                        )
+
+    def is_registered(self, unit_key: str) -> bool:
+        return bool(self.registered_keys([unit_key]))
 
     def registered_keys(self, keys: Sequence[str]) -> set[str]:
         if not keys or not self.path.exists():
@@ -118,62 +164,78 @@ class Catalog:
     ) -> bool:
         """Commit one finished unit: its stage_runs row, its shards and its catalog rows, atomically.
 
-        Registering a key twice is a no-op and returns False.
+        Every shard is checked first (a whole Parquet file of its declared schema, the rows
+        and bytes its writer reported) and every row against its table's schema: a bad shard
+        or row is refused before anything is committed. Registering a key twice is a no-op
+        and returns False.
         """
+        for shard in shards:
+            if inspect_shard(shard.table, shard.path) != shard.num_rows or sha256_of(shard.path) != shard.sha256:
+                raise ShardUnreadable(f"{shard.path}: differs from what its writer reported; not registered")
+        tables = {table: check_rows(table, table_rows) for table, table_rows in (rows or {}).items()}
+        now = datetime.now(timezone.utc).replace(tzinfo=None)
+        tables["stage_runs"] = check_rows("stage_runs", [{
+            "unit_key": unit_key, "stage": stage, "campaign": campaign, "iteration": iteration,
+            "finished_at": now, "wall_s": wall_s, "summary": json.dumps(summary),
+        }])
+        tables["shards"] = check_rows("shards", [{
+            "path": shard.path.relative_to(self.warehouse).as_posix(), "table_name": shard.table,
+            "unit_key": unit_key, "campaign": campaign, "iteration": iteration, "num_rows": shard.num_rows,
+            "num_bytes": shard.num_bytes, "sha256": shard.sha256, "schema_version": SCHEMA_VERSION,
+        } for shard in shards])
         with self.connect() as con:
             con.execute("BEGIN TRANSACTION")
             try:
                 if con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone():
                     con.execute("ROLLBACK")
                     return False
-                con.execute(
-                    "INSERT INTO stage_runs VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    [unit_key, stage, campaign, iteration, datetime.now(timezone.utc), wall_s, json.dumps(summary)],
-                )
-                for shard in shards:
-                    con.execute(
-                        "INSERT INTO shards VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        [
-                            shard.path.relative_to(self.warehouse).as_posix(),
-                            shard.table,
-                            unit_key,
-                            campaign,
-                            iteration,
-                            shard.num_rows,
-                            shard.num_bytes,
-                            shard.sha256,
-                            SCHEMA_VERSION,
-                        ],
-                    )
-                for table, table_rows in (rows or {}).items():
-                    for row in table_rows:
-                        columns = ", ".join(row)
-                        marks = ", ".join("?" for _ in row)
-                        con.execute(f"INSERT INTO {table} ({columns}) VALUES ({marks})", list(row.values()))
-                if shards:
-                    self._refresh_views(con)
+                for table, arrow in tables.items():
+                    con.register("new_rows", arrow)
+                    con.execute(f"INSERT INTO {table} SELECT * FROM new_rows")
+                    con.unregister("new_rows")
+                self._refresh_views(con, {shard.table for shard in shards})
                 con.execute("COMMIT")
             except BaseException:
                 con.execute("ROLLBACK")
                 raise
         return True
 
-    def _refresh_views(self, con: duckdb.DuckDBPyConnection) -> None:
-        """Views over exactly the registered shards: unregistered files are invisible."""
+    @staticmethod
+    def _persistent(con: duckdb.DuckDBPyConnection) -> str:
+        """Qualifier of the catalog file's own objects: temporary views shadow bare names, and a
+        bare `main.` resolves to the temporary catalog's schema too."""
+        return f'"{con.execute("SELECT current_database()").fetchone()[0]}".main'
+
+    def _shard_source(self, con: duckdb.DuckDBPyConnection, table: str, as_of_iteration: int | None) -> str:
+        persistent = self._persistent(con)
+        paths = [
+            (self.warehouse / row[0]).as_posix()
+            for row in con.execute(
+                f"SELECT path FROM {persistent}.shards WHERE table_name = ? AND (? IS NULL OR iteration <= ?) ORDER BY path",
+                [table, as_of_iteration, as_of_iteration],
+            ).fetchall()
+        ]
+        return f"read_parquet({paths!r})" if paths else f"{persistent}._empty_{table}"
+
+    def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
+        """Views over exactly the registered shards of `tables`: unregistered files are invisible.
+        (The ready-made views name these views, so they need no refresh.)"""
+        for name in tables:
+            con.execute(f"CREATE OR REPLACE VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None)}")
+
+    def _snapshot_views(self, con: duckdb.DuckDBPyConnection, iteration: int) -> None:
+        """Temporary views shadow the persistent ones (DuckDB resolves temp first)."""
         for name in SHARD_TABLES:
-            paths = [
-                (self.warehouse / row[0]).as_posix()
-                for row in con.execute(
-                    "SELECT path FROM shards WHERE table_name = ? ORDER BY path", [name]
-                ).fetchall()
-            ]
-            source = f"read_parquet({paths!r})" if paths else f"_empty_{name}"
-            con.execute(f"CREATE OR REPLACE VIEW {name} AS SELECT * FROM {source}")
-        for name, query in DERIVED_VIEWS.items():
-            con.execute(f"CREATE OR REPLACE VIEW {name} AS {query}")
+            con.execute(
+                f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, iteration)}"
+            )
+        persistent = self._persistent(con)
+        for name in ITERATION_TABLES:
+            con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {persistent}.{name} WHERE iteration <= {int(iteration)}")
 
     def clean_orphans(self) -> list[Path]:
-        """Delete shard files (and temporaries) that no catalog row names: leftovers of a killed run."""
+        """Delete shard files (and temporaries) that no catalog row names: leftovers of a killed
+        run. Call it only where no other writer is at work on this warehouse."""
         shards_root = self.warehouse / "shards"
         if not shards_root.exists():
             return []
@@ -188,14 +250,86 @@ class Catalog:
                 removed.append(path)
         return removed
 
+    # -- corruption ------------------------------------------------------------------------
+
+    def verify(self, full: bool = False, paths: Sequence[str] | None = None) -> list[tuple[str, str]]:
+        """Check the registered shards (all, or those at `paths`): present, a whole Parquet file
+        of the declared schema and row count, with `full` its sha256 too. The bad ones are
+        quarantined. -> [(path, reason)]."""
+        if not self.path.exists():
+            return []
+        with self.connect(read_only=True) as con:
+            shards = con.execute(
+                "SELECT path, table_name, num_rows, sha256 FROM shards WHERE ? IS NULL OR list_contains(?, path) "
+                "ORDER BY path", [paths, paths],
+            ).fetchall()
+        bad = []
+        for path, table, num_rows, sha in shards:
+            file = self.warehouse / path
+            try:
+                if inspect_shard(table, file) != num_rows:
+                    raise ShardUnreadable(f"{file}: {num_rows} rows registered, the file has others")
+                if full and sha256_of(file) != sha:
+                    raise ShardUnreadable(f"{file}: sha256 differs from the registered one")
+            except (ShardUnreadable, SchemaMismatch) as exc:
+                bad.append((path, str(exc)))
+        for path, reason in bad:
+            self.quarantine(path, reason)
+        return bad
+
+    def quarantine(self, path: str, reason: str) -> None:
+        """Unregister the unit whose shard `path` is bad, with all its shards, and move the
+        files to warehouse/quarantine/: queries keep working without them, and the next run
+        redoes the unit (same seeds, same data)."""
+        with self.connect() as con:
+            con.execute("BEGIN TRANSACTION")
+            try:
+                found = con.execute("SELECT unit_key FROM shards WHERE path = ?", [path]).fetchone()
+                if found is None:
+                    con.execute("ROLLBACK")
+                    return
+                unit = found[0]
+                siblings = con.execute(
+                    "SELECT path, table_name, iteration FROM shards WHERE unit_key = ?", [unit]
+                ).fetchall()
+                now = datetime.now(timezone.utc).replace(tzinfo=None)
+                rows = check_rows("quarantine", [{
+                    "path": p, "table_name": t, "unit_key": unit, "iteration": i,
+                    "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
+                } for p, t, i in siblings])
+                con.register("new_rows", rows)
+                con.execute("INSERT INTO quarantine SELECT * FROM new_rows")
+                con.unregister("new_rows")
+                con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
+                con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
+                self._refresh_views(con, {t for _, t, _ in siblings})
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        for p, _, _ in siblings:
+            source = self.warehouse / p
+            if source.exists():
+                target = self.quarantine_folder / p
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.move(source, target)
+
+    def registered_shard_in(self, message: str) -> str | None:
+        """The registered shard a DuckDB error message names, if any."""
+        with self.connect(read_only=True) as con:
+            for (path,) in con.execute("SELECT path FROM shards").fetchall():
+                if path in message:
+                    return path
+        return None
+
     # -- reader side -----------------------------------------------------------------------
 
-    def query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:
-        with self.connect(read_only=True) as con:
+    def query(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None) -> list[tuple]:
+        with self.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
             return con.execute(sql, list(params)).fetchall()
 
-    def query_arrow(self, sql: str, params: Sequence[Any] = ()) -> pa.Table:
-        with self.connect(read_only=True) as con:
+    def query_arrow(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None) -> pa.Table:
+        with self.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
             return con.execute(sql, list(params)).to_arrow_table()
 
     def shard_paths(self, table: str, where: str = "TRUE", params: Sequence[Any] = ()) -> list[tuple[Path, str]]:

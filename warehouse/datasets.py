@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import pyarrow as pa
 
 from schemas.keys import digest_of
 from warehouse.catalog import Catalog
+from warehouse.training_reader import RowRange, select_rows
 
 
 _KEPT = "SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)"
@@ -22,12 +22,9 @@ class Selection:
     def _params(self) -> list:
         return [list(self.explore_units), list(self.filter_units)]
 
-    def step_shards(self, catalog: Catalog) -> list[Path]:
-        return [path for path, _ in catalog.shard_paths("steps", "list_contains(?, unit_key)", [list(self.explore_units)])]
-
-    def kept_episode_ids(self, catalog: Catalog) -> set[str]:
-        rows = catalog.query(_KEPT, [list(self.filter_units)])
-        return {row[0] for row in rows}
+    def rows(self, catalog: Catalog) -> list[RowRange]:
+        """The kept steps, as the streaming reader takes them."""
+        return select_rows(catalog, f"episode_id IN ({_KEPT})", [list(self.filter_units)])
 
     def kept_steps(self, catalog: Catalog, columns: list[str]) -> pa.Table:
         """Columns of the kept steps, in a fixed order: a parallel scan returns rows in varying

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 from typing import Literal
 
 import duckdb
@@ -14,6 +15,7 @@ from warehouse.catalog import Catalog
 
 OutputFormat = Literal["table", "csv", "json"]
 _READ_STATEMENTS = {duckdb.StatementType.SELECT, duckdb.StatementType.EXPLAIN}
+log = logging.getLogger("sim2act.warehouse")
 
 
 class ReadOnlyViolation(ValueError):
@@ -60,6 +62,19 @@ def format_rows(table: pa.Table, fmt: OutputFormat) -> str:
     return "\n".join(lines)
 
 
-def run_sql(catalog: Catalog, sql: str, fmt: OutputFormat = "table") -> str:
+def query_with_quarantine(catalog: Catalog, sql: str, as_of_iteration: int | None = None) -> pa.Table:
+    """Run a read-only query; when it fails on a registered shard that turns out corrupt, the
+    shard is quarantined (reported in the log) and the query runs again without it."""
     check_read_only(sql)
-    return format_rows(catalog.query_arrow(sql), fmt)
+    while True:
+        try:
+            return catalog.query_arrow(sql, as_of_iteration=as_of_iteration)
+        except duckdb.Error as exc:
+            path = catalog.registered_shard_in(str(exc))
+            if path is None or not any(p == path for p, _ in catalog.verify(paths=[path])):
+                raise
+            log.warning("quarantined %s (%s); the query ran without it", path, str(exc).splitlines()[0])
+
+
+def run_sql(catalog: Catalog, sql: str, fmt: OutputFormat = "table", as_of_iteration: int | None = None) -> str:
+    return format_rows(query_with_quarantine(catalog, sql, as_of_iteration), fmt)

@@ -1,19 +1,38 @@
-"""Stream training samples from Parquet shards: row group by row group, through a shuffle
-buffer, images decoded as they are drawn. Memory is bounded by the buffer, not the warehouse."""
+"""Stream training samples out of the warehouse: a SQL WHERE over the steps picks the rows, the
+rows stream from the Parquet shards row group by row group, split across DataLoader workers,
+through a shuffle buffer, images decoded in the workers as they are drawn.
+
+Memory is bounded by configuration (the shuffle buffer plus one row group per worker), never
+by the warehouse: the selection itself is held as row ranges (an episode is one range).
+"""
 
 from __future__ import annotations
 
-import io
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import duckdb
 import numpy as np
 import pyarrow.parquet as pq
-from PIL import Image
 from torch.utils.data import IterableDataset, get_worker_info
 
-COLUMNS = ["episode_id", "instruction", "image", "proprio", "action"]
+from schemas.frames import decode_frame
+from warehouse.catalog import Catalog
+
+COLUMNS = ["instruction", "image", "proprio", "action"]
+
+
+class SelectionError(ValueError):
+    """A training selection that does not parse, bind, or match anything."""
+
+
+@dataclass(frozen=True)
+class RowRange:
+    path: str
+    start: int  # first file row number
+    stop: int  # one past the last
 
 
 @dataclass
@@ -24,37 +43,70 @@ class Sample:
     action: np.ndarray
 
 
-def decode_png(data: bytes) -> np.ndarray:
-    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+def select_rows(
+    catalog: Catalog, where: str = "TRUE", params: Sequence[Any] = (), as_of_iteration: int | None = None
+) -> list[RowRange]:
+    """The registered steps rows matching `where` (SQL over the steps columns; subqueries may use
+    any catalog table or view), as runs of consecutive rows per shard file."""
+    with catalog.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
+        paths = [
+            (catalog.warehouse / p).as_posix()
+            for (p,) in con.execute("SELECT path FROM shards WHERE table_name = 'steps' ORDER BY path").fetchall()
+        ]
+        if not paths:
+            raise SelectionError("the warehouse holds no steps yet")
+        try:
+            rows = con.execute(
+                f"""
+                WITH picked AS (
+                    SELECT filename, file_row_number AS n
+                    FROM read_parquet({paths!r}, filename = true, file_row_number = true) AS steps
+                    WHERE ({where}))
+                SELECT filename, min(n), max(n) + 1 FROM (
+                    SELECT filename, n, n - row_number() OVER (PARTITION BY filename ORDER BY n) AS run FROM picked)
+                GROUP BY filename, run ORDER BY filename, 2""",
+                list(params),
+            ).fetchall()
+        except duckdb.Error as exc:
+            raise SelectionError(f"training selection {where!r}: {str(exc).splitlines()[0]}") from None
+    return [RowRange(path, int(start), int(stop)) for path, start, stop in rows]
 
 
 class StepStream(IterableDataset):
     def __init__(
-        self,
-        shards: list[Path],
-        kept_episodes: set[str],
-        embeddings: dict[str, np.ndarray],
-        shuffle_buffer: int,
-        seed: int,
+        self, ranges: list[RowRange], embeddings: dict[str, np.ndarray], shuffle_buffer: int, seed: int
     ):
-        self.shards, self.kept = sorted(shards), kept_episodes
+        by_file: dict[str, list[tuple[int, int]]] = {}
+        for r in ranges:
+            by_file.setdefault(r.path, []).append((r.start, r.stop))
+        self.files = sorted(by_file.items())
+        self.rows = sum(r.stop - r.start for r in ranges)
         self.embeddings, self.shuffle_buffer, self.seed = embeddings, shuffle_buffer, seed
         self.epoch = 0
+
+    def __len__(self) -> int:
+        return self.rows
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
-    def _rows(self, shards: list[Path]) -> Iterator[dict]:
-        for path in shards:
-            parquet = pq.ParquetFile(path)
-            for group in range(parquet.num_row_groups):
-                for row in parquet.read_row_group(group, columns=COLUMNS).to_pylist():
-                    if row["episode_id"] in self.kept:
-                        yield row
+    @staticmethod
+    def _rows(path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
+        """The selected rows of one file, reading only the row groups they fall in."""
+        parquet = pq.ParquetFile(Path(path))
+        first = 0
+        for group in range(parquet.num_row_groups):
+            last = first + parquet.metadata.row_group(group).num_rows
+            wanted = [(max(a, first) - first, min(b, last) - first) for a, b in spans if a < last and b > first]
+            if wanted:
+                table = parquet.read_row_group(group, columns=COLUMNS)
+                for a, b in wanted:
+                    yield from table.slice(a, b - a).to_pylist()
+            first = last
 
     def _sample(self, row: dict) -> Sample:
         return Sample(
-            decode_png(row["image"]),
+            decode_frame(row["image"]),
             self.embeddings[row["instruction"]],
             np.asarray(row["proprio"], dtype=np.float32),
             np.asarray(row["action"], dtype=np.float32),
@@ -64,14 +116,14 @@ class StepStream(IterableDataset):
         worker = get_worker_info()
         index, count = (worker.id, worker.num_workers) if worker else (0, 1)
         rng = np.random.default_rng([self.seed, self.epoch, index])
-        mine = self.shards[index::count]
+        mine = self.files[index::count]
         buffer: list[dict] = []
-        for shard in rng.permutation(len(mine)):
-            for row in self._rows([mine[shard]]):
+        for pick in rng.permutation(len(mine)):
+            for row in self._rows(*mine[pick]):
                 buffer.append(row)
                 if len(buffer) >= self.shuffle_buffer:
-                    pick = int(rng.integers(len(buffer)))
-                    buffer[pick], buffer[-1] = buffer[-1], buffer[pick]
+                    chosen = int(rng.integers(len(buffer)))
+                    buffer[chosen], buffer[-1] = buffer[-1], buffer[chosen]
                     yield self._sample(buffer.pop())
-        for pick in rng.permutation(len(buffer)):
-            yield self._sample(buffer[pick])
+        for chosen in rng.permutation(len(buffer)):
+            yield self._sample(buffer[chosen])

@@ -13,7 +13,7 @@ from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages.explore import plan_explore, rollout, run_explore_unit
 from stages.generate_tasks import generate_tasks
-from warehouse.training_reader import decode_png
+from schemas.frames import decode_frame
 
 
 def _lift(colour: str) -> TaskRecord:
@@ -30,12 +30,12 @@ def lift_env():
 
 def test_reset_is_reproducible_from_the_seed(lift_env):
     first = lift_env.reset(_lift("red"), seed=7)
-    qpos = lift_env.mujoco_state()[0]
+    qpos = lift_env.mujoco_state().qpos
     again = lift_env.reset(_lift("red"), seed=7)
     assert np.array_equal(first.image, again.image)
-    assert np.array_equal(qpos, lift_env.mujoco_state()[0])
+    assert np.array_equal(qpos, lift_env.mujoco_state().qpos)
     lift_env.reset(_lift("red"), seed=8)
-    assert not np.array_equal(qpos, lift_env.mujoco_state()[0])
+    assert not np.array_equal(qpos, lift_env.mujoco_state().qpos)
 
 
 def test_frames_are_84px_rgb_and_show_the_task_colour(lift_env):
@@ -76,7 +76,7 @@ def test_an_explore_unit_writes_triplet_shards(tmp_path):
         assert [r["step"] for r in rows] == list(range(episode["num_steps"]))
         assert [r["next_image"] is not None for r in rows] == [False] * (len(rows) - 1) + [True]
         assert [r["done"] for r in rows][-1] and not any(r["done"] for r in rows[:-1])
-        assert decode_png(rows[0]["image"]).shape == (84, 84, 3)
+        assert decode_frame(rows[0]["image"]).shape == (84, 84, 3)
         assert len(rows[0]["action"]) == 7 and rows[0]["instruction"] in unit.task.instructions
         assert episode["episode_return"] == pytest.approx(sum(r["reward"] for r in rows), rel=1e-5)
     # same unit, same seeds: the same data

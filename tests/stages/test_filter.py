@@ -1,0 +1,54 @@
+import math
+
+import pytest
+
+from bench.synthetic import explore_unit
+from schemas.config import FilterConfig
+from stages.filter import STEP_COLUMNS, decide, episode_facts
+
+BOUNDS = (-1.0, 1.0)
+
+
+def _steps(seed: int = 0) -> list[dict]:
+    return explore_unit("u", seed=seed, episodes=1, steps=6)["steps"].select(STEP_COLUMNS).to_pylist()
+
+
+def _episode(**overrides) -> dict:
+    return {"error": None, "success": True, "episode_return": 3.0, "episode_id": "e1", **overrides}
+
+
+def test_a_clean_episode_is_kept_and_its_digest_dedupes_the_next_identical_one():
+    facts = episode_facts(_steps(), BOUNDS, 84)
+    assert decide(_episode(), facts, FilterConfig(), {}) == ("kept", None)
+    reason, detail = decide(_episode(episode_id="e2"), facts, FilterConfig(), {facts.digest: "e1"})
+    assert reason == "duplicate" and "e1" in detail
+    assert episode_facts(_steps(seed=1), BOUNDS, 84).digest != facts.digest
+
+
+@pytest.mark.parametrize(
+    ("spoil", "reason", "detail"),
+    [
+        (lambda s: s[2].update(reward=math.nan), "invalid_values", "step 2: non-finite reward"),
+        (lambda s: s[1]["proprio"].__setitem__(0, math.inf), "invalid_values", "step 1: non-finite proprio"),
+        (lambda s: s[3]["action"].__setitem__(6, 1.5), "action_out_of_bounds", "step 3: action"),
+        (lambda s: s[4].update(image=b"not a frame"), "bad_image", "step 4: image of 11 bytes"),
+    ],
+)
+def test_validation_rejects_with_the_step_and_value_named(spoil, reason, detail):
+    steps = _steps()
+    spoil(steps)
+    assert decide(_episode(), episode_facts(steps, BOUNDS, 84), FilterConfig(), {})[0] == reason
+    assert detail in decide(_episode(), episode_facts(steps, BOUNDS, 84), FilterConfig(), {})[1]
+
+
+def test_an_image_of_the_wrong_size_is_rejected():
+    facts = episode_facts(_steps(), BOUNDS, 64)
+    assert decide(_episode(), facts, FilterConfig(), {}) == ("bad_image", facts.bad_image)
+    assert "is not a 64x64 RGB frame" in facts.bad_image
+
+
+def test_rejection_sampling_on_success_and_return():
+    facts = episode_facts(_steps(), BOUNDS, 84)
+    assert decide(_episode(error="MujocoException: unstable"), facts, FilterConfig(), {})[0] == "env_error"
+    assert decide(_episode(success=False), facts, FilterConfig(require_success=True), {}) == ("not_successful", None)
+    assert decide(_episode(episode_return=0.5), facts, FilterConfig(min_return=1.0), {})[0] == "low_return"

@@ -1,0 +1,207 @@
+"""The warehouse on real files: registration checks, snapshots, ready views, quarantine,
+streaming training reads, and two registrars in two processes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import Counter
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from torch.utils.data import DataLoader
+
+from schemas.tables import STEPS
+from schemas.workspace import Workspace
+from tests.warehouse.filled import CONFIG, fill, register_explore
+from warehouse.catalog import Catalog
+from warehouse.shard_writer import SchemaMismatch, write_shard
+from warehouse.sql import run_sql
+from warehouse.training_reader import SelectionError, StepStream, select_rows
+
+
+@pytest.fixture
+def filled(tmp_path) -> Workspace:
+    workspace = Workspace.at(tmp_path).create()
+    fill(workspace, iterations=2, units=2, episodes=3, steps=10)
+    return workspace
+
+
+def test_every_catalog_table_has_its_declared_columns(filled):
+    Catalog(filled.catalog).check_layout()
+
+
+def test_a_row_with_a_wrong_column_is_refused_naming_it(filled):
+    catalog = Catalog(filled.catalog)
+    bad = {"model_key": "m", "campaign": "c", "iteration": 0, "checkpoint_path": "x", "dataset_digest": "d",
+           "dataset_shards": [], "train_samples": "many", "final_loss": 1.0, "unit_key": "m"}
+    with pytest.raises(SchemaMismatch, match="models: a value does not fit"):
+        catalog.register_unit(unit_key="m", stage="train", campaign="c", iteration=0, summary={}, rows={"models": [bad]})
+    with pytest.raises(SchemaMismatch, match="'final_los' is not in the schema"):
+        catalog.register_unit(unit_key="m", stage="train", campaign="c", iteration=0, summary={},
+                              rows={"models": [{**bad, "train_samples": 1, "final_los": 1.0}]})
+    assert not catalog.is_registered("m")
+
+
+def test_a_shard_with_a_mismatched_column_is_refused_naming_column_and_reason(filled, tmp_path):
+    steps = register_steps_table(seed=3)
+    mistyped = steps.set_column(steps.schema.get_field_index("reward"), "reward", steps["reward"].cast(pa.float64()))
+    with pytest.raises(SchemaMismatch, match=r"steps: column 'reward' is double, expected float"):
+        write_shard("steps", mistyped, filled.shard_path("steps", 0, "explore-x"))
+    # the same file written by something else and handed to the registrar
+    import pyarrow.parquet as pq
+
+    path = filled.shard_path("steps", 0, "explore-y")
+    pq.write_table(steps.drop_columns(["mocap"]), path)
+    from warehouse.shard_writer import ShardFile, sha256_of
+
+    shard = ShardFile("steps", path, steps.num_rows, path.stat().st_size, sha256_of(path))
+    with pytest.raises(SchemaMismatch, match="column 'mocap' is missing"):
+        Catalog(filled.catalog).register_unit(unit_key="explore-y", stage="explore", campaign="bench", iteration=0,
+                                              summary={}, shards=[shard])
+    assert not Catalog(filled.catalog).is_registered("explore-y")
+
+
+def register_steps_table(seed: int) -> pa.Table:
+    from bench.synthetic import explore_unit
+
+    return explore_unit("u", seed=seed, episodes=1, steps=3)["steps"]
+
+
+def test_as_of_iteration_sees_the_warehouse_after_that_iteration(filled):
+    catalog = Catalog(filled.catalog)
+    now = catalog.query("SELECT max(iteration), count(*) FROM steps")[0]
+    assert now == (1, 2 * 2 * 3 * 10)
+    for table in ("steps", "episodes", "filter_decisions", "stage_runs", "shards", "dataset_composition"):
+        assert catalog.query(f"SELECT max(iteration) FROM {table}", as_of_iteration=0) == [(0,)], table
+    assert catalog.query("SELECT count(*) FROM steps", as_of_iteration=0) == [(2 * 3 * 10,)]
+    assert catalog.query("SELECT count(*) FROM steps") == [(now[1],)]  # the snapshot changed nothing
+    assert '"n": 60' in run_sql(catalog, "SELECT count(*) AS n FROM triplets", "json", as_of_iteration=0)
+
+
+def test_ready_views_agree_with_the_raw_tables(filled):
+    catalog = Catalog(filled.catalog)
+    episodes = catalog.query("SELECT task_id, iteration, success, episode_id FROM episodes")
+    expected = Counter((t, i) for t, i, _, _ in episodes)
+    successes = Counter((t, i) for t, i, s, _ in episodes if s)
+    rows = catalog.query("SELECT task_id, iteration, family, episodes, successes, success_rate FROM task_success")
+    assert {(t, i): n for t, i, _, n, _, _ in rows} == dict(expected)
+    for t, i, family, n, k, rate in rows:
+        assert k == successes[(t, i)] and rate == pytest.approx(k / n)
+        assert family == ("metaworld" if t.startswith("mw") else "robosuite")
+    passes = catalog.query("SELECT iteration, reason, episodes, fraction FROM filter_pass_rates ORDER BY 1, 2")
+    assert {r for _, r, _, _ in passes} <= {"kept", "low_return"} and any(r == "low_return" for _, r, _, _ in passes)
+    for iteration in (0, 1):
+        assert sum(f for i, _, _, f in passes if i == iteration) == pytest.approx(1.0)
+    [(kept_triplets,)] = catalog.query("SELECT sum(kept_triplets) FROM dataset_composition")
+    assert kept_triplets == catalog.query("SELECT count(*) FROM kept_steps")[0][0]
+
+
+def test_a_corrupt_shard_is_quarantined_and_queries_keep_working(filled):
+    catalog = Catalog(filled.catalog)
+    [(victim, unit)] = catalog.query(
+        "SELECT path, unit_key FROM shards WHERE table_name = 'steps' AND unit_key = 'explore-i1u0'"
+    )
+    path = filled.warehouse / victim
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])  # truncated, as by a full disk
+    total = run_sql(catalog, "SELECT count(*) AS n FROM steps", "json")
+    assert json.loads(total) == [{"n": 90}]  # three of the four units' steps
+    assert not path.exists() and (catalog.quarantine_folder / victim).exists()
+    assert not catalog.is_registered(unit)  # the next run redoes the unit
+    quarantined = catalog.query("SELECT path, reason FROM quarantine ORDER BY path")
+    assert len(quarantined) == 2 and any(victim == p and "Parquet" in r for p, r in quarantined)
+    assert catalog.verify(full=True) == []
+
+
+def test_verify_finds_a_file_whose_bytes_changed(filled):
+    catalog = Catalog(filled.catalog)
+    [(victim,)] = catalog.query("SELECT path FROM shards WHERE table_name = 'episodes' ORDER BY path LIMIT 1")
+    import pyarrow.parquet as pq
+
+    from bench.synthetic import explore_unit
+
+    pq.write_table(explore_unit("other", seed=9, episodes=3, steps=10)["episodes"], filled.warehouse / victim)
+    bad = catalog.verify(full=True)
+    assert [p for p, _ in bad] == [victim] and "sha256" in bad[0][1]
+
+
+def test_select_rows_and_stream_every_selected_step_once_across_workers(filled):
+    catalog = Catalog(filled.catalog)
+    where = "task_id LIKE 'lift%' AND step < 7"
+    ranges = select_rows(catalog, where)
+    expected = catalog.query(f"SELECT count(*) FROM steps WHERE {where}")[0][0]
+    assert expected > 0 and sum(r.stop - r.start for r in ranges) == expected
+    assert len(ranges) <= catalog.query(f"SELECT count(DISTINCT episode_id) FROM steps WHERE {where}")[0][0]
+    embeddings = {f"do {t}": np.full(4, i, np.float32) for i, t in enumerate(
+        r[0] for r in catalog.query("SELECT DISTINCT task_id FROM steps"))}
+    stream = StepStream(ranges, embeddings, shuffle_buffer=8, seed=1)
+    loader = DataLoader(stream, batch_size=None, num_workers=2)
+    samples = list(loader)
+    assert len(samples) == expected
+    assert all(s.image.shape == (84, 84, 3) and s.image.dtype == np.uint8 for s in samples)
+    actions = sorted(tuple(s.action.tolist()) for s in samples)
+    stored = sorted(tuple(np.float32(a).tolist()) for (a,) in catalog.query(f"SELECT action FROM steps WHERE {where}"))
+    assert actions == stored
+    # shuffled, reproducibly per epoch
+    once = [tuple(s.action) for s in StepStream(ranges, embeddings, 8, seed=1)]
+    again = [tuple(s.action) for s in StepStream(ranges, embeddings, 8, seed=1)]
+    assert once == again and once != [tuple(a) for (a,) in catalog.query(
+        f"SELECT action FROM steps WHERE {where} ORDER BY episode_id, step")]
+
+
+def test_a_bad_selection_is_one_clear_error(filled):
+    with pytest.raises(SelectionError, match="no_such_column"):
+        select_rows(Catalog(filled.catalog), "no_such_column > 1")
+
+
+WRITER = """
+import sys
+from schemas.workspace import Workspace
+from tests.warehouse.filled import register_explore
+workspace = Workspace.at(sys.argv[1])
+first, last = int(sys.argv[2]), int(sys.argv[3])
+new = sum(register_explore(workspace, f"explore-c{u:03d}", 2, seed=u, episodes=2, steps=5) for u in range(first, last))
+print(new)
+"""
+
+
+def test_two_processes_writing_and_registering_at_once_lose_and_duplicate_nothing(filled):
+    # units 0..29 and 20..49: the overlap is computed, written and registered by both
+    procs = [
+        subprocess.Popen([sys.executable, "-c", WRITER, str(filled.root), str(a), str(b)], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, cwd=str(__import__("pathlib").Path(__file__).parents[2]))
+        for a, b in ((0, 30), (20, 50))
+    ]
+    outputs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), outputs
+    assert sum(int(out) for out, _ in outputs) == 50  # each unit registered by exactly one of them
+    catalog = Catalog(filled.catalog)
+    assert catalog.query(
+        "SELECT count(*), count(DISTINCT unit_key) FROM stage_runs WHERE unit_key LIKE 'explore-c%'") == [(50, 50)]
+    assert catalog.query("SELECT count(*), count(DISTINCT episode_id) FROM episodes WHERE iteration = 2") == [(100, 100)]
+    assert catalog.query("SELECT count(*) FROM steps WHERE iteration = 2") == [(500,)]
+    assert catalog.verify(full=True) == []
+    assert catalog.clean_orphans() == []  # nothing written that the catalog does not name
+
+
+def test_the_cli_queries_snapshots_verifies_and_exports(filled, tmp_path, capsys):
+    from flows.cli import main
+
+    root = str(filled.root)
+    assert main(["sql", "--workspace", root, "--as-of-iteration", "0", "--format", "csv",
+                 "SELECT count(*) AS n FROM episodes"]) == 0
+    assert capsys.readouterr().out.strip() == "n\n6"
+    assert main(["sql", "--workspace", root, "SELECT nope FROM episodes"]) == 2
+    assert 'SQL error: Binder Error: Referenced column "nope" not found' in capsys.readouterr().err
+    assert main(["warehouse", "verify", "--full", "--workspace", root]) == 0
+    assert "0 quarantined" in capsys.readouterr().out
+    out = tmp_path / "lerobot"
+    assert main(["export", "lerobot", str(out), "--workspace", root, "--where", "task_id LIKE 'lift%'"]) == 0
+    info = json.loads((out / "meta" / "info.json").read_text())
+    [(kept_lift,)] = Catalog(filled.catalog).query(
+        "SELECT count(*) FROM filter_decisions WHERE kept AND task_id LIKE 'lift%'")
+    assert info["codebase_version"] == "v3.0" and info["total_episodes"] == kept_lift > 0
+    assert main(["export", "lerobot", str(out), "--workspace", root]) == 2  # not empty: refused
+    assert "is not an empty folder" in capsys.readouterr().err
