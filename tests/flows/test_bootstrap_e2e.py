@@ -7,6 +7,7 @@ with SIGKILL during explore and again during train must finish with exactly the 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -127,6 +128,17 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         assert len(client.get_metric_history(child.info.run_id, "train.loss")) == 4  # one point per epoch
         artifacts = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red")]
         assert any(path.endswith(".gif") for path in artifacts)
+        # the training run's dataset input: the digest and the exact shard set it read
+        [dataset_input] = client.get_run(child.info.run_id).inputs.dataset_inputs
+        iteration = int(child.data.tags["sim2act.iteration"])
+        [(digest, shards)] = Catalog(ws.catalog).query(
+            "SELECT m.dataset_digest, m.dataset_shards FROM models m JOIN iterations i USING (dataset_digest) "
+            "WHERE i.iteration = ?", [iteration])
+        assert dataset_input.dataset.digest == digest == child.data.tags["sim2act.dataset_digest"]
+        assert json.loads(dataset_input.dataset.source)["shards"] == shards
+        registered = Catalog(ws.catalog).query(
+            "SELECT path FROM shards WHERE table_name = 'steps' AND iteration <= ? ORDER BY path", [iteration])
+        assert shards and set(shards) <= {path for (path,) in registered}
     assert int(client.get_model_version_by_alias("sim2act-smoke", "champion").version) == 2
 
 
