@@ -10,6 +10,9 @@ import pyarrow as pa
 
 from schemas.frames import encode_frame
 from schemas.tables import EPISODES, STEPS
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog
+from warehouse.shard_writer import write_shard
 
 TASKS = ("lift-red", "lift-blue", "stack-red-on-green", "door-yellow", "nut-square-red", "mw-pick-place")
 
@@ -62,3 +65,13 @@ def explore_unit(
         "episodes": pa.Table.from_pylist(episode_rows, schema=EPISODES),
         "steps": pa.Table.from_pylist(step_rows, schema=STEPS),
     }
+
+
+def register_explore_unit(workspace: Workspace, key: str, *, campaign: str = "bench", iteration: int = 0,
+                          seed: int = 0, **sizes) -> bool:
+    """Write one synthetic unit's shards and register them as an explore unit (False: already was)."""
+    tables = explore_unit(key, campaign=campaign, iteration=iteration, seed=seed, **sizes)
+    shards = [write_shard(name, table, workspace.shard_path(name, iteration, key)) for name, table in tables.items()]
+    return Catalog(workspace.catalog).register_unit(
+        unit_key=key, stage="explore", campaign=campaign, iteration=iteration, summary={}, shards=shards
+    )

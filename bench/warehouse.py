@@ -24,7 +24,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import BaseModel
 
-from bench.synthetic import TASKS, explore_unit
+from bench.synthetic import TASKS, explore_unit, register_explore_unit
 from schemas.tables import STEPS
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
@@ -182,14 +182,10 @@ def bench_reads(root: Path, sizes: BenchSizes) -> list[Measure]:
     workspace = Workspace.at(root / "reads").create()
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
-    units = max(1, sizes.read_samples // (4 * sizes.steps_per_episode))
-    warehouse_bytes = 0
-    for u in range(units):
-        tables = explore_unit(f"r{u}", seed=u, steps=sizes.steps_per_episode, unique_frames=sizes.steps_per_episode)
-        shards = [write_shard(name, table, workspace.shard_path(name, 0, f"explore-r{u}")) for name, table in tables.items()]
-        warehouse_bytes += sum(s.num_bytes for s in shards)
-        catalog.register_unit(unit_key=f"explore-r{u}", stage="explore", campaign="bench", iteration=0, summary={},
-                              shards=shards)
+    for u in range(max(1, sizes.read_samples // (4 * sizes.steps_per_episode))):
+        register_explore_unit(workspace, f"explore-r{u}", seed=u, steps=sizes.steps_per_episode,
+                              unique_frames=sizes.steps_per_episode)
+    [(warehouse_bytes,)] = catalog.query("SELECT sum(num_bytes) FROM shards")
     ranges = select_rows(catalog, "NOT done")
     samples = sum(r.stop - r.start for r in ranges)
     embeddings = {f"do {t}": np.zeros(384, np.float32) for t in TASKS}

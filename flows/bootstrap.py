@@ -101,7 +101,7 @@ def redeploy_task(
     return run_redeploy(Workspace.at(workspace), config, iteration, model.model_key, model.checkpoint, mlflow_run_id)
 
 
-def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel, workspace: Workspace) -> None:
+def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
     """Log what a stage did, right after it, and only when it did work (a re-run adds no points)."""
     if stage == "generate_tasks" and not result.skipped:
         tracking.log_metrics(run_id, {"tasks.count": len(result.task_ids), "tasks.proposals_valid": result.proposals_valid,
@@ -119,11 +119,7 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel, w
         tracking.log_metrics(run_id, {f"dataset.{k}": getattr(result, k) for k in ("episodes", "kept_episodes", "triplets")})
         tracking.set_tags(run_id, {"sim2act.dataset_digest": result.dataset_digest})
     elif stage == "train" and not result.skipped:
-        tracking.log_training_dataset(
-            run_id, result.dataset_digest,
-            source={"warehouse": str(workspace.warehouse), "digest": result.dataset_digest, "shards": result.dataset_shards},
-            profile={"triplets": result.samples, "shards": len(result.dataset_shards)},
-        )
+        tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
         for epoch, record in enumerate(result.history):
             tracking.log_metrics(run_id, {f"train.{k}": v for k, v in record.items()}, step=epoch)
     elif stage == "evaluate" and result.skipped_units < len(result.tasks):
@@ -146,21 +142,20 @@ def iteration_flow(
     previous: IndexResult | None = None,
     explorer: PolicyExplorer | None = None,
 ) -> IterationOutcome:
-    ws = Workspace.at(workspace)
-    tracking = Tracking(ws, config)
+    tracking = Tracking(Workspace.at(workspace), config)
     run_id = tracking.iteration_run(campaign_run_id, iteration)
     tasks = generate_tasks_task(workspace, config)
-    _log_stage(tracking, run_id, "generate_tasks", tasks, ws)
+    _log_stage(tracking, run_id, "generate_tasks", tasks)
     explore = explore_task(workspace, config, iteration, tasks.unit_key, explorer)
-    _log_stage(tracking, run_id, "explore", explore, ws)
+    _log_stage(tracking, run_id, "explore", explore)
     filtered = filter_task(workspace, config, iteration, explore.unit_keys)
-    _log_stage(tracking, run_id, "filter", filtered, ws)
+    _log_stage(tracking, run_id, "filter", filtered)
     index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
-    _log_stage(tracking, run_id, "index", index, ws)
+    _log_stage(tracking, run_id, "index", index)
     model = train_task(workspace, config, iteration, index, tasks.unit_key)
-    _log_stage(tracking, run_id, "train", model, ws)
+    _log_stage(tracking, run_id, "train", model)
     evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
-    _log_stage(tracking, run_id, "evaluate", evaluation, ws)
+    _log_stage(tracking, run_id, "evaluate", evaluation)
     deployment = redeploy_task(workspace, config, iteration, model, run_id)
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})

@@ -175,12 +175,10 @@ def cmd_bench_warehouse(args: argparse.Namespace) -> int:
             raise ConfigError(f"bench warehouse: --sql-steps must be positive, got {args.sql_steps}")
         sizes = sizes.model_copy(update={"sql_steps": args.sql_steps})
     measures = bench_warehouse(sizes, args.scratch)
-    if args.json:
-        print(json.dumps([m.model_dump() for m in measures], indent=1))
-    else:
-        print(markdown(measures, args.command_line))
+    table = markdown(measures, args.command_line)
+    print(json.dumps([m.model_dump() for m in measures], indent=1) if args.json else table)
     if args.out:
-        write_text_atomically(args.out, markdown(measures, args.command_line))
+        write_text_atomically(args.out, table)
     return 0
 
 

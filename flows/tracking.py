@@ -31,6 +31,7 @@ class Tracking:
     def __init__(self, workspace: Workspace, config: CampaignConfig):
         self.client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
         self.config = config
+        self.warehouse = workspace.warehouse
         experiment = self.client.get_experiment_by_name(EXPERIMENT)
         self.experiment_id = (
             experiment.experiment_id
@@ -75,11 +76,12 @@ class Tracking:
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
 
-    def log_training_dataset(self, run_id: str, digest: str, source: Mapping, profile: Mapping) -> None:
-        """The exact data a training run read, as the run's MLflow dataset input."""
+    def log_training_dataset(self, run_id: str, digest: str, shards: list[str], triplets: int) -> None:
+        """The exact data a training run read (its steps shards), as the run's MLflow dataset input."""
         dataset = Dataset(
             name=f"{self.config.name}-warehouse", digest=digest, source_type="sim2act-warehouse",
-            source=json.dumps(source), schema=None, profile=json.dumps(profile),
+            source=json.dumps({"warehouse": str(self.warehouse), "shards": shards}), schema=None,
+            profile=json.dumps({"triplets": triplets, "shards": len(shards)}),
         )
         self.client.log_inputs(run_id, [DatasetInput(dataset, [InputTag("mlflow.data.context", "training")])])
 

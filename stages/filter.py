@@ -83,7 +83,7 @@ def decide(episode: dict, facts: EpisodeFacts, config: FilterConfig, kept_digest
 
 def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
     by_episode: dict[str, list[dict]] = {}
-    for row in steps.select(STEP_COLUMNS).to_pylist():
+    for row in steps.to_pylist():
         by_episode.setdefault(row["episode_id"], []).append(row)
     return by_episode
 
@@ -106,7 +106,7 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
         started = time.monotonic()
         [(episodes_path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
         [(steps_path, _)] = catalog.shard_paths("steps", "unit_key = ?", [explore_key])
-        steps = _steps_by_episode(read_shard("steps", steps_path))
+        steps = _steps_by_episode(read_shard("steps", steps_path, STEP_COLUMNS))
         decisions = []
         for episode in read_shard("episodes", episodes_path).to_pylist():
             bounds = action_bounds(families[episode["task_id"]])

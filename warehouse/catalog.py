@@ -57,6 +57,12 @@ def check_rows(table: str, rows: Sequence[Mapping[str, Any]]) -> pa.Table:
         raise SchemaMismatch(f"{table}: a value does not fit the schema: {exc}") from None
 
 
+def _insert(con: duckdb.DuckDBPyConnection, table: str, rows: pa.Table) -> None:
+    con.register("new_rows", rows)
+    con.execute(f"INSERT INTO {table} SELECT * FROM new_rows")
+    con.unregister("new_rows")
+
+
 class Catalog:
     def __init__(self, path: Path):
         self.path = path
@@ -183,22 +189,25 @@ class Catalog:
             "unit_key": unit_key, "campaign": campaign, "iteration": iteration, "num_rows": shard.num_rows,
             "num_bytes": shard.num_bytes, "sha256": shard.sha256, "schema_version": SCHEMA_VERSION,
         } for shard in shards])
+        with self._transaction() as con:
+            if con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone():
+                return False  # nothing written: the empty transaction commits
+            for table, arrow in tables.items():
+                _insert(con, table, arrow)
+            self._refresh_views(con, {shard.table for shard in shards})
+        return True
+
+    @contextmanager
+    def _transaction(self) -> Iterator[duckdb.DuckDBPyConnection]:
+        """A write connection in one transaction: committed whole, or rolled back on any error."""
         with self.connect() as con:
             con.execute("BEGIN TRANSACTION")
             try:
-                if con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone():
-                    con.execute("ROLLBACK")
-                    return False
-                for table, arrow in tables.items():
-                    con.register("new_rows", arrow)
-                    con.execute(f"INSERT INTO {table} SELECT * FROM new_rows")
-                    con.unregister("new_rows")
-                self._refresh_views(con, {shard.table for shard in shards})
-                con.execute("COMMIT")
+                yield con
             except BaseException:
                 con.execute("ROLLBACK")
                 raise
-        return True
+            con.execute("COMMIT")
 
     @staticmethod
     def _persistent(con: duckdb.DuckDBPyConnection) -> str:
@@ -281,32 +290,20 @@ class Catalog:
         """Unregister the unit whose shard `path` is bad, with all its shards, and move the
         files to warehouse/quarantine/: queries keep working without them, and the next run
         redoes the unit (same seeds, same data)."""
-        with self.connect() as con:
-            con.execute("BEGIN TRANSACTION")
-            try:
-                found = con.execute("SELECT unit_key FROM shards WHERE path = ?", [path]).fetchone()
-                if found is None:
-                    con.execute("ROLLBACK")
-                    return
-                unit = found[0]
-                siblings = con.execute(
-                    "SELECT path, table_name, iteration FROM shards WHERE unit_key = ?", [unit]
-                ).fetchall()
-                now = datetime.now(timezone.utc).replace(tzinfo=None)
-                rows = check_rows("quarantine", [{
-                    "path": p, "table_name": t, "unit_key": unit, "iteration": i,
-                    "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
-                } for p, t, i in siblings])
-                con.register("new_rows", rows)
-                con.execute("INSERT INTO quarantine SELECT * FROM new_rows")
-                con.unregister("new_rows")
-                con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
-                con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
-                self._refresh_views(con, {t for _, t, _ in siblings})
-                con.execute("COMMIT")
-            except BaseException:
-                con.execute("ROLLBACK")
-                raise
+        with self._transaction() as con:
+            found = con.execute("SELECT unit_key FROM shards WHERE path = ?", [path]).fetchone()
+            if found is None:
+                return
+            unit = found[0]
+            siblings = con.execute("SELECT path, table_name, iteration FROM shards WHERE unit_key = ?", [unit]).fetchall()
+            now = datetime.now(timezone.utc).replace(tzinfo=None)
+            _insert(con, "quarantine", check_rows("quarantine", [{
+                "path": p, "table_name": t, "unit_key": unit, "iteration": i,
+                "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
+            } for p, t, i in siblings]))
+            con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
+            con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
+            self._refresh_views(con, {t for _, t, _ in siblings})
         for p, _, _ in siblings:
             source = self.warehouse / p
             if source.exists():

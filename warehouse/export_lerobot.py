@@ -235,9 +235,8 @@ class _Videos:
         self.root, self.fps, self.limit = root, fps, limit_mb * (1 << 20)
         self.chunk = self.file = self.frames = 0
         self.path: Path | None = None
-        self.encoder: _Encoder | None = None
+        self.encoder = None  # imageio's ffmpeg writer of the open file
         self.shape: tuple[int, int] | None = None
-        self.codec = ""
 
     def start_episode(self) -> tuple[int, int, float]:
         """(chunk, file, from_timestamp) of the episode about to be written."""
@@ -263,9 +262,8 @@ class _Videos:
         if self.encoder is None:
             self.path = self.root / VIDEO_PATH.format(video_key=CAMERA, chunk_index=self.chunk, file_index=self.file)
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.encoder = _Encoder(self.path, self.fps, *self.shape)
-            self.codec = self.encoder.codec
-        self.encoder.write(frame)
+            self.encoder = _video_writer(self.path, self.fps)
+        self.encoder.append_data(frame)
         self.frames += 1
 
     def close(self) -> None:
@@ -275,37 +273,18 @@ class _Videos:
             self.frames = 0  # the next file's timestamps start at 0
 
 
-class _Encoder:
-    """H.264 through imageio-ffmpeg's ffmpeg when it is installed (a codec every LeRobot tool
-    takes); else MPEG-4 part 2 through OpenCV's bundled FFmpeg, which has no H.264 encoder."""
+VIDEO_CODEC = "h264"  # through imageio-ffmpeg's ffmpeg (libx264): a codec every LeRobot tool takes
 
-    def __init__(self, path: Path, fps: int, height: int, width: int):
-        try:
-            import imageio.v2 as iio
-            import imageio_ffmpeg  # noqa: F401  (the ffmpeg binary, with libx264)
 
-            # g=2 as LeRobot's encoder: a random frame decodes from a keyframe at most one back.
-            # macro_block_size=1: imageio would otherwise resize 84 px to 96.
-            writer = iio.get_writer(
-                path, format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p", quality=None,
-                macro_block_size=1, ffmpeg_log_level="error", ffmpeg_params=["-g", "2", "-crf", "23"],
-            )
-            self.write: Callable[[np.ndarray], None] = writer.append_data
-            self.close: Callable[[], None] = writer.close
-            self.codec = "h264"
-            return
-        except ImportError:
-            pass
-        try:
-            import cv2
-        except ImportError:
-            raise ExportError("no video encoder: install imageio-ffmpeg (or opencv-python)") from None
-        video = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height))
-        if not video.isOpened():
-            raise ExportError(f"OpenCV could not open an MPEG-4 writer at {path}; install imageio-ffmpeg")
-        self.write = lambda frame: video.write(np.ascontiguousarray(frame[..., ::-1]))  # OpenCV takes BGR
-        self.close = video.release
-        self.codec = "mpeg4"
+def _video_writer(path: Path, fps: int):
+    import imageio.v2 as iio
+
+    # g=2 as LeRobot's encoder: a random frame decodes from a keyframe at most one back.
+    # macro_block_size=1: imageio would otherwise resize 84 px to 96.
+    return iio.get_writer(
+        path, format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p", quality=None,
+        macro_block_size=1, ffmpeg_log_level="error", ffmpeg_params=["-g", "2", "-crf", "23"],
+    )
 
 
 def _stats(x: np.ndarray, count: int) -> dict[str, np.ndarray]:
@@ -477,7 +456,7 @@ class _Writer:
         height, width = self.videos.shape or (0, 0)
         camera = {
             "dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
-            "info": {"video.height": height, "video.width": width, "video.codec": self.videos.codec,
+            "info": {"video.height": height, "video.width": width, "video.codec": VIDEO_CODEC,
                      "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "is_depth_map": False,
                      "video.fps": self.fps, "video.channels": 3, "has_audio": False},
         }

@@ -69,15 +69,19 @@ def check_schema(table_name: str, schema: pa.Schema) -> None:
         raise SchemaMismatch(f"{table_name}: columns are out of order: {schema.names} (expected {expected.names})")
 
 
-def inspect_shard(table_name: str, path: Path) -> int:
-    """Check a shard file without reading its data: a whole Parquet file of the declared schema.
-    Returns its row count."""
+def _open_shard(table_name: str, path: Path) -> pq.ParquetFile:
+    """A whole Parquet file of the declared schema, opened (its footer read, no data)."""
     try:
         parquet = pq.ParquetFile(path)
     except (OSError, pa.ArrowException) as exc:
         raise ShardUnreadable(f"{path}: not a readable Parquet file ({exc})") from None
     check_schema(table_name, parquet.schema_arrow)
-    return parquet.metadata.num_rows
+    return parquet
+
+
+def inspect_shard(table_name: str, path: Path) -> int:
+    """Check a shard file without reading its data. Returns its row count."""
+    return _open_shard(table_name, path).metadata.num_rows
 
 
 def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
@@ -109,6 +113,5 @@ def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
     return ShardFile(table_name, path, rows.num_rows, data.size, sha)
 
 
-def read_shard(table_name: str, path: Path) -> pa.Table:
-    inspect_shard(table_name, path)
-    return pq.read_table(path)
+def read_shard(table_name: str, path: Path, columns: list[str] | None = None) -> pa.Table:
+    return _open_shard(table_name, path).read(columns=columns)

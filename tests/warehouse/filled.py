@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import json
 
-from bench.synthetic import TASKS, explore_unit
+from bench.synthetic import TASKS, register_explore_unit
 from schemas.config import CampaignConfig, FilterConfig
 from schemas.workspace import Workspace
 from stages.filter import run_filter
 from warehouse.catalog import Catalog
-from warehouse.shard_writer import write_shard
 
 CONFIG = CampaignConfig(name="bench", filter=FilterConfig(min_return=5.0))
 
@@ -28,11 +27,7 @@ def register_tasks(workspace: Workspace) -> None:
 
 
 def register_explore(workspace: Workspace, key: str, iteration: int, seed: int, **sizes) -> bool:
-    tables = explore_unit(key, campaign=CONFIG.name, iteration=iteration, seed=seed, **sizes)
-    shards = [write_shard(name, table, workspace.shard_path(name, iteration, key)) for name, table in tables.items()]
-    return Catalog(workspace.catalog).register_unit(
-        unit_key=key, stage="explore", campaign=CONFIG.name, iteration=iteration, summary={}, shards=shards
-    )
+    return register_explore_unit(workspace, key, campaign=CONFIG.name, iteration=iteration, seed=seed, **sizes)
 
 
 def fill(workspace: Workspace, iterations: int = 2, units: int = 2, **sizes) -> dict[int, list[str]]:
