@@ -36,6 +36,18 @@ RANDOMISATION = pa.struct(
     ]
 )
 
+# The visual settings an episode was rendered with (schemas.config.RenderConfig): replay and
+# evaluation render alike from them; null when the explorer used no camera.
+RENDER = pa.struct(
+    [
+        ("camera", pa.string()),
+        ("image_size", pa.int32()),
+        ("shadows", pa.bool_()),
+        ("reflections", pa.bool_()),
+        ("multisamples", pa.int32()),
+    ]
+)
+
 # -- shard tables: immutable Parquet files ---------------------------------------------------
 
 EPISODES = pa.schema(
@@ -53,6 +65,9 @@ EPISODES = pa.schema(
         ("success", pa.bool_()),
         ("error", pa.string()),  # null, or why the environment failed mid-episode
         ("randomisation", RANDOMISATION),
+        ("render", RENDER),
+        # per-episode counters of a remote explorer (VLM: calls, retries, timeouts, invalid answers)
+        _json("explorer_stats"),
     ]
 )
 
@@ -80,6 +95,9 @@ STEPS = pa.schema(
         ("act", pa.list_(pa.float64())),  # actuator activations (empty for models without any)
         ("mocap", pa.list_(pa.float64())),  # mocap body pos (3 each) then quat (4 each): MetaWorld's hand
         ("sim_time", pa.float64()),
+        # the scripted expert's noiseless action at this state (DAgger labels), where the campaign
+        # records them (explore.expert_labels); null otherwise
+        ("expert_action", pa.list_(pa.float32())),
     ]
 )
 

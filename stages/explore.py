@@ -194,6 +194,7 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
                 "seed": plan.seed, "shard_key": unit.unit_key, "num_steps": len(rows),
                 "episode_return": float(sum(r["reward"] for r in rows)), "success": success, "error": error,
                 "randomisation": randomisation.model_dump() if randomisation else None,
+                "render": unit.render.model_dump(),
             }
         )
     workspace = Workspace.at(unit.workspace)
