@@ -10,9 +10,11 @@ import logging
 import time
 
 from prefect import flow, task
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.cache_policies import NO_CACHE
 from pydantic import BaseModel
 
+from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE
@@ -56,13 +58,19 @@ def generate_tasks_task(workspace: str, config: CampaignConfig) -> TasksResult:
     return run_generate_tasks(Workspace.at(workspace), config)
 
 
-@stage_task(name="explore")
-def explore_task(
+@flow(name="explore", flow_run_name="{config.name}-explore-{iteration}")
+def explore_flow(
     workspace: str, config: CampaignConfig, iteration: int, tasks_key: str, explorer: PolicyExplorer | None
 ) -> ExploreResult:
+    """A subflow: its task runner (local workers or Dask) is chosen by the caller."""
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
-    return run_explore(ws, config, iteration, load_tasks(ws, tasks_key), explorer, embeddings)
+    artifact = create_progress_artifact(0.0, description=f"explore {config.name} iteration {iteration}: episodes done")
+    return run_explore(
+        ws, config, iteration, load_tasks(ws, tasks_key), explorer, embeddings,
+        execute=as_prefect_tasks(config.explore),
+        on_progress=lambda fraction: update_progress_artifact(artifact, 100.0 * fraction),
+    )
 
 
 @stage_task(name="filter")
@@ -146,7 +154,9 @@ def iteration_flow(
     run_id = tracking.iteration_run(campaign_run_id, iteration)
     tasks = generate_tasks_task(workspace, config)
     _log_stage(tracking, run_id, "generate_tasks", tasks)
-    explore = explore_task(workspace, config, iteration, tasks.unit_key, explorer)
+    explore = explore_flow.with_options(task_runner=rollout_task_runner(config.explore))(
+        workspace, config, iteration, tasks.unit_key, explorer
+    )
     _log_stage(tracking, run_id, "explore", explore)
     filtered = filter_task(workspace, config, iteration, explore.unit_keys)
     _log_stage(tracking, run_id, "filter", filtered)

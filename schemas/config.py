@@ -24,17 +24,36 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class ProposerConfig(_Strict):
-    """An OpenAI-compatible chat endpoint (Ollama, vLLM, llama.cpp server) that proposes tasks."""
+class ChatEndpointConfig(_Strict):
+    """An OpenAI-compatible chat-completions endpoint (Ollama, vLLM, llama.cpp server, a hosted API)."""
 
     url: str = Field(pattern=r"^https?://", description="base URL, e.g. http://127.0.0.1:11434/v1")
     model: str = Field(min_length=1)
-    proposals: PositiveInt = 10
-    timeout_s: float = Field(default=60.0, gt=0)
-    retries: int = Field(default=2, ge=0)
+    timeout_s: float = Field(default=60.0, gt=0, description="per request")
+    retries: int = Field(default=2, ge=0, description="further tries after a timeout, refused connection or 5xx")
     temperature: float = Field(default=0.7, ge=0.0, le=2.0)
     api_key_env: str | None = Field(default=None, description="environment variable holding the API key")
+
+
+class ProposerConfig(ChatEndpointConfig):
+    """A chat endpoint that proposes tasks."""
+
+    proposals: PositiveInt = 10
     fallback_to_templates: bool = Field(default=False, description="if unreachable: templates only, not failure")
+
+
+class VlmExplorerConfig(ChatEndpointConfig):
+    """A multimodal chat endpoint that explores: one request per step, the frame and the instruction in,
+    a JSON action out (policies/vlm_explorer.py, docs/explorers.md)."""
+
+    # A step waits on the request, so a slow or absent server must fail fast, not stall a worker.
+    timeout_s: float = Field(default=10.0, gt=0, description="per request")
+    retries: int = Field(default=1, ge=0, description="further tries after a timeout, refused connection or 5xx")
+    temperature: float = Field(default=0.0, ge=0.0, le=2.0, description="0: the most likely action")
+    max_tokens: PositiveInt = Field(default=64, description="the answer is one short JSON object")
+    max_invalid_answers: int = Field(
+        default=10, ge=0, description="invalid answers an episode absorbs as no-ops; one more fails the episode"
+    )
 
 
 class TasksConfig(_Strict):
@@ -102,7 +121,17 @@ class ExploreConfig(_Strict):
     policy_fraction: float = Field(
         default=0.5, ge=0.0, le=1.0, description="share of episodes the redeployed policy explores (iteration >= 1)"
     )
-    workers: PositiveInt = 2
+    vlm: VlmExplorerConfig | None = Field(default=None, description="a multimodal chat endpoint that explores too")
+    vlm_fraction: float = Field(
+        default=1.0, ge=0.0, le=1.0, description="share of the episodes left to the expert that the VLM explores"
+    )
+    expert_labels: bool = Field(
+        default=True, description="record the noiseless expert action at every state (DAgger labels)"
+    )
+    workers: PositiveInt = Field(default=2, description="local worker processes (one core each)")
+    dask_address: str | None = Field(
+        default=None, pattern=r"^(tcp|tls|inproc|ucx)://", description="run shards on this Dask scheduler instead"
+    )
 
 
 class FilterConfig(_Strict):

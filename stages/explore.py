@@ -8,14 +8,18 @@ mix in the redeployed policy. Workers write shards; this process registers them.
 from __future__ import annotations
 
 import atexit
+import json
 import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel
 
-from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
+from envs.observation import Observation
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_frame
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import EPISODES, STEPS
@@ -25,8 +29,8 @@ from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ShardFile, write_shard
 
-STAGE, VERSION = "explore", 1
-EXPERT = "expert"
+STAGE, VERSION = "explore", 2
+EXPERT, VLM = "expert", "vlm"
 log = logging.getLogger("sim2act.stages.explore")
 
 
@@ -51,11 +55,14 @@ class ExploreUnit(BaseModel):
     campaign: str
     iteration: int
     task: TaskRecord
+    shard: int
     render: RenderConfig
     randomise: RandomiseConfig
     expert_noise: float
+    expert_labels: bool
     episodes: list[EpisodePlan]
     policy: PolicyExplorer | None
+    vlm: VlmExplorerConfig | None
     # instruction -> embedding, only the few this unit's episodes say (small vectors)
     embeddings: dict[str, list[float]]
 
@@ -65,6 +72,22 @@ class ExploreResult(BaseModel):
     episodes: int
     steps: int
     skipped_units: int
+
+
+def _explorers(config: CampaignConfig, iteration: int, task: TaskRecord, policy: PolicyExplorer | None) -> list[str]:
+    """Who explores each of a task's episodes: the policy takes its share (iterations >= 1), the
+    VLM its share of the rest, the expert the remainder; drawn from the task's seed."""
+    explore, count = config.explore, config.explore.episodes_per_task
+    rng = np.random.default_rng(derive_seed(config.name, config.seed, iteration, task.task_id, "explorers"))
+    order = rng.permutation(count).tolist()
+    explorers = [EXPERT] * count
+    n_policy = round(explore.policy_fraction * count) if policy else 0
+    n_vlm = round(explore.vlm_fraction * (count - n_policy)) if explore.vlm else 0
+    for index in order[:n_policy]:
+        explorers[index] = policy.name
+    for index in order[n_policy:n_policy + n_vlm]:
+        explorers[index] = f"{VLM}:{explore.vlm.model}"
+    return explorers
 
 
 def plan_explore(
@@ -79,30 +102,28 @@ def plan_explore(
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
-        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers"}),
+        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers", "dask_address"}),
         "policy": policy.model_key if policy else None,
     }
     units = []
     for task in (t for t in tasks if t.split == "seen"):
-        rng = np.random.default_rng(derive_seed(config.name, config.seed, iteration, task.task_id, "explorers"))
-        n_policy = round(explore.policy_fraction * explore.episodes_per_task) if policy else 0
-        by_policy = set(rng.choice(explore.episodes_per_task, size=n_policy, replace=False).tolist())
+        explorer_of = _explorers(config, iteration, task, policy)
         for shard, first in enumerate(range(0, explore.episodes_per_task, explore.episodes_per_shard)):
             key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard)])
             episodes = []
             for index in range(first, min(first + explore.episodes_per_shard, explore.episodes_per_task)):
                 seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)
                 instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
-                explorer = policy.name if index in by_policy else EXPERT
                 episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
-                episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction, explorer=explorer))
-            said = {e.instruction for e in episodes if e.explorer != EXPERT}
+                episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction,
+                                            explorer=explorer_of[index]))
+            said = {e.instruction for e in episodes if policy and e.explorer == policy.name}
             units.append(
                 ExploreUnit(
                     unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
-                    task=task, render=config.render, randomise=config.randomise, expert_noise=explore.expert_noise,
-                    episodes=episodes,
-                    policy=policy, embeddings={text: embeddings[text].tolist() for text in said},
+                    task=task, shard=shard, render=config.render, randomise=config.randomise,
+                    expert_noise=explore.expert_noise, expert_labels=explore.expert_labels, episodes=episodes,
+                    policy=policy, vlm=explore.vlm, embeddings={text: embeddings[text].tolist() for text in said},
                 )
             )
     return units
@@ -115,9 +136,14 @@ _ENVS: dict[tuple[str, str, str], object] = {}
 
 @atexit.register
 def _close_envs() -> None:
-    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown)."""
+    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown).
+    Another library's exit hook may have terminated the EGL display first (MetaWorld's glfw,
+    PyOpenGL's): then the contexts are gone with it, and the process is ending anyway."""
     for env in _ENVS.values():
-        env.close()
+        try:
+            env.close()
+        except Exception:
+            pass
 
 
 def worker_env(task: TaskRecord, render: RenderConfig | None):
@@ -130,13 +156,20 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     return _ENVS[key]
 
 
-def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[list[dict], np.ndarray, bool]:
-    """Run one episode until success or the horizon. -> (step rows, final image, success)."""
+Act = Callable[[Observation], np.ndarray]
+
+
+def rollout(
+    env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None
+) -> tuple[list[dict], np.ndarray, bool]:
+    """Run one episode until success or the horizon. -> (step rows, final image, success).
+    `label`, if given, is asked for its action at every state the explorer visits (DAgger)."""
     obs = env.reset(task, seed, randomisation)
     rows, success = [], False
     for step in range(task.horizon):
         state = env.mujoco_state()
         action = np.asarray(act(obs), dtype=np.float32)
+        expert_action = None if label is None else np.asarray(label(obs), dtype=np.float32).tolist()
         next_obs, reward, success = env.step(action)
         done = success or step == task.horizon - 1
         rows.append(
@@ -144,7 +177,7 @@ def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[
                 "step": step, "image": obs.image, "proprio": obs.proprio.tolist(), "action": action.tolist(),
                 "reward": reward, "done": done, "success": success,
                 "qpos": state.qpos.tolist(), "qvel": state.qvel.tolist(), "act": state.act.tolist(),
-                "mocap": state.mocap.tolist(), "sim_time": state.time,
+                "mocap": state.mocap.tolist(), "sim_time": state.time, "expert_action": expert_action,
             }
         )
         obs = next_obs
@@ -153,13 +186,34 @@ def rollout(env, task: TaskRecord, seed: int, act, randomisation=None) -> tuple[
     return rows, obs.image, success
 
 
-def _actor(unit: ExploreUnit, plan: EpisodePlan, policy):
+@dataclass(frozen=True)
+class Explorer:
+    """Who acts in one episode, and its counters if it keeps any (a remote VLM does)."""
+
+    act: Callable[[Observation], np.ndarray]
+    stats: Callable[[], dict[str, int]] | None = None
+
+
+def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
     from envs.registry import make_expert
 
     if plan.explorer == EXPERT:
-        return make_expert(unit.task, unit.expert_noise, np.random.default_rng(plan.seed))
+        return Explorer(act=make_expert(unit.task, unit.expert_noise, np.random.default_rng(plan.seed)))
+    if plan.explorer.startswith(f"{VLM}:"):
+        from policies.vlm_explorer import VlmExplorer
+
+        vlm = VlmExplorer(unit.vlm, unit.task.family, plan.instruction)
+        return Explorer(act=vlm.act, stats=vlm.stats)
     embedding = np.asarray(unit.embeddings[plan.instruction], dtype=np.float32)
-    return lambda obs: policy.act(obs.image, obs.proprio, embedding)
+    return Explorer(act=lambda obs: policy.act(obs.image, obs.proprio, embedding))
+
+
+def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
+    """The noiseless expert, following along whoever explores (its own rng: the explorer's
+    draws, and so the episode, do not depend on whether labels are recorded)."""
+    from envs.registry import make_expert
+
+    return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if unit.expert_labels else None
 
 
 def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
@@ -177,10 +231,12 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     for plan in unit.episodes:
         error = None
         randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
+        explorer = _explorer(unit, plan, policy)
         try:
-            act = _actor(unit, plan, policy)
-            rows, final_image, success = rollout(env, unit.task, plan.seed, act, randomisation)
-        except Exception as exc:  # a simulator failure marks the episode, not the shard
+            rows, final_image, success = rollout(
+                env, unit.task, plan.seed, explorer.act, randomisation, _labeller(unit, plan)
+            )
+        except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         for row in rows:
             row.update(common, episode_id=plan.episode_id, instruction=plan.instruction,
@@ -195,6 +251,7 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
                 "episode_return": float(sum(r["reward"] for r in rows)), "success": success, "error": error,
                 "randomisation": randomisation.model_dump() if randomisation else None,
                 "render": unit.render.model_dump(),
+                "explorer_stats": json.dumps(explorer.stats()) if explorer.stats else None,
             }
         )
     workspace = Workspace.at(unit.workspace)
@@ -206,7 +263,21 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     ]
 
 
+def unit_label(unit: ExploreUnit) -> str:
+    return f"{unit.task.task_id} shard {unit.shard}"
+
+
 # -- registrar side ---------------------------------------------------------------------------
+
+
+# (unit, its shard files, seconds in the worker), in completion order
+Completed = Iterator[tuple[ExploreUnit, list[ShardFile], float]]
+Execute = Callable[[list[ExploreUnit]], Completed]
+
+
+def on_local_workers(workers: int) -> Execute:
+    """The default: `workers` local processes, each unit retried on a fresh one if its worker dies."""
+    return lambda units: run_in_pool(run_explore_unit, units, workers, unit_label)
 
 
 def run_explore(
@@ -216,7 +287,11 @@ def run_explore(
     tasks: list[TaskRecord],
     policy: PolicyExplorer | None,
     embeddings: dict[str, np.ndarray],
+    execute: Execute | None = None,
+    on_progress: Callable[[float], None] | None = None,
 ) -> ExploreResult:
+    """Plan the iteration's shards, run the unregistered ones through `execute` (default: local
+    worker processes) and register each as it completes: a kill loses only shards in flight."""
     catalog = Catalog(workspace.catalog)
     units = plan_explore(config, iteration, tasks, policy, embeddings, workspace)
     keys = [u.unit_key for u in units]
@@ -224,16 +299,21 @@ def run_explore(
     todo = [u for u in units if u.unit_key not in done]
     explorers = "expert" if policy is None else f"expert + {policy.name} ({config.explore.policy_fraction:.0%})"
     log.info("explore it%d: %d shards (%d already registered), explorers: %s", iteration, len(units), len(done), explorers)
-    progress = Progress(log, f"explore it{iteration}", len(todo), "shards", "triplets")
+    execute = execute or on_local_workers(config.explore.workers)
+    progress = Progress(log, f"explore it{iteration}", sum(len(u.episodes) for u in todo), "episodes", "triplets",
+                        on_progress)
     episodes = steps = 0
-    for unit, shards, seconds in run_in_pool(run_explore_unit, todo, config.explore.workers):
-        by_table = {s.table: s for s in shards}
-        summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
-        catalog.register_unit(
-            unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-            summary=summary, wall_s=seconds, shards=shards,
-        )
-        episodes += summary["episodes"]
-        steps += summary["steps"]
-        progress.advance(summary["steps"])
+    try:
+        for unit, shards, seconds in execute(todo):
+            by_table = {s.table: s for s in shards}
+            summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
+            catalog.register_unit(
+                unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
+                summary=summary, wall_s=seconds, shards=shards,
+            )
+            episodes += summary["episodes"]
+            steps += summary["steps"]
+            progress.advance(summary["episodes"], summary["steps"])
+    finally:
+        progress.close()
     return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(done))

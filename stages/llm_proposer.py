@@ -7,24 +7,18 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import time
-import urllib.error
-import urllib.request
 from collections import Counter
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from policies.openai_chat import ChatUnavailable as ProposerUnavailable
+from policies.openai_chat import complete
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import Colour, TaskRecord
 from stages.generate_tasks import bind_task, task_id_of
 
 log = logging.getLogger("sim2act.stages.llm_proposer")
-
-
-class ProposerUnavailable(RuntimeError):
-    pass
 
 
 class Proposal(BaseModel):
@@ -59,30 +53,8 @@ def build_messages(specs: dict[str, TaskSpec], count: int) -> list[dict[str, str
 
 
 def chat(config: ProposerConfig, messages: list[dict[str, str]]) -> str:
-    """One chat completion; retries on connection errors and 5xx; the answer's message content."""
-    body = json.dumps({"model": config.model, "messages": messages, "temperature": config.temperature,
-                       "response_format": {"type": "json_object"}}).encode()
-    headers = {"Content-Type": "application/json"}
-    if config.api_key_env and os.environ.get(config.api_key_env):
-        headers["Authorization"] = f"Bearer {os.environ[config.api_key_env]}"
-    url = config.url.rstrip("/") + "/chat/completions"
-    last_error = ""
-    for attempt in range(config.retries + 1):
-        request = urllib.request.Request(url, data=body, headers=headers, method="POST")
-        try:
-            with urllib.request.urlopen(request, timeout=config.timeout_s) as response:
-                return json.loads(response.read())["choices"][0]["message"]["content"]
-        except urllib.error.HTTPError as exc:
-            last_error = f"HTTP {exc.code}"
-            if exc.code < 500:
-                break
-        except (urllib.error.URLError, TimeoutError, ConnectionError) as exc:
-            last_error = str(getattr(exc, "reason", exc))
-        except (KeyError, IndexError, json.JSONDecodeError):
-            raise ProposerUnavailable(f"LLM proposer at {url} answered, but not in the chat-completions format")
-        if attempt < config.retries:
-            time.sleep(min(2.0**attempt, 10.0))
-    raise ProposerUnavailable(f"LLM proposer at {url} did not answer ({last_error}) after {config.retries + 1} tries")
+    """One chat completion (policies.openai_chat); the answer's message content."""
+    return complete(config, messages, who="LLM proposer").content
 
 
 def _check(proposal: Proposal, specs: dict[str, TaskSpec]) -> str | None:

@@ -1,42 +1,75 @@
-"""Fan units of work out to worker processes and hand each result back as it completes.
+"""Fan units of work out to long-lived worker processes and hand each result back as it completes.
 
 Workers are spawned, not forked: MuJoCo's GL contexts, torch's thread pools and Prefect's
-event loop do not survive a fork. Each worker builds its own environments.
+event loop do not survive a fork. Each worker keeps its environments across units. A worker
+that dies (killed, segfault, out of memory) takes only its unit in flight with it: the pool
+starts a fresh worker and the caller retries that unit; the other workers go on.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
+import queue
+import signal
+import sys
+import threading
 import time
+import traceback
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from typing import TypeVar
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from typing import Any, TypeVar
 
 Unit = TypeVar("Unit")
 Result = TypeVar("Result")
+log = logging.getLogger("sim2act.stages.pool")
+RETRIES = 2  # a unit whose worker died is run again this many times before the stage fails
+
+
+class WorkerLost(RuntimeError):
+    """The worker process running a unit died before answering."""
+
+
+class UnitFailed(RuntimeError):
+    """The unit raised inside its worker; the message carries the worker's traceback."""
 
 
 class Progress:
-    """Logs `stage: done/total units, rate, ETA` so a long run never goes silent."""
+    """A live bar on a terminal (done/total, rate, ETA) and a log line per finished unit, so a
+    long run never goes silent; `on_update(fraction)` feeds other displays (a Prefect artifact)."""
 
-    def __init__(self, logger: logging.Logger, label: str, total: int, unit_name: str, rate_name: str):
+    def __init__(
+        self, logger: logging.Logger, label: str, total: int, count_name: str, rate_name: str,
+        on_update: Callable[[float], None] | None = None,
+    ):
+        from tqdm import tqdm
+
         self.logger, self.label, self.total = logger, label, total
-        self.unit_name, self.rate_name = unit_name, rate_name
-        self.done = 0
-        self.amount = 0
+        self.count_name, self.rate_name, self.on_update = count_name, rate_name, on_update
+        self.done = self.amount = 0
         self.started = time.monotonic()
+        # disable=None: drawn only on a terminal; logs and Prefect get the lines below
+        self.bar = tqdm(total=total, desc=label, unit=count_name, disable=None, leave=False, file=sys.stderr)
 
-    def advance(self, amount: int) -> None:
-        self.done += 1
+    def advance(self, count: int, amount: int) -> None:
+        self.done += count
         self.amount += amount
         elapsed = max(time.monotonic() - self.started, 1e-6)
-        eta = elapsed / self.done * (self.total - self.done)
+        rate = self.amount / elapsed
+        eta = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
+        self.bar.update(count)
+        self.bar.set_postfix_str(f"{rate:.1f} {self.rate_name}/s", refresh=False)
         self.logger.info(
-            "%s: %d/%d %s, %d %s, %.1f %s/s, ETA %.0fs",
-            self.label, self.done, self.total, self.unit_name, self.amount, self.rate_name,
-            self.amount / elapsed, self.rate_name, eta,
+            "%s: %d/%d %s, %d %s, %.1f %s/s, ETA %.0fs", self.label, self.done, self.total, self.count_name,
+            self.amount, self.rate_name, rate, self.rate_name, eta,
         )
+        if self.on_update is not None:
+            self.on_update(self.done / max(self.total, 1))
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def _init_worker() -> None:
@@ -45,21 +78,134 @@ def _init_worker() -> None:
     torch.set_num_threads(1)  # one core per worker process; the pool supplies the parallelism
 
 
-def _timed(work: Callable[[Unit], Result], unit: Unit) -> tuple[Result, float]:
-    started = time.monotonic()
-    return work(unit), time.monotonic() - started
+def _serve(connection: Connection) -> None:
+    """A worker's loop: (work, unit) in, ("ok", result, seconds) or ("error", text, 0) out."""
+    _init_worker()
+    while True:
+        try:
+            message = connection.recv()
+        except EOFError:  # the parent is gone
+            return
+        if message is None:
+            return
+        work, unit = message
+        started = time.monotonic()
+        try:
+            answer = ("ok", work(unit), time.monotonic() - started)
+        except Exception:
+            answer = ("error", traceback.format_exc(), 0.0)
+        connection.send(answer)
+
+
+@dataclass
+class _Worker:
+    process: Any  # a spawned multiprocessing.Process
+    connection: Connection
+
+
+def _death(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        return f"killed by {signal.Signals(-exitcode).name}"
+    return f"exit code {exitcode}"
+
+
+class WorkerPool:
+    """`workers` spawned processes, each running one unit at a time; `run` is thread-safe and
+    blocks until its unit is done."""
+
+    def __init__(self, workers: int):
+        self._context = multiprocessing.get_context("spawn")
+        self._idle: queue.Queue[_Worker] = queue.Queue()
+        self._lock = threading.Lock()
+        self._workers: list[_Worker] = []
+        self._closed = False
+        for _ in range(workers):
+            self._idle.put(self._start())
+
+    def _start(self) -> _Worker:
+        parent, child = self._context.Pipe()
+        process = self._context.Process(target=_serve, args=(child,), daemon=True, name="sim2act-worker")
+        process.start()
+        child.close()
+        worker = _Worker(process, parent)
+        with self._lock:
+            self._workers.append(worker)
+        return worker
+
+    def run(self, work: Callable[[Unit], Result], unit: Unit, label: str = "") -> tuple[Result, float]:
+        """(result, seconds in the worker); WorkerLost if the worker died, UnitFailed if it raised."""
+        worker = self._next_idle()
+        try:
+            worker.connection.send((work, unit))
+            wait([worker.connection, worker.process.sentinel])
+            status, payload, seconds = worker.connection.recv()  # EOFError: it died first
+        except (EOFError, OSError):
+            worker.process.join(timeout=5)
+            with self._lock:
+                self._workers.remove(worker)
+                closed = self._closed
+            if not closed:
+                self._idle.put(self._start())
+            raise WorkerLost(f"worker {worker.process.pid} died ({_death(worker.process.exitcode)}) running {label or repr(unit)}")
+        self._idle.put(worker)
+        if status == "error":
+            raise UnitFailed(f"{label or repr(unit)} failed in its worker:\n{payload}")
+        return payload, seconds
+
+    def _next_idle(self) -> _Worker:
+        while True:
+            try:
+                return self._idle.get(timeout=1.0)
+            except queue.Empty:
+                if self._closed:
+                    raise WorkerLost("the pool was closed") from None
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            workers = list(self._workers)
+        for worker in workers:
+            if worker.process.is_alive():
+                worker.process.terminate()  # units in flight are abandoned: the caller has stopped
+        for worker in workers:
+            worker.process.join(timeout=10)
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def run_with_retries(
+    pool: WorkerPool, work: Callable[[Unit], Result], unit: Unit, label: str = "", retries: int = RETRIES
+) -> tuple[Result, float]:
+    """Run `unit`, again on a fresh worker if its worker died; a unit that raises is not retried."""
+    for attempt in range(retries + 1):
+        try:
+            return pool.run(work, unit, label)
+        except WorkerLost as lost:
+            if attempt == retries:
+                raise
+            log.warning("%s; retrying it (%d/%d)", lost, attempt + 1, retries)
+    raise AssertionError("unreachable")
 
 
 def run_in_pool(
-    work: Callable[[Unit], Result], units: Sequence[Unit], workers: int
+    work: Callable[[Unit], Result], units: Sequence[Unit], workers: int, label: Callable[[Unit], str] = repr,
 ) -> Iterator[tuple[Unit, Result, float]]:
     """Yield (unit, result, seconds in the worker) in completion order; the caller registers
-    each before the next."""
+    each before the next. Stopping early (an error, or the caller's) abandons the rest."""
     if not units:
         return
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=context, initializer=_init_worker) as pool:
-        futures = {pool.submit(_timed, work, unit): unit for unit in units}
+    count = min(workers, len(units))
+    pool = WorkerPool(count)
+    threads = ThreadPoolExecutor(max_workers=count, thread_name_prefix="sim2act-pool")
+    try:
+        futures = {threads.submit(run_with_retries, pool, work, unit, label(unit)): unit for unit in units}
         for future in as_completed(futures):
             result, seconds = future.result()
             yield futures[future], result, seconds
+    finally:
+        threads.shutdown(wait=False, cancel_futures=True)
+        pool.close()

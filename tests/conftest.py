@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -63,3 +64,22 @@ def prefect_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
 def sim2act_env(prefect_api: str) -> dict[str, str]:
     return {**os.environ, "PREFECT_API_URL": prefect_api}
+
+
+@pytest.fixture
+def serve_chat():
+    """serve_chat(*replies) -> a started ScriptedServer; a reply is content or (content, status, delay)."""
+    from tests.chat_server import ScriptedServer
+
+    servers = []
+
+    def start(*script) -> ScriptedServer:
+        server = ScriptedServer([s if isinstance(s, tuple) else (s, 200, 0.0) for s in script])
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        servers.append(server)
+        return server
+
+    yield start
+    for server in servers:
+        server.shutdown()
+        server.server_close()

@@ -166,7 +166,7 @@ def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api)
 def test_sigkill_during_explore_and_train_then_resume_gives_the_same_rows(finished_campaign, tmp_path, prefect_api):
     reference, _, _ = finished_campaign
     workspace = tmp_path / "killed"
-    run_campaign(workspace, prefect_api, kill_at=r"explore it0: 2/6 shards")
+    run_campaign(workspace, prefect_api, kill_at=r"explore it0: 4/12 episodes")
     partial = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM episodes")[0][0]
     assert 0 < partial < 12
     output, _ = run_campaign(workspace, prefect_api, kill_at=r"train it0: epoch 2/")

@@ -4,9 +4,6 @@ protocol (the remote model is the one thing that cannot run here)."""
 from __future__ import annotations
 
 import json
-import socket
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 
@@ -14,6 +11,7 @@ from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import load_specs
 from stages.generate_tasks import generate_tasks
 from stages.llm_proposer import ProposerUnavailable, chat, propose
+from tests.chat_server import closed_port
 
 ANSWER = {"tasks": [
     {"spec": "lift", "colours": {"target": "purple"},  # a new binding: a new task
@@ -28,45 +26,6 @@ ANSWER = {"tasks": [
 ]}
 
 
-class ChatServer(ThreadingHTTPServer):
-    def __init__(self, answer: str, status: int = 200):
-        super().__init__(("127.0.0.1", 0), ChatHandler)
-        self.answer, self.status, self.requests = answer, status, []
-
-
-class ChatHandler(BaseHTTPRequestHandler):
-    def do_POST(self):  # noqa: N802 (http.server's name)
-        body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-        self.server.requests.append((self.path, dict(self.headers), body))
-        reply = {"id": "chatcmpl-1", "object": "chat.completion", "model": body["model"],
-                 "choices": [{"index": 0, "finish_reason": "stop",
-                              "message": {"role": "assistant", "content": self.server.answer}}]}
-        data = json.dumps(reply).encode()
-        self.send_response(self.server.status)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(data)))
-        self.end_headers()
-        self.wfile.write(data)
-
-    def log_message(self, *args):
-        pass
-
-
-@pytest.fixture
-def serve():
-    servers = []
-
-    def start(answer: str, status: int = 200) -> ChatServer:
-        server = ChatServer(answer, status)
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        servers.append(server)
-        return server
-
-    yield start
-    for server in servers:
-        server.shutdown()
-
-
 def _config(url: str, **extra) -> TasksConfig:
     proposer = ProposerConfig(url=url, model="tiny-llm", retries=1, timeout_s=5, **extra)
     return TasksConfig(specs=["lift", "stack"], colours=["red", "green", "blue"], proposer=proposer)
@@ -76,8 +35,8 @@ def _specs(config: TasksConfig):
     return {name: entry.spec for name, entry in load_specs().items() if name in config.specs}
 
 
-def test_valid_proposals_become_tasks_and_invalid_ones_are_counted(serve, monkeypatch):
-    server = serve(json.dumps(ANSWER))
+def test_valid_proposals_become_tasks_and_invalid_ones_are_counted(serve_chat, monkeypatch):
+    server = serve_chat(json.dumps(ANSWER))
     monkeypatch.setenv("TINY_KEY", "secret")
     config = _config(f"http://127.0.0.1:{server.server_port}/v1", api_key_env="TINY_KEY")
     templates = generate_tasks(config, seed=0)
@@ -95,34 +54,28 @@ def test_valid_proposals_become_tasks_and_invalid_ones_are_counted(serve, monkey
     assert [m["role"] for m in body["messages"]] == ["system", "user"] and "stack" in body["messages"][1]["content"]
 
 
-def test_an_answer_that_is_not_json_is_rejected_not_fatal(serve):
-    server = serve("Sure! Here are some tasks: lift the red cube")
+def test_an_answer_that_is_not_json_is_rejected_not_fatal(serve_chat):
+    server = serve_chat("Sure! Here are some tasks: lift the red cube")
     config = _config(f"http://127.0.0.1:{server.server_port}/v1")
     outcome = propose(config, _specs(config), generate_tasks(config, 0))
     assert outcome.rejected == {"not_json": 1} and outcome.new_tasks == 0
 
 
-def _closed_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def test_an_unreachable_endpoint_fails_with_a_clear_message():
-    config = _config(f"http://127.0.0.1:{_closed_port()}/v1")
+    config = _config(f"http://127.0.0.1:{closed_port()}/v1")
     with pytest.raises(ProposerUnavailable, match=r"did not answer .* after 2 tries"):
         propose(config, _specs(config), generate_tasks(config, 0))
 
 
 def test_fallback_to_templates_only_when_the_config_says_so():
-    config = _config(f"http://127.0.0.1:{_closed_port()}/v1", fallback_to_templates=True)
+    config = _config(f"http://127.0.0.1:{closed_port()}/v1", fallback_to_templates=True)
     templates = generate_tasks(config, 0)
     outcome = propose(config, _specs(config), templates)
     assert outcome.tasks == templates and outcome.rejected == {"unreachable": 1}
 
 
-def test_server_errors_are_retried_then_reported(serve):
-    server = serve("{}", status=503)
+def test_server_errors_are_retried_then_reported(serve_chat):
+    server = serve_chat(("{}", 503, 0.0))
     config = ProposerConfig(url=f"http://127.0.0.1:{server.server_port}/v1", model="m", retries=2, timeout_s=5)
     with pytest.raises(ProposerUnavailable, match="HTTP 503"):
         chat(config, [{"role": "user", "content": "hi"}])

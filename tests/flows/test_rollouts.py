@@ -1,0 +1,123 @@
+"""Explore shards as real Prefect task runs: on local worker processes, on a real Dask
+LocalCluster of two worker processes, and with a worker SIGKILLed mid-run. Seeds derive from
+(campaign, iteration, task, shard, episode), so every way of running writes the same bytes."""
+
+from __future__ import annotations
+
+import contextvars
+import multiprocessing
+import os
+import signal
+import threading
+import time
+
+import pytest
+from prefect import flow, get_client
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+import flows.rollouts
+from flows.rollouts import as_prefect_tasks, rollout_task_runner
+from schemas.config import CampaignConfig, ExploreConfig, TasksConfig
+from schemas.workspace import Workspace
+from stages.explore import ExploreResult, run_explore
+from stages.generate_tasks import generate_tasks
+from warehouse.catalog import Catalog
+
+pytestmark = pytest.mark.timeout(600)
+
+CONFIG = CampaignConfig(
+    name="rollouts",
+    tasks=TasksConfig(specs=["nav-room"], colours=["red", "green"], horizon={"nav-room": 12}),
+    explore=ExploreConfig(episodes_per_task=4, episodes_per_shard=2, workers=2),
+)
+
+
+@flow(name="explore-test")
+def explore_here(workspace: str, config: CampaignConfig) -> ExploreResult:
+    ws = Workspace.at(workspace)
+    tasks = generate_tasks(config.tasks, config.seed)
+    return run_explore(ws, config, 0, tasks, None, {}, execute=as_prefect_tasks(config.explore))
+
+
+def explore(workspace, config: CampaignConfig) -> tuple[ExploreResult, str]:
+    ws = Workspace.at(workspace).create()
+    Catalog(ws.catalog).initialise()
+    state = explore_here.with_options(task_runner=rollout_task_runner(config.explore))(
+        str(ws.root), config, return_state=True
+    )
+    return state.result(), str(state.state_details.flow_run_id)
+
+
+def shard_bytes(workspace) -> dict[str, str]:
+    rows = Catalog(Workspace.at(workspace).catalog).query("SELECT path, sha256 FROM shards ORDER BY 1")
+    return dict(rows)
+
+
+def shard_task_runs(flow_run_id: str) -> list[tuple[str, list[str]]]:
+    """(name, state names in order) of each explore-shard task run of the flow run."""
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
+
+    with get_client(sync_client=True) as client:
+        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])))
+        return [(run.name, [s.name for s in sorted(client.read_task_run_states(run.id), key=lambda s: s.timestamp)])
+                for run in runs]
+
+
+@pytest.fixture(scope="module")
+def prefect_here(prefect_api):
+    os.environ["PREFECT_API_URL"] = prefect_api  # Dask workers are other processes: they read it there
+    with temporary_settings({PREFECT_API_URL: prefect_api}):
+        yield prefect_api
+    del os.environ["PREFECT_API_URL"]
+
+
+@pytest.fixture(scope="module")
+def reference(prefect_here, tmp_path_factory):
+    workspace = tmp_path_factory.mktemp("local")
+    result, flow_run_id = explore(workspace, CONFIG)
+    return workspace, result, flow_run_id
+
+
+def test_each_shard_is_a_prefect_task_run_on_local_workers(reference):
+    workspace, result, flow_run_id = reference
+    assert (result.episodes, len(result.unit_keys), result.skipped_units) == (8, 4, 0)
+    runs = shard_task_runs(flow_run_id)
+    assert sorted(name for name, _ in runs) == [f"nav-room-{c}-shard-{s}" for c in ("green", "red") for s in (0, 1)]
+    assert all(states[-1] == "Completed" for _, states in runs)
+    assert len(shard_bytes(workspace)) == 8  # episodes + steps per shard
+    again, _ = explore(workspace, CONFIG)  # a finished explore does no work
+    assert (again.episodes, again.skipped_units) == (0, 4)
+
+
+def test_a_dask_cluster_of_two_processes_writes_the_same_bytes(reference, tmp_path):
+    from dask.distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(
+            update={"dask_address": cluster.scheduler_address})})
+        result, flow_run_id = explore(tmp_path, config)
+        with Client(cluster) as client:
+            envs_per_worker = client.run(lambda: len(__import__("stages.explore").explore._ENVS))
+    assert result.episodes == 8
+    assert sum(1 for count in envs_per_worker.values() if count) == 2  # both worker processes rolled out
+    assert all(states[-1] == "Completed" for _, states in shard_task_runs(flow_run_id))
+    assert shard_bytes(tmp_path) == shard_bytes(reference[0])
+
+
+def test_a_worker_killed_mid_run_costs_one_retried_shard_and_the_same_bytes(reference, tmp_path):
+    outcome = {}
+    here = contextvars.copy_context()  # Prefect's settings (its API URL) live in context variables
+    run = threading.Thread(target=lambda: outcome.update(result=here.run(explore, tmp_path, CONFIG)))
+    run.start()
+    deadline = time.monotonic() + 60
+    while flows.rollouts._local_workers is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # the units are sent; the workers are still importing
+    victim = next(p for p in multiprocessing.active_children() if p.name == "sim2act-worker")
+    os.kill(victim.pid, signal.SIGKILL)
+    run.join(timeout=300)
+    result, flow_run_id = outcome["result"]
+    assert result.episodes == 8
+    retried = [name for name, states in shard_task_runs(flow_run_id) if "Retrying" in states]
+    assert len(retried) == 1, shard_task_runs(flow_run_id)
+    assert shard_bytes(tmp_path) == shard_bytes(reference[0])

@@ -1,0 +1,102 @@
+"""The explore stage's own decisions: who explores which episode, what a shard records (DAgger
+labels, a VLM explorer's counters) and what a failure mid-episode costs. Real navigation
+scenes, rendered; the VLM is a local server speaking the chat-completions protocol."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from envs.navigation_env import ACTIONS
+from schemas.config import CampaignConfig, ExploreConfig, TasksConfig, VlmExplorerConfig
+from schemas.workspace import Workspace
+from stages.explore import EXPERT, PolicyExplorer, plan_explore, run_explore_unit, worker_env
+from stages.generate_tasks import generate_tasks
+from tests.chat_server import closed_port
+from warehouse.shard_writer import read_shard
+
+
+def _config(**explore) -> CampaignConfig:
+    return CampaignConfig(
+        name="explore-test",
+        tasks=TasksConfig(specs=["nav-room"], colours=["red", "green"], horizon={"nav-room": 6}),
+        explore=ExploreConfig(**{"episodes_per_task": 4, "episodes_per_shard": 4, "workers": 1, **explore}),
+    )
+
+
+def _plan(config: CampaignConfig, tmp_path, iteration: int = 0, policy: PolicyExplorer | None = None):
+    tasks = generate_tasks(config.tasks, config.seed)
+    embeddings = {text: np.zeros(384, dtype=np.float32) for t in tasks for text in t.instructions}
+    return plan_explore(config, iteration, tasks, policy, embeddings, Workspace.at(tmp_path).create())
+
+
+def test_the_policy_and_the_vlm_take_their_shares_of_each_task(tmp_path):
+    vlm = VlmExplorerConfig(url="http://127.0.0.1:1/v1", model="tiny-vlm")
+    config = _config(episodes_per_task=10, episodes_per_shard=5, policy_fraction=0.4, vlm=vlm, vlm_fraction=0.5)
+    policy = PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint="unused")
+    units = _plan(config, tmp_path, 1, policy)
+    per_task = {task: Counter(e.explorer for u in units if u.task.task_id == task for e in u.episodes)
+                for task in {u.task.task_id for u in units}}
+    assert all(c == {"policy:m/1": 4, "vlm:tiny-vlm": 3, EXPERT: 3} for c in per_task.values())
+    assert [e.explorer for u in _plan(config, tmp_path, 1, policy) for e in u.episodes] == \
+        [e.explorer for u in units for e in u.episodes]  # drawn from seeds: the same every time
+    iteration_0 = Counter(e.explorer for u in _plan(config, tmp_path) for e in u.episodes)
+    assert iteration_0 == {"vlm:tiny-vlm": 10, EXPERT: 10}  # no policy yet: the VLM takes half of all
+
+
+def _shards(unit):
+    files = {f.table: f.path for f in run_explore_unit(unit)}
+    return read_shard("episodes", files["episodes"]).to_pylist(), read_shard("steps", files["steps"]).to_pylist()
+
+
+def test_a_shard_records_vlm_counters_and_the_experts_labels_everywhere(tmp_path, serve_chat):
+    server = serve_chat(json.dumps({"action": "forward"}))
+    config = _config(vlm=VlmExplorerConfig(url=server.url, model="tiny-vlm"), vlm_fraction=0.5)
+    unit = _plan(config, tmp_path)[0]
+    episodes, steps = _shards(unit)
+    by_explorer = Counter(e["explorer"] for e in episodes)
+    assert by_explorer == {"vlm:tiny-vlm": 2, EXPERT: 2}
+    for episode in episodes:
+        own = [s for s in steps if s["episode_id"] == episode["episode_id"]]
+        assert episode["error"] is None and len(own) == episode["num_steps"] > 0
+        assert all(len(s["expert_action"]) == 1 for s in own)  # the noiseless expert, on every state
+        assert episode["render"] == config.render.model_dump()
+        if episode["explorer"] == EXPERT:
+            assert episode["explorer_stats"] is None
+        else:
+            stats = json.loads(episode["explorer_stats"])
+            assert stats["calls"] == stats["steps"] == len(own) and stats["invalid_answers"] == 0
+            assert all(s["action"] == [ACTIONS.index("forward")] for s in own)
+    assert len(server.requests) == sum(1 for s in steps if s["episode_id"] in
+                                       {e["episode_id"] for e in episodes if e["explorer"] != EXPERT})
+
+
+def test_without_labels_the_column_stays_empty(tmp_path):
+    _, steps = _shards(_plan(_config(expert_labels=False), tmp_path)[0])
+    assert steps and all(s["expert_action"] is None for s in steps)
+
+
+def test_a_failure_mid_episode_fails_that_episode_not_the_shard(tmp_path, monkeypatch):
+    vlm = VlmExplorerConfig(url=f"http://127.0.0.1:{closed_port()}/v1", model="gone", retries=0)
+    unit = _plan(_config(vlm=vlm, vlm_fraction=0.25), tmp_path)[0]
+    env = worker_env(unit.task, unit.render)
+    step, calls = env.step, {"n": 0}
+
+    def step_that_breaks_once(action):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("mjWARNING_BADQACC: simulation unstable")
+        return step(action)
+
+    monkeypatch.setattr(env, "step", step_that_breaks_once)
+    episodes, steps = _shards(unit)
+    errors = [e["error"] for e in episodes]
+    assert sum(error is None for error in errors) == 2
+    assert any(error and error.startswith("RuntimeError: mjWARNING_BADQACC") for error in errors)
+    assert any(error and error.startswith("ChatUnavailable") for error in errors)  # the VLM endpoint is gone
+    failed = {e["episode_id"] for e in episodes if e["error"]}
+    assert all(e["num_steps"] == 0 for e in episodes if e["error"])
+    assert steps and not any(s["episode_id"] in failed for s in steps)

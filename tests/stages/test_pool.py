@@ -1,0 +1,58 @@
+"""The worker pool: real spawned processes, killed for real. A dead worker costs only its unit,
+which runs again on a fresh worker; a unit that raises fails the run with its traceback."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+from pathlib import Path
+
+import pytest
+from pydantic import BaseModel
+
+from stages.pool import UnitFailed, WorkerLost, WorkerPool, run_in_pool
+
+
+class Job(BaseModel):
+    n: int
+    attempts_dir: str
+    dies: str | None = None  # "sigkill" or "segfault" on the first attempt
+
+
+def attempt(job: Job) -> tuple[int, int]:
+    """Record the attempt; die on the first one if told to. -> (n squared, worker pid)."""
+    attempts = Path(job.attempts_dir)
+    first = not any(attempts.glob(f"{job.n}-*"))
+    (attempts / f"{job.n}-{os.getpid()}-{len(list(attempts.iterdir()))}").touch()
+    if first and job.dies == "sigkill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    if first and job.dies == "segfault":
+        ctypes.string_at(0)  # reads address 0: SIGSEGV
+    if job.n < 0:
+        raise ValueError(f"negative job {job.n}")
+    return job.n * job.n, os.getpid()
+
+
+def test_a_killed_and_a_crashed_worker_cost_only_their_own_units(tmp_path):
+    jobs = [Job(n=n, attempts_dir=str(tmp_path), dies={3: "sigkill", 6: "segfault"}.get(n)) for n in range(10)]
+    results = {job.n: result for job, result, _ in run_in_pool(attempt, jobs, workers=2)}
+    assert {n: square for n, (square, _) in results.items()} == {n: n * n for n in range(10)}
+    tries = {n: len(list(tmp_path.glob(f"{n}-*"))) for n in range(10)}
+    assert tries == {n: 2 if n in (3, 6) else 1 for n in range(10)}  # nobody else ran twice
+    assert len({pid for _, pid in results.values()}) >= 3  # two replacements were started
+
+
+def test_run_names_how_the_worker_died_and_the_pool_replaces_it(tmp_path):
+    with WorkerPool(1) as pool:
+        with pytest.raises(WorkerLost, match=r"died \(killed by SIGKILL\) running job 3"):
+            pool.run(attempt, Job(n=3, attempts_dir=str(tmp_path), dies="sigkill"), "job 3")
+        (square, _), seconds = pool.run(attempt, Job(n=3, attempts_dir=str(tmp_path), dies="sigkill"), "job 3")
+    assert square == 9 and seconds >= 0
+
+
+def test_a_unit_that_raises_is_not_retried_and_says_why(tmp_path):
+    jobs = [Job(n=-1, attempts_dir=str(tmp_path))]
+    with pytest.raises(UnitFailed, match="ValueError: negative job -1"):
+        list(run_in_pool(attempt, jobs, workers=1, label=lambda job: f"job {job.n}"))
+    assert len(list(tmp_path.iterdir())) == 1
