@@ -67,6 +67,7 @@ class MetaWorldEnv:
     def _render(self) -> np.ndarray:
         if self.render_config is None:
             return NO_IMAGE
+        self._make_context_current()
         image = self.env.render()
         if not self._scene_configured:  # the viewer exists only after the first render
             scene = self.env.mujoco_renderer._get_viewer("rgb_array").scn
@@ -75,6 +76,19 @@ class MetaWorldEnv:
             self._scene_configured = True
             image = self.env.render()
         return image[::-1].copy()  # OpenGL rows run bottom-up
+
+    def _make_context_current(self) -> None:
+        """gymnasium switches GL contexts only between its own viewers: after another environment's
+        renderer was made or used in this process, MetaWorld's frames would land there."""
+        viewer = self.env.mujoco_renderer._get_viewer("rgb_array")
+        viewer.make_context_current()
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, viewer.con)
+
+    def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
+        """The frame an observation at `state` showed. MetaWorld's step ends in mj_forward, so its
+        frames show the state itself, after a step (`after_step`) or not."""
+        state.restore(self.env.model, self.env.data)
+        return self._render()
 
     def _observation(self, state: np.ndarray) -> Observation:
         proprio = np.concatenate([state[:3], IDENTITY_QUAT, [state[3], -state[3]]]).astype(np.float32)

@@ -196,16 +196,25 @@ class NavigationEnv:
             self.stage -= 1  # stay on the last goal: success holds while it holds
         return self._observation(), reward, success
 
+    def _render(self) -> np.ndarray:
+        if self.renderer is None:
+            return NO_IMAGE
+        self.renderer.update_scene(self.data, camera=self.camera)
+        # Renderer.render() makes its context current but does not re-select the offscreen
+        # buffer; after another simulator's renderer (robosuite's) drew in this process it
+        # would read back black frames.
+        self.renderer._gl_context.make_current()
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.renderer._mjr_context)
+        return self.renderer.render().copy()
+
+    def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
+        """The frame an observation at `state` showed. after_step: `state` ended a step, whose
+        frame was drawn right after mj_step, with the poses of before its last substep."""
+        state.restore(self.model, self.data, before_last_substep=after_step)
+        return self._render()
+
     def _observation(self) -> Observation:
-        image = NO_IMAGE
-        if self.renderer is not None:
-            self.renderer.update_scene(self.data, camera=self.camera)
-            # Renderer.render() makes its context current but does not re-select the offscreen
-            # buffer; after another simulator's renderer (robosuite's) drew in this process it
-            # would read back black frames.
-            self.renderer._gl_context.make_current()
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.renderer._mjr_context)
-            image = self.renderer.render().copy()
+        image = self._render()
         x, y, yaw = self.data.qpos[:3]
         proprio = np.zeros(PROPRIO_DIM, dtype=np.float32)
         proprio[:4] = [x, y, np.cos(yaw), np.sin(yaw)]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 
 ACTION_DIM = 7
@@ -41,3 +42,21 @@ class MujocoState:
             data.qpos.copy(), data.qvel.copy(), data.act.copy(),
             np.concatenate([data.mocap_pos.ravel(), data.mocap_quat.ravel()]), float(data.time),
         )
+
+    def restore(self, model, data, before_last_substep: bool = False) -> None:
+        """Write this state into a mujoco.MjData and recompute what rendering reads.
+
+        before_last_substep: place the bodies one physics substep back, where a frame drawn right
+        after mj_step shows them: mj_step computes the poses, then integrates qpos with the new
+        qvel (Euler and implicit integrators, all our models'), which qpos - dt * qvel undoes up to
+        rounding."""
+        data.qpos[:] = self.qpos
+        data.qvel[:] = self.qvel
+        data.act[:] = self.act
+        data.time = self.time
+        bodies = model.nmocap
+        data.mocap_pos[:] = self.mocap[: 3 * bodies].reshape(bodies, 3)
+        data.mocap_quat[:] = self.mocap[3 * bodies :].reshape(bodies, 4)
+        if before_last_substep:
+            mujoco.mj_integratePos(model, data.qpos, data.qvel, -model.opt.timestep)
+        mujoco.mj_forward(model, data)

@@ -73,6 +73,19 @@ def check_spec(spec: TaskSpec, origin: str) -> None:
             raise ConfigError(f"{origin}: {spec.name}.expert: {spec.env} is solved by {solver}, not {spec.expert}")
 
 
+def cameras(family: str, env_name: str) -> list[str]:
+    """The camera names (RenderConfig.camera) an environment can render from."""
+    if family == "robosuite":
+        from envs.robosuite_env import ROBOSUITE_SCENES
+
+        return list(ROBOSUITE_SCENES[env_name].cameras)
+    if family == "navigation":
+        from envs.navigation_env import CAMERAS
+    else:
+        from envs.metaworld_env import CAMERAS
+    return list(CAMERAS)
+
+
 def make_env(family: str, env_name: str, render: RenderConfig | None):
     if family == "robosuite":
         from envs.robosuite_env import RobosuiteEnv

@@ -121,6 +121,7 @@ class Scene:
     options: dict[str, Any] = field(default_factory=dict)  # robosuite.make arguments
     # Mesh objects keep their size: MuJoCo scales primitive geoms only.
     randomises: frozenset[str] = frozenset(ASPECTS)
+    cameras: tuple[str, ...] = ("agentview", "frontview", "birdview", "sideview")  # its arena's, by name
 
 
 _MESH_OBJECT = frozenset(ASPECTS) - {"size"}
@@ -128,7 +129,8 @@ _NUT_GEOMS = {nut: tuple(f"{nut}_g{i}_visual" for i in range(count)) for nut, co
 ROBOSUITE_SCENES: dict[str, Scene] = {
     "Lift": Scene({"target": ("cube_g0_vis",)}, "pick_place", _lift),
     "Stack": Scene({"pick": ("cubeA_g0_vis",), "place": ("cubeB_g0_vis",)}, "pick_place", _stack),
-    **{f"PickPlace{obj}": Scene({}, "pick_place", _pick_place(obj), randomises=_MESH_OBJECT)
+    **{f"PickPlace{obj}": Scene({}, "pick_place", _pick_place(obj), randomises=_MESH_OBJECT,
+                                cameras=("agentview", "frontview", "birdview"))  # the bins arena has no sideview
        for obj in ("Milk", "Bread", "Cereal", "Can")},
     "NutAssemblySquare": Scene({"nut": _NUT_GEOMS["SquareNut"]}, "pick_place", _nuts),
     "NutAssemblyRound": Scene({"nut": _NUT_GEOMS["RoundNut"]}, "pick_place", _nuts),
@@ -140,6 +142,26 @@ ROBOSUITE_SCENES: dict[str, Scene] = {
 MODEL_SEED = 0
 FINGERS = ("gripper0_right_leftfinger", "gripper0_right_rightfinger")
 PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+
+
+def finger_bodies(env) -> list[int]:
+    """The body ids of a robosuite env's two fingers."""
+    model = env.sim.model._model
+    return [model.body(name).id for name in FINGERS]
+
+
+def observe(env, scene: Scene, raw: dict[str, np.ndarray], camera: str | None, fingers: list[int]) -> Observation:
+    """Our Observation of robosuite's raw observation: `camera`'s image upright (none if None),
+    proprio, and what the scene's expert reads. Works on any robosuite env of the scene, ours or
+    one made by hand (bench rollout)."""
+    image = NO_IMAGE if camera is None else raw[f"{camera}_image"][::-1].copy()
+    proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
+    privileged = scene.privileged(env, raw)
+    privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
+    privileged["gripper_quat"] = np.asarray(raw["robot0_eef_quat"], dtype=np.float64)  # x, y, z, w
+    left, right = env.sim.data._data.xpos[fingers]  # the fingers open along this line
+    privileged["finger_axis"] = right - left
+    return Observation(image, proprio, privileged)
 
 
 class RobosuiteEnv:
@@ -176,7 +198,7 @@ class RobosuiteEnv:
         if render is not None:
             self._apply_render_settings()
         model = self.env.sim.model._model
-        self.fingers = [model.body(name).id for name in FINGERS]
+        self.fingers = finger_bodies(self.env)
         self.randomiser = SceneRandomiser(
             model, render.camera if render else None,
             task_geoms=[model.geom(g).id for geoms in self.scene.colourable.values() for g in geoms], object_bodies=free_bodies(model),
@@ -210,26 +232,45 @@ class RobosuiteEnv:
         np.random.seed(seed)
         self.randomiser.apply(randomisation)
         self._apply_colours(task, randomisation)
+        self._make_context_current()
         raw = self.env.reset()
         if randomisation is not None and randomisation.size is not None:
             # robosuite places objects at their nominal height; rest resized ones on the table
             self.randomiser.rest_on_support(self.env.sim.data._data, randomisation)
-            raw = self.env._get_observations(force_update=True)
+            raw = self._observe_again()
         return self._observation(raw)
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:
+        self._make_context_current()
         raw, reward, _, _ = self.env.step(np.clip(action, -1.0, 1.0))
         return self._observation(raw), float(reward), bool(self.env._check_success())
 
     def _observation(self, raw: dict[str, np.ndarray]) -> Observation:
-        image = NO_IMAGE if self.render_config is None else raw[f"{self.render_config.camera}_image"][::-1].copy()
-        proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
-        privileged = self.scene.privileged(self.env, raw)
-        privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
-        privileged["gripper_quat"] = np.asarray(raw["robot0_eef_quat"], dtype=np.float64)  # x, y, z, w
-        left, right = self.env.sim.data._data.xpos[self.fingers]  # the fingers open along this line
-        privileged["finger_axis"] = right - left
-        return Observation(image, proprio, privileged)
+        camera = None if self.render_config is None else self.render_config.camera
+        return observe(self.env, self.scene, raw, camera, self.fingers)
+
+    def _observe_again(self) -> dict[str, np.ndarray]:
+        """robosuite's observations of the state as it is now, with its observable clocks restarted
+        first as its reset does: a forced read advances them a substep, and their phase decides at
+        which substep of every later step the camera is sampled."""
+        for observable in self.env._observables.values():
+            observable.reset()
+        return self.env._get_observations(force_update=True)
+
+    def _make_context_current(self) -> None:
+        """robosuite renders into whichever GL context is current: after another environment's
+        renderer was made or used in this process, its frames would land there (wrong or black)."""
+        if self.render_config is not None:
+            context = self.env.sim._render_context_offscreen
+            context.gl_ctx.make_current()
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context.con)
+
+    def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
+        """The frame an observation at `state` showed, through robosuite's camera observable.
+        after_step: `state` ended a step, whose frame robosuite sampled at its last substep."""
+        self._make_context_current()
+        state.restore(self.env.sim.model._model, self.env.sim.data._data, before_last_substep=after_step)
+        return self._observation(self._observe_again()).image
 
     def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
         """The MuJoCo model and data underneath, and the mj_steps one action takes (benchmarks)."""
@@ -244,4 +285,5 @@ class RobosuiteEnv:
         return MujocoState.of(self.env.sim.data._data)
 
     def close(self) -> None:
+        self._make_context_current()  # robosuite frees its GL objects in the current context
         self.env.close()

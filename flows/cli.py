@@ -182,6 +182,18 @@ def cmd_bench_warehouse(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_rollout(args: argparse.Namespace) -> int:
+    from bench.rollout import QUICK, RolloutSizes, bench_rollout, markdown
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    bench = bench_rollout(QUICK if args.quick else RolloutSizes(), args.scratch)
+    table = markdown(bench, args.command_line)
+    print(bench.model_dump_json(indent=1) if args.json else table)
+    if args.out:
+        write_text_atomically(args.out, table)
+    return 0
+
+
 def cmd_sql(args: argparse.Namespace) -> int:
     import duckdb
 
@@ -214,6 +226,16 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
                              repo_id=args.repo_id, progress=report)
     print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
           f"{summary.bytes / 1e6:.1f} MB: LeRobotDataset v3.0 at {summary.out_dir}")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from stages.replay import replay
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    result = replay(Workspace.at(args.workspace), args.episode_id, args.camera, args.size, args.out, args.fps)
+    print(f"{result.frames} frames of {args.episode_id} ({result.render.camera}, {result.render.image_size} px, "
+          f"one per step) written to {result.path}")
     return 0
 
 
@@ -284,6 +306,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench_wh.add_argument("--out", type=Path, help="also write the table as markdown here")
     bench_wh.set_defaults(handler=cmd_bench_warehouse)
 
+    bench_ro = bench_commands.add_parser("rollout", help="explore stage vs plain robosuite loops, steps/s")
+    bench_ro.add_argument("--json", action="store_true", help="print the rows and ratios as JSON")
+    bench_ro.add_argument("--quick", action="store_true", help="a few short episodes (seconds, for a smoke check)")
+    bench_ro.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
+    bench_ro.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_ro.set_defaults(handler=cmd_bench_rollout)
+
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")
     sql.add_argument("--format", choices=("table", "csv", "json"), default="table")
@@ -301,6 +330,15 @@ def build_parser() -> argparse.ArgumentParser:
     lerobot.add_argument("--repo-id", default="sim2act/export")
     lerobot.add_argument("--workspace", default=_default_workspace())
     lerobot.set_defaults(handler=cmd_export_lerobot)
+
+    replay = commands.add_parser("replay", help="re-render a stored episode from its MuJoCo states into an MP4")
+    replay.add_argument("episode_id")
+    replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
+    replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
+    replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
+    replay.add_argument("--fps", type=int, default=20, help="frames per second (one frame per step)")
+    replay.add_argument("--workspace", default=_default_workspace())
+    replay.set_defaults(handler=cmd_replay)
 
     warehouse = commands.add_parser("warehouse", help="warehouse upkeep")
     warehouse_commands = warehouse.add_subparsers(dest="warehouse_command", required=True)
@@ -324,11 +362,12 @@ def main(argv: list[str] | None = None) -> int:
         print("sim2act: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     except Exception as exc:  # a known failure mode gets one line, not a traceback
+        from stages.replay import ReplayError
         from warehouse.catalog import CatalogMissing, CatalogVersionError
         from warehouse.export_lerobot import ExportError
         from warehouse.sql import ReadOnlyViolation
 
-        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError)):
+        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError, ReplayError)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

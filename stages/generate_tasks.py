@@ -160,9 +160,23 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
         ),
         workspace.shard_path("instructions", 0, key),
     )
-    rows = [
+    catalog.register_unit(
+        unit_key=key, stage=STAGE, campaign=config.name, iteration=0,
+        summary={"tasks": len(tasks), "instructions": len(pairs),
+                 **({"proposals": proposals.model_dump(exclude={"tasks"})} if proposals else {})},
+        wall_s=time.monotonic() - started, shards=[shard], rows={"tasks": task_rows(tasks, config.name, key)},
+    )
+    log.info("generate_tasks: registered %d tasks: %s", len(tasks), ", ".join(ids))
+    return TasksResult(unit_key=key, task_ids=ids, instructions=len(pairs), skipped=False,
+                       proposals_valid=proposals.valid if proposals else 0,
+                       proposals_rejected=proposals.rejected if proposals else {})
+
+
+def task_rows(tasks: list[TaskRecord], campaign: str, unit_key: str) -> list[dict]:
+    """The `tasks` table rows of a tasks unit."""
+    return [
         {
-            "campaign": config.name,
+            "campaign": campaign,
             "task_id": t.task_id,
             "spec": t.spec,
             "family": t.family,
@@ -173,36 +187,36 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
             "object_colours": json.dumps(t.object_colours),
             "split": t.split,
             "horizon": t.horizon,
-            "unit_key": key,
+            "unit_key": unit_key,
         }
         for t in tasks
     ]
-    catalog.register_unit(
-        unit_key=key, stage=STAGE, campaign=config.name, iteration=0,
-        summary={"tasks": len(tasks), "instructions": len(pairs),
-                 **({"proposals": proposals.model_dump(exclude={"tasks"})} if proposals else {})},
-        wall_s=time.monotonic() - started, shards=[shard], rows={"tasks": rows},
+
+
+_TASK_COLUMNS = "task_id, spec, family, env_name, object_colours, instructions, split, horizon, unseen_instructions"
+
+
+def _task_record(r: tuple) -> TaskRecord:
+    return TaskRecord(
+        task_id=r[0], spec=r[1], family=r[2], env_name=r[3], object_colours=json.loads(r[4]),
+        instructions=list(r[5]), split=r[6], horizon=r[7], unseen_instructions=list(r[8]),
     )
-    log.info("generate_tasks: registered %d tasks: %s", len(tasks), ", ".join(ids))
-    return TasksResult(unit_key=key, task_ids=ids, instructions=len(pairs), skipped=False,
-                       proposals_valid=proposals.valid if proposals else 0,
-                       proposals_rejected=proposals.rejected if proposals else {})
 
 
 def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:
     rows = Catalog(workspace.catalog).query(
-        "SELECT task_id, spec, family, env_name, object_colours, instructions, split, horizon, unseen_instructions "
-        "FROM tasks "
-        "WHERE unit_key = ? ORDER BY task_id",
-        [task_unit_key],
+        f"SELECT {_TASK_COLUMNS} FROM tasks WHERE unit_key = ? ORDER BY task_id", [task_unit_key]
     )
-    return [
-        TaskRecord(
-            task_id=r[0], spec=r[1], family=r[2], env_name=r[3], object_colours=json.loads(r[4]),
-            instructions=list(r[5]), split=r[6], horizon=r[7], unseen_instructions=list(r[8]),
-        )
-        for r in rows
-    ]
+    return [_task_record(r) for r in rows]
+
+
+def find_task(catalog: Catalog, campaign: str, task_id: str) -> TaskRecord | None:
+    """A campaign's task by id (the lowest unit key's, should several tasks units name it), or None."""
+    rows = catalog.query(
+        f"SELECT {_TASK_COLUMNS} FROM tasks WHERE campaign = ? AND task_id = ? ORDER BY unit_key LIMIT 1",
+        [campaign, task_id],
+    )
+    return _task_record(rows[0]) if rows else None
 
 
 def load_embeddings(workspace: Workspace, task_unit_key: str, encoder: str) -> dict[str, np.ndarray]:

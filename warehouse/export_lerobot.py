@@ -30,6 +30,7 @@ import pyarrow.parquet as pq
 
 from schemas.frames import decode_frame
 from warehouse.catalog import Catalog
+from warehouse.video import VIDEO_CODEC, video_writer
 
 CODEBASE_VERSION = "v3.0"
 CAMERA = "observation.images.image"  # LeRobot's name for a single robosuite/LIBERO agent-view camera
@@ -262,7 +263,7 @@ class _Videos:
         if self.encoder is None:
             self.path = self.root / VIDEO_PATH.format(video_key=CAMERA, chunk_index=self.chunk, file_index=self.file)
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.encoder = _video_writer(self.path, self.fps)
+            self.encoder = video_writer(self.path, self.fps)
         self.encoder.append_data(frame)
         self.frames += 1
 
@@ -271,20 +272,6 @@ class _Videos:
             self.encoder.close()
             self.encoder = None
             self.frames = 0  # the next file's timestamps start at 0
-
-
-VIDEO_CODEC = "h264"  # through imageio-ffmpeg's ffmpeg (libx264): a codec every LeRobot tool takes
-
-
-def _video_writer(path: Path, fps: int):
-    import imageio.v2 as iio
-
-    # g=2 as LeRobot's encoder: a random frame decodes from a keyframe at most one back.
-    # macro_block_size=1: imageio would otherwise resize 84 px to 96.
-    return iio.get_writer(
-        path, format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p", quality=None,
-        macro_block_size=1, ffmpeg_log_level="error", ffmpeg_params=["-g", "2", "-crf", "23"],
-    )
 
 
 def _stats(x: np.ndarray, count: int) -> dict[str, np.ndarray]:

@@ -101,3 +101,21 @@ def test_frames_stay_real_when_robosuite_renders_in_the_same_worker():
     finally:
         robosuite.close()
         navigation.close()
+
+
+def test_robosuite_frames_stay_real_when_other_envs_render_or_close_in_the_same_worker():
+    """robosuite draws into whichever GL context is current, and frees its GL objects in it on close:
+    a navigation env made after it used to get its frames, a closed robosuite env to delete its objects."""
+    from envs.robosuite_env import RobosuiteEnv
+
+    [lift] = generate_tasks(TasksConfig(specs=["lift"], include=["lift-red"]), seed=0)
+    robosuite = RobosuiteEnv("Lift", RenderConfig())
+    try:
+        first = robosuite.reset(lift, seed=3).image
+        navigation = NavigationEnv("GoToRoom", RenderConfig())
+        navigation.reset(_task("nav-room-red"), seed=3)
+        RobosuiteEnv("Lift", RenderConfig()).close()
+        assert first.mean() > 20 and np.array_equal(robosuite.reset(lift, seed=3).image, first)
+        navigation.close()
+    finally:
+        robosuite.close()

@@ -1,0 +1,36 @@
+"""`sim2act bench rollout` runs the plain robosuite loops and the explore stage side by side."""
+
+import json
+
+import pytest
+
+from flows.cli import main
+
+
+def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, capsys):
+    out = tmp_path / "docs" / "bench-rollout.md"
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    assert main(["bench", "rollout", "--quick", "--json", "--scratch", str(scratch), "--out", str(out)]) == 0
+    bench = json.loads(capsys.readouterr().out)
+    assert bench["env"] == "Lift" and bench["image_size"] == 84 and bench["policy"] == "scripted expert"
+    rows = {r["case"]: r for r in bench["rows"]}
+    assert list(rows) == ["a", "b", "c1", "c2"]
+    assert [rows[c]["workers"] for c in rows] == [1, 1, 1, 2]
+    for row in rows.values():
+        assert row["episodes"] == bench["episodes"] == 2  # the same episodes in every case
+        assert 0 < row["steps"] <= bench["episodes"] * bench["horizon"]
+        assert row["wall_s"] > 0 and row["cpu_s"] > 0 and row["other_load"] >= 0
+        assert row["steps_per_s"] == pytest.approx(row["steps"] / row["wall_s"])
+        assert row["steps_per_s_per_core"] == pytest.approx(row["steps_per_s"] / row["workers"])
+    ratios = {r["name"]: r for r in bench["ratios"]}
+    versus_plain = ratios["(c, 1 worker) / (a), per core"]
+    assert versus_plain["value"] == pytest.approx(rows["c1"]["steps_per_s"] / rows["a"]["steps_per_s"])
+    assert versus_plain["target"] == 2.0 and versus_plain["met"] == (versus_plain["value"] >= 2.0)
+    scaling = ratios["(c, 2 workers) / (c, 1 worker)"]
+    assert scaling["value"] == pytest.approx(rows["c2"]["steps_per_s"] / rows["c1"]["steps_per_s"])
+    assert scaling["target"] == 1.8 and scaling["met"] == (scaling["value"] >= 1.8)
+    table = out.read_text()
+    assert "`sim2act bench rollout --quick --json" in table
+    assert all(f"\n| {case} | " in table for case in rows) and "(c, 2 workers) / (c, 1 worker)" in table
+    assert list(scratch.iterdir()) == []  # the throwaway workspaces are gone
