@@ -114,10 +114,16 @@ class RandomiseConfig(_Strict):
         return self
 
 
+NoiseLevel = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
 class ExploreConfig(_Strict):
     episodes_per_task: PositiveInt = 8
     episodes_per_shard: PositiveInt = 4
-    expert_noise: float = Field(default=0.1, ge=0.0, le=1.0, description="std of Gaussian action noise")
+    expert_noise: NoiseLevel | list[NoiseLevel] = Field(
+        default=0.1, description="std of the expert's Gaussian action noise; a list is a schedule of levels cycled "
+        "over each task's episodes (clean and noisy demonstrations side by side)"
+    )
     policy_fraction: float = Field(
         default=0.5, ge=0.0, le=1.0, description="share of episodes the redeployed policy explores (iteration >= 1)"
     )
@@ -129,6 +135,17 @@ class ExploreConfig(_Strict):
         default=True, description="record the noiseless expert action at every state (DAgger labels)"
     )
     workers: PositiveInt = Field(default=2, description="local worker processes (one core each)")
+
+    @model_validator(mode="after")
+    def _schedule_not_empty(self) -> ExploreConfig:
+        if self.expert_noise == []:
+            raise ValueError("expert_noise: the schedule is empty; give one level or several")
+        return self
+
+    def noise_of(self, episode: int) -> float:
+        """The expert's noise level for a task's `episode`-th episode."""
+        levels = self.expert_noise if isinstance(self.expert_noise, list) else [self.expert_noise]
+        return levels[episode % len(levels)]
     dask_address: str | None = Field(
         default=None, pattern=r"^(tcp|tls|inproc|ucx)://", description="run shards on this Dask scheduler instead"
     )

@@ -66,7 +66,8 @@ EPISODES = pa.schema(
         ("error", pa.string()),  # null, or why the environment failed mid-episode
         ("randomisation", RANDOMISATION),
         ("render", RENDER),
-        # per-episode counters of a remote explorer (VLM: calls, retries, timeouts, invalid answers)
+        # what the explorer reports about the episode: the expert its noise level, a VLM its calls,
+        # retries, timeouts, invalid answers
         _json("explorer_stats"),
     ]
 )

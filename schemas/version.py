@@ -5,8 +5,8 @@
 3: every catalog table declared as an Arrow schema; steps.act and steps.mocap (MuJoCo state for
    replay); filter_decisions.detail; the quarantine table.
 4: episodes.render (the visual settings each episode was rendered with, for replay and
-   evaluation); episodes.explorer_stats (a remote explorer's calls, retries, timeouts, invalid
-   answers); steps.expert_action (DAgger labels: the expert's noiseless action at each state).
+   evaluation); episodes.explorer_stats (the expert's noise level; a VLM's calls, retries,
+   timeouts, invalid answers); steps.expert_action (DAgger labels: the expert's noiseless action at each state).
 """
 
 SCHEMA_VERSION = 4

@@ -47,6 +47,7 @@ class EpisodePlan(BaseModel):
     seed: int
     instruction: str
     explorer: str
+    expert_noise: float  # the expert's, when it explores this episode
 
 
 class ExploreUnit(BaseModel):
@@ -58,7 +59,6 @@ class ExploreUnit(BaseModel):
     shard: int
     render: RenderConfig
     randomise: RandomiseConfig
-    expert_noise: float
     expert_labels: bool
     episodes: list[EpisodePlan]
     policy: PolicyExplorer | None
@@ -116,13 +116,13 @@ def plan_explore(
                 instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
                 episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
                 episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction,
-                                            explorer=explorer_of[index]))
+                                            explorer=explorer_of[index], expert_noise=explore.noise_of(index)))
             said = {e.instruction for e in episodes if policy and e.explorer == policy.name}
             units.append(
                 ExploreUnit(
                     unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
                     task=task, shard=shard, render=config.render, randomise=config.randomise,
-                    expert_noise=explore.expert_noise, expert_labels=explore.expert_labels, episodes=episodes,
+                    expert_labels=explore.expert_labels, episodes=episodes,
                     policy=policy, vlm=explore.vlm, embeddings={text: embeddings[text].tolist() for text in said},
                 )
             )
@@ -198,7 +198,9 @@ def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
     from envs.registry import make_expert
 
     if plan.explorer == EXPERT:
-        return Explorer(act=make_expert(unit.task, unit.expert_noise, np.random.default_rng(plan.seed)))
+        noise = plan.expert_noise
+        return Explorer(act=make_expert(unit.task, noise, np.random.default_rng(plan.seed)),
+                        stats=lambda: {"expert_noise": noise})
     if plan.explorer.startswith(f"{VLM}:"):
         from policies.vlm_explorer import VlmExplorer
 

@@ -65,7 +65,7 @@ def test_a_shard_records_vlm_counters_and_the_experts_labels_everywhere(tmp_path
         assert all(len(s["expert_action"]) == 1 for s in own)  # the noiseless expert, on every state
         assert episode["render"] == config.render.model_dump()
         if episode["explorer"] == EXPERT:
-            assert episode["explorer_stats"] is None
+            assert json.loads(episode["explorer_stats"]) == {"expert_noise": config.explore.expert_noise}
         else:
             stats = json.loads(episode["explorer_stats"])
             assert stats["calls"] == stats["steps"] == len(own) and stats["invalid_answers"] == 0
@@ -100,3 +100,14 @@ def test_a_failure_mid_episode_fails_that_episode_not_the_shard(tmp_path, monkey
     failed = {e["episode_id"] for e in episodes if e["error"]}
     assert all(e["num_steps"] == 0 for e in episodes if e["error"])
     assert steps and not any(s["episode_id"] in failed for s in steps)
+
+
+def test_a_noise_schedule_cycles_over_each_tasks_episodes(tmp_path):
+    units = _plan(_config(expert_noise=[0.0, 0.3]), tmp_path)
+    assert [e.expert_noise for e in units[0].episodes] == [0.0, 0.3, 0.0, 0.3]
+    episodes, steps = _shards(units[0])
+    assert [json.loads(e["explorer_stats"])["expert_noise"] for e in episodes] == [0.0, 0.3, 0.0, 0.3]
+    clean = [s for s in steps if s["episode_id"] == episodes[0]["episode_id"]]
+    assert all(s["action"] == s["expert_action"] for s in clean)  # no noise: the action is the label
+    with pytest.raises(ValueError, match="expert_noise: the schedule is empty"):
+        ExploreConfig(expert_noise=[])

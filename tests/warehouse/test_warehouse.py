@@ -137,7 +137,9 @@ def test_select_rows_and_stream_every_selected_step_once_across_workers(filled):
     embeddings = {f"do {t}": np.full(4, i, np.float32) for i, t in enumerate(
         r[0] for r in catalog.query("SELECT DISTINCT task_id FROM steps"))}
     stream = StepStream(ranges, embeddings, shuffle_buffer=8, seed=1)
-    loader = DataLoader(stream, batch_size=None, num_workers=2)
+    # spawned, as training inside a flow must: a child forked after Prefect ran in this process
+    # (another test's flow) fails at exit on Prefect's inherited at-exit hooks (exit code 1)
+    loader = DataLoader(stream, batch_size=None, num_workers=2, multiprocessing_context="spawn")
     samples = list(loader)
     assert len(samples) == expected
     assert all(s.image.shape == (84, 84, 3) and s.image.dtype == np.uint8 for s in samples)
