@@ -142,15 +142,26 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
     assert int(client.get_model_version_by_alias("sim2act-smoke", "champion").version) == 2
 
 
-def test_prefect_recorded_one_flow_run_per_iteration(finished_campaign, prefect_api):
+def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(finished_campaign, prefect_api):
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterName
+    from prefect.client.schemas.filters import (
+        ArtifactFilter, ArtifactFilterFlowRunId, ArtifactFilterType, FlowRunFilter, FlowRunFilterId, FlowRunFilterName,
+    )
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
+    names = ["smoke", "smoke-iteration-0", "smoke-iteration-1", "smoke-explore-0", "smoke-explore-1"]
     with temporary_settings({PREFECT_API_URL: prefect_api}), get_client(sync_client=True) as client:
-        names = ["smoke", "smoke-iteration-0", "smoke-iteration-1"]
         runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=names)))
+        explores = [run.id for run in runs if "explore" in run.name]
+        shards = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=explores)))
+        progress = client.read_artifacts(artifact_filter=ArtifactFilter(
+            type=ArtifactFilterType(any_=["progress"]), flow_run_id=ArtifactFilterFlowRunId(any_=explores)))
     assert {run.name for run in runs if run.state.is_completed()} == set(names)
+    # one task run per shard (3 tasks x 2 shards per iteration), and the progress artifact at 100%
+    assert sorted(t.name for t in shards) == sorted(
+        [f"lift-{c}-shard-{s}" for c in ("blue", "green", "red") for s in (0, 1)] * 2)
+    assert all(t.state.is_completed() for t in shards)
+    assert [a.data for a in progress] == [100.0, 100.0]
 
 
 def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api):
