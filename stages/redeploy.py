@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 
 from mlflow import MlflowClient
 from pydantic import BaseModel

@@ -13,9 +13,8 @@ import pyarrow as pa
 import pytest
 from torch.utils.data import DataLoader
 
-from schemas.tables import STEPS
 from schemas.workspace import Workspace
-from tests.warehouse.filled import CONFIG, fill, register_explore
+from tests.warehouse.filled import fill
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import SchemaMismatch, write_shard
 from warehouse.sql import run_sql
