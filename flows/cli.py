@@ -336,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
     replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
     replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
-    replay.add_argument("--fps", type=int, default=20, help="frames per second (one frame per step)")
+    replay.add_argument("--fps", type=int, default=None, help="frames per second (one frame per step; default 20)")
     replay.add_argument("--workspace", default=_default_workspace())
     replay.set_defaults(handler=cmd_replay)
 

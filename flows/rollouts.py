@@ -10,7 +10,7 @@ the shards of a worker that died. Either way the flow registers each shard as it
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+import uuid
 
 from prefect import task
 from prefect.cache_policies import NO_CACHE
@@ -19,25 +19,48 @@ from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
 from schemas.config import ExploreConfig
 from stages.explore import Completed, Execute, ExploreUnit, run_explore_unit, unit_label
-from stages.pool import RETRIES, WorkerPool
+from stages.pool import RETRIES, WorkerLost, WorkerPool
 from warehouse.shard_writer import ShardFile
 
-# The worker processes of the explore flow running in this process (None on a Dask worker).
-_local_workers: WorkerPool | None = None
+# The local worker pools of the explore flows running in this process, by id: a task run finds
+# its flow's pool by the id it is given (a Dask worker process has none).
+_local_pools: dict[str, WorkerPool] = {}
+
+
+def _worker_died(task, task_run, state) -> bool:
+    """Retry a shard only when its worker process died; a shard that raises fails the stage."""
+    try:
+        state.result()
+    except WorkerLost:
+        return True
+    except Exception:
+        return False
+    return False
 
 
 @task(
     name="explore-shard", task_run_name="{unit.task.task_id}-shard-{unit.shard}", retries=RETRIES,
-    retry_delay_seconds=1, cache_policy=NO_CACHE, persist_result=False,
+    retry_delay_seconds=1, retry_condition_fn=_worker_died, cache_policy=NO_CACHE, persist_result=False,
 )
-def explore_shard(unit: ExploreUnit, on_local_workers: bool) -> tuple[list[ShardFile], float]:
-    """(shard files, seconds the rollouts took) for one unit."""
-    if on_local_workers:
-        if _local_workers is None:
-            raise RuntimeError("explore-shard was asked for local workers outside the explore flow")
-        return _local_workers.run(run_explore_unit, unit, unit_label(unit))
+def explore_shard(unit: ExploreUnit, local_pool: str | None) -> tuple[list[ShardFile], float]:
+    """(shard files, seconds the rollouts took) for one unit: on the flow's local pool, or here
+    (a Dask worker process)."""
+    if local_pool is not None:
+        return _local_pools[local_pool].run(run_explore_unit, unit, unit_label(unit))
+    _check_one_thread_per_dask_worker()
     started = time.monotonic()
     return run_explore_unit(unit), time.monotonic() - started
+
+
+def _check_one_thread_per_dask_worker() -> None:
+    """A worker process keeps one environment (and GL context) per scene: two threads would step
+    and draw the same one."""
+    from distributed import get_worker
+
+    worker = get_worker()
+    if worker.state.nthreads != 1:
+        raise RuntimeError(f"Dask worker {worker.address} runs {worker.state.nthreads} threads; rollouts need "
+                           "one per process: start workers with `dask worker ... --nthreads 1`")
 
 
 def rollout_task_runner(explore: ExploreConfig) -> TaskRunner:
@@ -53,23 +76,18 @@ def as_prefect_tasks(explore: ExploreConfig) -> Execute:
     """Submit every unit as an explore-shard task run (inside a flow using rollout_task_runner)."""
 
     def execute(units: list[ExploreUnit]) -> Completed:
-        global _local_workers
-        local = explore.dask_address is None
-        if local and units:
-            _local_workers = WorkerPool(min(explore.workers, len(units)))
+        pool_id = None
+        if explore.dask_address is None and units:
+            pool_id = uuid.uuid4().hex
+            _local_pools[pool_id] = WorkerPool(min(explore.workers, len(units)))
         try:
-            yield from _completed(units, local)
+            futures = [explore_shard.submit(unit, pool_id) for unit in units]
+            by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
+            for future in as_completed(futures):
+                shards, seconds = future.result()
+                yield by_run[future.task_run_id], shards, seconds
         finally:
-            if _local_workers is not None:
-                _local_workers.close()
-                _local_workers = None
+            if pool_id is not None:
+                _local_pools.pop(pool_id).close()
 
     return execute
-
-
-def _completed(units: list[ExploreUnit], local: bool) -> Iterator[tuple[ExploreUnit, list[ShardFile], float]]:
-    futures = [explore_shard.submit(unit, local) for unit in units]
-    by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
-    for future in as_completed(futures):
-        shards, seconds = future.result()
-        yield by_run[future.task_run_id], shards, seconds

@@ -8,6 +8,7 @@ caller can count timeouts apart from server errors, refused connections and malf
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
 import time
@@ -46,11 +47,11 @@ def _classify(exc: Exception) -> tuple[Failure, str]:
 
 def complete(
     config: ChatEndpointConfig, messages: list[dict[str, Any]], *, who: str = "chat endpoint",
-    max_tokens: int | None = None, timeout_s: float | None = None,
+    max_tokens: int | None = None,
 ) -> ChatReply:
     """One JSON-mode chat completion; retries timeouts, refused connections and 5xx (not 4xx: the
     request itself is wrong, nor malformed replies: the server does not speak the protocol).
-    `who` names the caller in errors; `timeout_s` overrides the config's, per request."""
+    `who` names the caller in errors."""
     payload: dict[str, Any] = {"model": config.model, "messages": messages, "temperature": config.temperature,
                                "response_format": {"type": "json_object"}}
     if max_tokens is not None:
@@ -65,9 +66,9 @@ def complete(
     for attempt in range(config.retries + 1):
         request = urllib.request.Request(url, data=body, headers=headers, method="POST")
         try:
-            with urllib.request.urlopen(request, timeout=timeout_s or config.timeout_s) as response:
+            with urllib.request.urlopen(request, timeout=config.timeout_s) as response:
                 raw = response.read()
-        except (urllib.error.URLError, TimeoutError, ConnectionError) as exc:
+        except (urllib.error.URLError, TimeoutError, ConnectionError, http.client.HTTPException) as exc:
             kind, last_error = _classify(exc)
             failures.append(kind)
             if isinstance(exc, urllib.error.HTTPError) and exc.code < 500:
@@ -75,7 +76,7 @@ def complete(
         else:
             try:
                 content = json.loads(raw)["choices"][0]["message"]["content"]
-            except (KeyError, IndexError, TypeError, json.JSONDecodeError):
+            except (KeyError, IndexError, TypeError, ValueError):  # JSONDecodeError, UnicodeDecodeError
                 content = None
             if not isinstance(content, str):
                 raise ChatUnavailable(f"{who} at {url} answered, but not in the chat-completions format",

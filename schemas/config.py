@@ -122,19 +122,22 @@ class ExploreConfig(_Strict):
     episodes_per_shard: PositiveInt = 4
     expert_noise: NoiseLevel | list[NoiseLevel] = Field(
         default=0.1, description="std of the expert's Gaussian action noise; a list is a schedule of levels cycled "
-        "over each task's episodes (clean and noisy demonstrations side by side)"
+        "over each task's expert episodes (clean and noisy demonstrations side by side)"
     )
     policy_fraction: float = Field(
         default=0.5, ge=0.0, le=1.0, description="share of episodes the redeployed policy explores (iteration >= 1)"
     )
     vlm: VlmExplorerConfig | None = Field(default=None, description="a multimodal chat endpoint that explores too")
     vlm_fraction: float = Field(
-        default=1.0, ge=0.0, le=1.0, description="share of the episodes left to the expert that the VLM explores"
+        default=0.5, ge=0.0, le=1.0, description="share of the episodes the policy leaves that the VLM explores"
     )
     expert_labels: bool = Field(
         default=True, description="record the noiseless expert action at every state (DAgger labels)"
     )
     workers: PositiveInt = Field(default=2, description="local worker processes (one core each)")
+    dask_address: str | None = Field(
+        default=None, pattern=r"^(tcp|tls|inproc|ucx)://", description="run shards on this Dask scheduler instead"
+    )
 
     @model_validator(mode="after")
     def _schedule_not_empty(self) -> ExploreConfig:
@@ -142,13 +145,10 @@ class ExploreConfig(_Strict):
             raise ValueError("expert_noise: the schedule is empty; give one level or several")
         return self
 
-    def noise_of(self, episode: int) -> float:
-        """The expert's noise level for a task's `episode`-th episode."""
+    def noise_of(self, expert_episode: int) -> float:
+        """The noise level of a task's `expert_episode`-th expert episode."""
         levels = self.expert_noise if isinstance(self.expert_noise, list) else [self.expert_noise]
-        return levels[episode % len(levels)]
-    dask_address: str | None = Field(
-        default=None, pattern=r"^(tcp|tls|inproc|ucx)://", description="run shards on this Dask scheduler instead"
-    )
+        return levels[expert_episode % len(levels)]
 
 
 class FilterConfig(_Strict):

@@ -37,7 +37,7 @@ RANDOMISATION = pa.struct(
 )
 
 # The visual settings an episode was rendered with (schemas.config.RenderConfig): replay and
-# evaluation render alike from them; null when the explorer used no camera.
+# evaluation render alike from them.
 RENDER = pa.struct(
     [
         ("camera", pa.string()),

@@ -123,17 +123,19 @@ def run_evaluate(
     log.info("evaluate it%d: %d tasks (%d already evaluated), %d episodes each",
              iteration, len(units), len(done), config.evaluate.episodes_per_task)
     progress = Progress(log, f"evaluate it{iteration}", len(todo), "tasks", "episodes")
-    for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):
-        row = {
-            "unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "model_key": model_key,
-            **result.model_dump(), "success_rate": result.success_rate,
-        }
-        catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                              summary=result.model_dump(), wall_s=seconds, rows={"evaluations": [row]})
-        progress.advance(1, result.episodes)
-        log.info("evaluate it%d: %s (%s, %r) success %d/%d", iteration, result.task_id, result.split,
-                 result.instruction, result.successes, result.episodes)
-    progress.close()
+    try:
+        for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):
+            row = {
+                "unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "model_key": model_key,
+                **result.model_dump(), "success_rate": result.success_rate,
+            }
+            catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
+                                  summary=result.model_dump(), wall_s=seconds, rows={"evaluations": [row]})
+            progress.advance(1, result.episodes)
+            log.info("evaluate it%d: %s (%s, %r) success %d/%d", iteration, result.task_id, result.split,
+                     result.instruction, result.successes, result.episodes)
+    finally:
+        progress.close()
     rows = catalog.query(
         "SELECT task_id, split, instruction, episodes, successes, mean_return, mean_length, media_path "
         "FROM evaluations WHERE list_contains(?, unit_key) ORDER BY task_id, split",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import atexit
 import json
 import logging
+from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ShardFile, write_shard
 
-STAGE, VERSION = "explore", 2
+STAGE, VERSION = "explore", 3
 EXPERT, VLM = "expert", "vlm"
 log = logging.getLogger("sim2act.stages.explore")
 
@@ -47,7 +48,7 @@ class EpisodePlan(BaseModel):
     seed: int
     instruction: str
     explorer: str
-    expert_noise: float  # the expert's, when it explores this episode
+    expert_noise: float | None  # the expert's noise level, when the expert explores this episode
 
 
 class ExploreUnit(BaseModel):
@@ -108,6 +109,8 @@ def plan_explore(
     units = []
     for task in (t for t in tasks if t.split == "seen"):
         explorer_of = _explorers(config, iteration, task, policy)
+        # the noise schedule runs over the expert's own episodes: each level gets its share
+        expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
         for shard, first in enumerate(range(0, explore.episodes_per_task, explore.episodes_per_shard)):
             key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard)])
             episodes = []
@@ -116,7 +119,8 @@ def plan_explore(
                 instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
                 episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
                 episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction,
-                                            explorer=explorer_of[index], expert_noise=explore.noise_of(index)))
+                                            explorer=explorer_of[index],
+                                            expert_noise=explore.noise_of(expert_rank[index]) if index in expert_rank else None))
             said = {e.instruction for e in episodes if policy and e.explorer == policy.name}
             units.append(
                 ExploreUnit(
@@ -191,7 +195,7 @@ class Explorer:
     """Who acts in one episode, and its counters if it keeps any (a remote VLM does)."""
 
     act: Callable[[Observation], np.ndarray]
-    stats: Callable[[], dict[str, int]] | None = None
+    stats: Callable[[], dict[str, float]] | None = None
 
 
 def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
@@ -299,8 +303,9 @@ def run_explore(
     keys = [u.unit_key for u in units]
     done = catalog.registered_keys(keys)
     todo = [u for u in units if u.unit_key not in done]
-    explorers = "expert" if policy is None else f"expert + {policy.name} ({config.explore.policy_fraction:.0%})"
-    log.info("explore it%d: %d shards (%d already registered), explorers: %s", iteration, len(units), len(done), explorers)
+    explorers = dict(Counter(e.explorer for u in units for e in u.episodes))
+    log.info("explore it%d: %d shards (%d already registered), episodes by explorer: %s",
+             iteration, len(units), len(done), explorers)
     execute = execute or on_local_workers(config.explore.workers)
     progress = Progress(log, f"explore it{iteration}", sum(len(u.episodes) for u in todo), "episodes", "triplets",
                         on_progress)

@@ -37,6 +37,10 @@ class UnitFailed(RuntimeError):
     """The unit raised inside its worker; the message carries the worker's traceback."""
 
 
+class PoolClosed(RuntimeError):
+    """The pool was closed (its caller stopped) while a unit waited or ran: not to be retried."""
+
+
 class Progress:
     """A live bar on a terminal (done/total, rate, ETA) and a log line per finished unit, so a
     long run never goes silent; `on_update(fraction)` feeds other displays (a Prefect artifact)."""
@@ -94,10 +98,9 @@ def _serve(connection: Connection) -> None:
         work, unit = message
         started = time.monotonic()
         try:
-            answer = ("ok", work(unit), time.monotonic() - started)
-        except Exception:
-            answer = ("error", traceback.format_exc(), 0.0)
-        connection.send(answer)
+            connection.send(("ok", work(unit), time.monotonic() - started))
+        except Exception:  # the unit raised, or its result cannot be pickled back
+            connection.send(("error", traceback.format_exc(), 0.0))
 
 
 @dataclass
@@ -122,38 +125,51 @@ class WorkerPool:
         self._lock = threading.Lock()
         self._workers: list[_Worker] = []
         self._closed = False
-        for _ in range(workers):
-            self._idle.put(self._start())
+        with self._lock:
+            for _ in range(workers):
+                self._idle.put(self._start())
 
     def _start(self) -> _Worker:
+        """A fresh worker, registered; the caller holds the lock (so close() sees every worker)."""
         parent, child = self._context.Pipe()
         process = self._context.Process(target=_serve, args=(child,), daemon=True, name="sim2act-worker")
         process.start()
         child.close()
         worker = _Worker(process, parent)
-        with self._lock:
-            self._workers.append(worker)
+        self._workers.append(worker)
         return worker
 
     def run(self, work: Callable[[Unit], Result], unit: Unit, label: str = "") -> tuple[Result, float]:
-        """(result, seconds in the worker); WorkerLost if the worker died, UnitFailed if it raised."""
+        """(result, seconds in the worker); WorkerLost if the worker died, UnitFailed if it raised,
+        PoolClosed if the pool was closed meanwhile."""
+        label = label or repr(unit)
         worker = self._next_idle()
         try:
             worker.connection.send((work, unit))
             wait([worker.connection, worker.process.sentinel])
             status, payload, seconds = worker.connection.recv()  # EOFError: it died first
-        except (EOFError, OSError):
-            worker.process.join(timeout=5)
-            with self._lock:
-                self._workers.remove(worker)
-                closed = self._closed
-            if not closed:
-                self._idle.put(self._start())
-            raise WorkerLost(f"worker {worker.process.pid} died ({_death(worker.process.exitcode)}) running {label or repr(unit)}")
+        except BaseException as failure:  # a worker in an unknown state is never reused
+            died = isinstance(failure, (EOFError, OSError))
+            self._replace(worker)
+            if self._closed:
+                raise PoolClosed(f"the pool was closed while {label} ran") from None
+            if died:
+                raise WorkerLost(f"worker {worker.process.pid} died ({_death(worker.process.exitcode)}) running {label}") from None
+            raise
         self._idle.put(worker)
         if status == "error":
-            raise UnitFailed(f"{label or repr(unit)} failed in its worker:\n{payload}")
+            raise UnitFailed(f"{label} failed in its worker:\n{payload}")
         return payload, seconds
+
+    def _replace(self, worker: _Worker) -> None:
+        if worker.process.is_alive():
+            worker.process.kill()
+        worker.process.join(timeout=5)
+        worker.connection.close()
+        with self._lock:
+            self._workers.remove(worker)
+            if not self._closed:
+                self._idle.put(self._start())
 
     def _next_idle(self) -> _Worker:
         while True:
@@ -161,17 +177,31 @@ class WorkerPool:
                 return self._idle.get(timeout=1.0)
             except queue.Empty:
                 if self._closed:
-                    raise WorkerLost("the pool was closed") from None
+                    raise PoolClosed("the pool was closed") from None
 
     def close(self) -> None:
+        """Idle workers are told to stop (their environments close cleanly); busy ones are
+        terminated, their units abandoned: the caller has stopped."""
         with self._lock:
             self._closed = True
             workers = list(self._workers)
+        idle = set()
+        while not self._idle.empty():
+            worker = self._idle.get_nowait()
+            idle.add(id(worker))
+            try:
+                worker.connection.send(None)
+            except OSError:  # it died while idle
+                pass
         for worker in workers:
-            if worker.process.is_alive():
-                worker.process.terminate()  # units in flight are abandoned: the caller has stopped
+            if id(worker) not in idle:
+                worker.process.terminate()
         for worker in workers:
             worker.process.join(timeout=10)
+            if worker.process.is_alive():
+                worker.process.kill()
+                worker.process.join()
+            worker.connection.close()
 
     def __enter__(self) -> WorkerPool:
         return self

@@ -25,7 +25,7 @@ from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 
-DEFAULT_FPS = 20  # the control rate of robosuite's episodes: one frame a step
+DEFAULT_FPS = 20  # robosuite's and MetaWorld's control rate (navigation steps at 10 Hz): one frame a step
 
 
 class ReplayError(ValueError):
@@ -141,9 +141,10 @@ def write_video(frames: Iterable[np.ndarray], path: Path, fps: int) -> int:
 
 
 def replay(workspace: Workspace, episode_id: str, camera: str | None = None, size: int | None = None,
-           out: Path | None = None, fps: int = DEFAULT_FPS) -> ReplayResult:
+           out: Path | None = None, fps: int | None = None) -> ReplayResult:
     """Re-render an episode into an MP4 at `out` (default: default_video_path). Everything is
     checked (episode, camera, size, fps, path) before anything is rendered."""
+    fps = DEFAULT_FPS if fps is None else fps
     if fps < 1:
         raise ReplayError(f"replay: --fps must be at least 1, got {fps}")
     if out is not None and out.suffix.lower() != ".mp4":

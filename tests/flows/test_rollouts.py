@@ -110,7 +110,7 @@ def test_a_worker_killed_mid_run_costs_one_retried_shard_and_the_same_bytes(refe
     run = threading.Thread(target=lambda: outcome.update(result=here.run(explore, tmp_path, CONFIG)))
     run.start()
     deadline = time.monotonic() + 60
-    while flows.rollouts._local_workers is None and time.monotonic() < deadline:
+    while not flows.rollouts._local_pools and time.monotonic() < deadline:
         time.sleep(0.05)
     time.sleep(0.5)  # the units are sent; the workers are still importing
     victim = next(p for p in multiprocessing.active_children() if p.name == "sim2act-worker")
@@ -121,3 +121,14 @@ def test_a_worker_killed_mid_run_costs_one_retried_shard_and_the_same_bytes(refe
     retried = [name for name, states in shard_task_runs(flow_run_id) if "Retrying" in states]
     assert len(retried) == 1, shard_task_runs(flow_run_id)
     assert shard_bytes(tmp_path) == shard_bytes(reference[0])
+
+
+def test_only_a_dead_worker_earns_a_shard_a_retry():
+    from prefect.states import Failed
+
+    from flows.rollouts import _worker_died
+    from stages.pool import PoolClosed, UnitFailed, WorkerLost
+
+    assert _worker_died(None, None, Failed(data=WorkerLost("worker 1 died (killed by SIGKILL)")))
+    assert not _worker_died(None, None, Failed(data=UnitFailed("lift-red shard 0 failed: OSError: disk full")))
+    assert not _worker_died(None, None, Failed(data=PoolClosed("the pool was closed")))

@@ -109,5 +109,10 @@ def test_a_noise_schedule_cycles_over_each_tasks_episodes(tmp_path):
     assert [json.loads(e["explorer_stats"])["expert_noise"] for e in episodes] == [0.0, 0.3, 0.0, 0.3]
     clean = [s for s in steps if s["episode_id"] == episodes[0]["episode_id"]]
     assert all(s["action"] == s["expert_action"] for s in clean)  # no noise: the action is the label
+    mixed = _plan(_config(expert_noise=[0.0, 0.3], vlm=VlmExplorerConfig(url="http://127.0.0.1:1/v1", model="m")),
+                  tmp_path)
+    for unit in mixed:  # the schedule runs over the expert's own episodes: both levels, whoever else explores
+        assert sorted(e.expert_noise for e in unit.episodes if e.explorer == EXPERT) == [0.0, 0.3]
+        assert all(e.expert_noise is None for e in unit.episodes if e.explorer != EXPERT)
     with pytest.raises(ValueError, match="expert_noise: the schedule is empty"):
         ExploreConfig(expert_noise=[])
