@@ -212,7 +212,7 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
         rows = []
         for case, camera, name in (("a", config.render.camera, f"plain robosuite loop, {sizes.image_size}px camera"),
                                    ("b", None, "plain robosuite loop, physics only (no renderer)")):
-            loop = LoopCase(task=task, camera=camera, image_size=sizes.image_size, noise=config.explore.expert_noise,
+            loop = LoopCase(task=task, camera=camera, image_size=sizes.image_size, noise=config.explore.noise_of(0),
                             seeds=seeds)
             meter = _Meter()
             [(_, done, _)] = run_in_pool(run_loop, [loop], workers=1)  # a fresh process each
@@ -229,7 +229,7 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
         _ratio("(c, 1 worker) / (b), per core", c1.steps_per_s_per_core / b.steps_per_s_per_core),
     ]
     return RolloutBench(task_id=task.task_id, env=task.env_name, image_size=sizes.image_size, horizon=task.horizon,
-                        episodes=len(seeds), policy=POLICY, expert_noise=config.explore.expert_noise, rows=rows,
+                        episodes=len(seeds), policy=POLICY, expert_noise=config.explore.noise_of(0), rows=rows,
                         ratios=ratios)
 
 

@@ -13,6 +13,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from envs.gl import select_offscreen  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -78,11 +79,9 @@ class MetaWorldEnv:
         return image[::-1].copy()  # OpenGL rows run bottom-up
 
     def _make_context_current(self) -> None:
-        """gymnasium switches GL contexts only between its own viewers: after another environment's
-        renderer was made or used in this process, MetaWorld's frames would land there."""
+        """gymnasium switches GL contexts only between its own viewers (envs/gl.py)."""
         viewer = self.env.mujoco_renderer._get_viewer("rgb_array")
-        viewer.make_context_current()
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, viewer.con)
+        select_offscreen(viewer.opengl_context, viewer.con)
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
         """The frame an observation at `state` showed. MetaWorld's step ends in mj_forward, so its

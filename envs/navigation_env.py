@@ -15,6 +15,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+from envs.gl import select_offscreen  # noqa: E402
 from envs.observation import NO_IMAGE, PROPRIO_DIM, MujocoState, Observation  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -200,11 +201,8 @@ class NavigationEnv:
         if self.renderer is None:
             return NO_IMAGE
         self.renderer.update_scene(self.data, camera=self.camera)
-        # Renderer.render() makes its context current but does not re-select the offscreen
-        # buffer; after another simulator's renderer (robosuite's) drew in this process it
-        # would read back black frames.
-        self.renderer._gl_context.make_current()
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.renderer._mjr_context)
+        # Renderer.render() makes its context current but does not re-select the offscreen buffer
+        select_offscreen(self.renderer._gl_context, self.renderer._mjr_context)
         return self.renderer.render().copy()
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:

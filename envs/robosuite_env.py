@@ -24,6 +24,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
+from envs.gl import select_offscreen  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -258,12 +259,10 @@ class RobosuiteEnv:
         return self.env._get_observations(force_update=True)
 
     def _make_context_current(self) -> None:
-        """robosuite renders into whichever GL context is current: after another environment's
-        renderer was made or used in this process, its frames would land there (wrong or black)."""
+        """robosuite renders into whichever GL context is current (envs/gl.py)."""
         if self.render_config is not None:
             context = self.env.sim._render_context_offscreen
-            context.gl_ctx.make_current()
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, context.con)
+            select_offscreen(context.gl_ctx, context.con)
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
         """The frame an observation at `state` showed, through robosuite's camera observable.

@@ -1,8 +1,9 @@
-"""explore: rollouts in robosuite, one unit = one shard of K episodes of one task.
+"""explore: rollouts in the simulators, one unit = one shard of K episodes of one task.
 
 Each step becomes a triplet (o_t, l, a_t, o_{t+1}) with reward, done and success, plus the
-MuJoCo state for replay. Iteration 0 explores with the noisy scripted expert; later iterations
-mix in the redeployed policy. Workers write shards; this process registers them.
+MuJoCo state for replay and the expert's label. Iteration 0 explores with the noisy scripted
+expert (and a VLM, if configured); later iterations mix in the redeployed policy. Workers write
+shards; this process registers them.
 """
 
 from __future__ import annotations
@@ -192,9 +193,10 @@ def rollout(
 
 @dataclass(frozen=True)
 class Explorer:
-    """Who acts in one episode, and its counters if it keeps any (a remote VLM does)."""
+    """Who acts in one episode, and what it reports about it (the expert its noise level, a VLM
+    its counters): the episode's explorer_stats."""
 
-    act: Callable[[Observation], np.ndarray]
+    act: Act
     stats: Callable[[], dict[str, float]] | None = None
 
 

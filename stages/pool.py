@@ -214,14 +214,12 @@ def run_with_retries(
     pool: WorkerPool, work: Callable[[Unit], Result], unit: Unit, label: str = "", retries: int = RETRIES
 ) -> tuple[Result, float]:
     """Run `unit`, again on a fresh worker if its worker died; a unit that raises is not retried."""
-    for attempt in range(retries + 1):
+    for attempt in range(retries):
         try:
             return pool.run(work, unit, label)
         except WorkerLost as lost:
-            if attempt == retries:
-                raise
             log.warning("%s; retrying it (%d/%d)", lost, attempt + 1, retries)
-    raise AssertionError("unreachable")
+    return pool.run(work, unit, label)
 
 
 def run_in_pool(
