@@ -169,15 +169,11 @@ def bench_sql(root: Path, sizes: BenchSizes) -> list[Measure]:
     return measures
 
 
-def _collate(samples):
-    return np.stack([s.image for s in samples]), np.stack([s.action for s in samples])
-
-
 def bench_reads(root: Path, sizes: BenchSizes) -> list[Measure]:
     from torch.utils.data import DataLoader
 
     from schemas.frames import decode_frame
-    from warehouse.training_reader import StepStream, select_rows
+    from warehouse.training_reader import StepBatches, select_rows
 
     workspace = Workspace.at(root / "reads").create()
     catalog = Catalog(workspace.catalog)
@@ -188,15 +184,13 @@ def bench_reads(root: Path, sizes: BenchSizes) -> list[Measure]:
     [(warehouse_bytes,)] = catalog.query("SELECT sum(num_bytes) FROM shards")
     ranges = select_rows(catalog, "NOT done")
     samples = sum(r.stop - r.start for r in ranges)
-    embeddings = {f"do {t}": np.zeros(384, np.float32) for t in TASKS}
-    stream = StepStream(ranges, embeddings, sizes.shuffle_buffer, seed=0)
-    loader = DataLoader(stream, batch_size=sizes.batch_size, num_workers=sizes.read_workers, collate_fn=_collate,
-                        persistent_workers=False)
+    batches = StepBatches(ranges, sizes.batch_size, sizes.shuffle_buffer, seed=0, epochs=1, workers=sizes.read_workers)
+    loader = DataLoader(batches, batch_size=None, num_workers=sizes.read_workers, persistent_workers=False)
 
     def streamed() -> float:
         started = time.perf_counter()
-        count = sum(len(actions) for _, actions in loader)
-        assert count == samples, (count, samples)
+        count = sum(len(batch["action"]) for batch in loader)
+        assert count == batches.rows_per_epoch, (count, batches.rows_per_epoch)
         return time.perf_counter() - started
 
     def in_memory() -> float:

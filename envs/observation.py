@@ -15,6 +15,8 @@ import numpy as np
 
 ACTION_DIM = 7
 PROPRIO_DIM = 9
+# Families that act by the index of an action from a discrete set, stored as [index] (navigation).
+DISCRETE_FAMILIES = frozenset({"navigation"})
 NO_IMAGE = np.zeros((0, 0, 3), dtype=np.uint8)  # what a camera-less adapter returns
 
 

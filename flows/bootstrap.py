@@ -87,10 +87,15 @@ def index_task(
 
 
 @stage_task(name="train")
-def train_task(workspace: str, config: CampaignConfig, iteration: int, dataset: IndexResult, tasks_key: str) -> TrainResult:
+def train_task(
+    workspace: str, config: CampaignConfig, iteration: int, dataset: IndexResult, tasks_key: str, mlflow_run_id: str
+) -> TrainResult:
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
-    return run_train(ws, config, iteration, dataset, tasks_key, embeddings)
+    tracking = Tracking(ws, config)
+    return run_train(ws, config, iteration, dataset, tasks_key, embeddings,
+                     on_metrics=lambda step, metrics: tracking.log_metrics(
+                         mlflow_run_id, {f"train.{k}": v for k, v in metrics.items()}, step=step))
 
 
 @stage_task(name="evaluate")
@@ -104,9 +109,11 @@ def evaluate_task(
 
 @stage_task(name="redeploy")
 def redeploy_task(
-    workspace: str, config: CampaignConfig, iteration: int, model: TrainResult, mlflow_run_id: str
+    workspace: str, config: CampaignConfig, iteration: int, model: TrainResult, mlflow_run_id: str,
+    evaluation: EvaluateResult,
 ) -> RedeployResult:
-    return run_redeploy(Workspace.at(workspace), config, iteration, model.model_key, model.checkpoint, mlflow_run_id)
+    return run_redeploy(Workspace.at(workspace), config, iteration, model.model_key, model.checkpoint, mlflow_run_id,
+                        evaluation.promotion)
 
 
 def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
@@ -126,10 +133,8 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -
     elif stage == "index" and not result.skipped:
         tracking.log_metrics(run_id, {f"dataset.{k}": getattr(result, k) for k in ("episodes", "kept_episodes", "triplets")})
         tracking.set_tags(run_id, {"sim2act.dataset_digest": result.dataset_digest})
-    elif stage == "train" and not result.skipped:
+    elif stage == "train" and not result.skipped:  # its losses, lr and samples/s went to the run as it trained
         tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
-        for epoch, record in enumerate(result.history):
-            tracking.log_metrics(run_id, {f"train.{k}": v for k, v in record.items()}, step=epoch)
     elif stage == "evaluate" and result.skipped_units < len(result.tasks):
         tracking.log_metrics(run_id, {_success_metric(t): t.success_rate for t in result.tasks})
         for t in result.tasks:
@@ -162,11 +167,11 @@ def iteration_flow(
     _log_stage(tracking, run_id, "filter", filtered)
     index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
     _log_stage(tracking, run_id, "index", index)
-    model = train_task(workspace, config, iteration, index, tasks.unit_key)
+    model = train_task(workspace, config, iteration, index, tasks.unit_key, run_id)
     _log_stage(tracking, run_id, "train", model)
     evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
     _log_stage(tracking, run_id, "evaluate", evaluation)
-    deployment = redeploy_task(workspace, config, iteration, model, run_id)
+    deployment = redeploy_task(workspace, config, iteration, model, run_id, evaluation)
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
     tracking.finish(run_id)

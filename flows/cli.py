@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from schemas.config import PRESETS, ConfigError, load_config
+from schemas.config import PRESETS, ConfigError, load_config, parse_settings
 from schemas.tasks import FAMILIES
 from schemas.workspace import Workspace, write_text_atomically
 
@@ -45,13 +45,16 @@ def configure_environment(workspace: Workspace) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    overrides = {"iterations": args.iterations} if args.iterations is not None else {}
+    overrides = parse_settings(args.set)
+    if args.iterations is not None:
+        overrides["iterations"] = args.iterations
     config = load_config(args.preset, args.config, overrides)
     from stages.generate_tasks import generate_tasks
-    from stages.train import check_trainable
     from warehouse.catalog import Catalog
+    from warehouse.training_reader import check_where
 
-    check_trainable(generate_tasks(config.tasks, config.seed))  # refused here, before any work
+    generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
+    check_where(config.train.where)
     workspace = Workspace.at(args.workspace)
     Catalog(workspace.catalog).check_version()
     configure_environment(workspace)
@@ -63,6 +66,46 @@ def cmd_run(args: argparse.Namespace) -> int:
     from flows.bootstrap import bootstrap
 
     bootstrap(config=config, workspace=str(workspace.root))
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    config = load_config(args.preset, args.config, parse_settings(args.set))
+    from flows.tracking import Tracking
+    from stages.generate_tasks import generate_tasks, load_embeddings, tasks_unit_key
+    from stages.index import latest_index
+    from stages.train import run_train
+    from warehouse.catalog import Catalog
+    from warehouse.training_reader import check_where
+
+    check_where(config.train.where)
+    workspace = Workspace.at(args.workspace)
+    catalog = Catalog(workspace.catalog)
+    catalog.check_version()
+    dataset = latest_index(workspace, config.name, args.iteration)
+    if dataset is None:
+        which = f"iteration {args.iteration}" if args.iteration is not None else "any iteration"
+        raise ConfigError(f"--iteration: campaign {config.name!r} has no dataset for {which} in {workspace.root} "
+                          "(run `sim2act run` with this config first)")
+    tasks_key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
+    if not catalog.is_registered(tasks_key):
+        raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
+    configure_environment(workspace)
+    tracking = Tracking(workspace, config)
+    run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
+    print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
+          f"({dataset.triplets:,} triplets), MLflow run {run_id}", flush=True)
+    result = run_train(
+        workspace, config, dataset.iteration, dataset, tasks_key,
+        load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
+        on_metrics=lambda step, metrics: tracking.log_metrics(run_id, {f"train.{k}": v for k, v in metrics.items()}, step),
+    )
+    if not result.skipped:
+        tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
+    state = "already trained" if result.skipped else (
+        f"resumed at step {result.resumed_at_step}, " if result.resumed_at_step else "") + (
+        f"final loss {result.history[-1]['loss']:.4f}" if result.history else "")
+    print(f"model {result.model_key}: {state}; checkpoint {result.checkpoint}")
     return 0
 
 
@@ -182,16 +225,30 @@ def cmd_bench_warehouse(args: argparse.Namespace) -> int:
     return 0
 
 
+def _report(args: argparse.Namespace, bench, table: str) -> int:
+    """A bench's result: its table (or JSON with --json) printed, the table written to --out."""
+    print(bench.model_dump_json(indent=1) if args.json else table)
+    if args.out:
+        write_text_atomically(args.out, table)
+    return 0
+
+
 def cmd_bench_rollout(args: argparse.Namespace) -> int:
     from bench.rollout import QUICK, RolloutSizes, bench_rollout, markdown
 
     os.environ.setdefault("MUJOCO_GL", "egl")
     bench = bench_rollout(QUICK if args.quick else RolloutSizes(), args.scratch)
-    table = markdown(bench, args.command_line)
-    print(bench.model_dump_json(indent=1) if args.json else table)
-    if args.out:
-        write_text_atomically(args.out, table)
-    return 0
+    return _report(args, bench, markdown(bench, args.command_line))
+
+
+def cmd_bench_train(args: argparse.Namespace) -> int:
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # the fine-tuned encoder case loads MiniLM from disk
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from bench.train import QUICK, TrainSizes, bench_train, markdown
+
+    bench = bench_train(QUICK if args.quick else TrainSizes(), args.scratch)
+    return _report(args, bench, markdown(bench, args.command_line))
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
@@ -261,8 +318,19 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--preset", choices=PRESETS, default="default")
     run.add_argument("--config", type=Path, help="YAML file whose fields override the preset's")
     run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                     help="override one config field, e.g. --set train.contrastive_weight=0 (repeatable)")
     run.add_argument("--workspace", default=_default_workspace(), help="default: $SIM2ACT_WORKSPACE or ./workspace")
     run.set_defaults(handler=cmd_run)
+
+    train = commands.add_parser("train", help="train the model alone on a campaign's dataset (resumes if killed)")
+    train.add_argument("--preset", choices=PRESETS, default="default")
+    train.add_argument("--config", type=Path, help="YAML file whose fields override the preset's (as `run` takes)")
+    train.add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
+    train.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                       help="override one config field, e.g. --set train.model.vision=resnet18 (repeatable)")
+    train.add_argument("--workspace", default=_default_workspace())
+    train.set_defaults(handler=cmd_train)
 
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)
@@ -312,6 +380,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench_ro.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
     bench_ro.add_argument("--out", type=Path, help="also write the table as markdown here")
     bench_ro.set_defaults(handler=cmd_bench_rollout)
+
+    bench_tr = bench_commands.add_parser("train", help="train stage samples/s vs in-memory batches; policy latency")
+    bench_tr.add_argument("--json", action="store_true", help="print the rows and ratios as JSON")
+    bench_tr.add_argument("--quick", action="store_true", help="a few steps, default case only (seconds, a smoke check)")
+    bench_tr.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
+    bench_tr.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_tr.set_defaults(handler=cmd_bench_train)
 
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")
@@ -366,8 +441,10 @@ def main(argv: list[str] | None = None) -> int:
         from warehouse.catalog import CatalogMissing, CatalogVersionError
         from warehouse.export_lerobot import ExportError
         from warehouse.sql import ReadOnlyViolation
+        from warehouse.training_reader import SelectionError
 
-        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError, ReplayError)):
+        if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError, ReplayError,
+                            SelectionError)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

@@ -77,10 +77,13 @@ class Tracking:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
 
     def log_training_dataset(self, run_id: str, digest: str, shards: list[str], triplets: int) -> None:
-        """The exact data a training run read (its steps shards), as the run's MLflow dataset input."""
+        """The exact data a training run read (its steps shards; the kept steps, narrowed by
+        train.where), as the run's MLflow dataset input."""
+        source = {"warehouse": str(self.warehouse), "selection": "kept steps", "where": self.config.train.where,
+                  "shards": shards}
         dataset = Dataset(
             name=f"{self.config.name}-warehouse", digest=digest, source_type="sim2act-warehouse",
-            source=json.dumps({"warehouse": str(self.warehouse), "shards": shards}), schema=None,
+            source=json.dumps(source), schema=None,
             profile=json.dumps({"triplets": triplets, "shards": len(shards)}),
         )
         self.client.log_inputs(run_id, [DatasetInput(dataset, [InputTag("mlflow.data.context", "training")])])

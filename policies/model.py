@@ -1,5 +1,12 @@
-"""The VLA model of the proposal: ViT vision encoder, pretrained language embedding, cross-modal
-fusion transformer, a Gaussian action head, an action encoder, and lambda*InfoNCE + (1-lambda)*BC."""
+"""The VLA model of the proposal: a vision encoder (ViT, or ResNet-18 for the ablation), a
+pretrained language encoder (frozen: its cached embedding; or fine-tuned inside the model), a
+cross-modal fusion transformer giving z_ol, a Gaussian head over continuous actions, a softmax
+head over discrete ones, an action encoder giving z_a, and lambda*InfoNCE + (1-lambda)*BC.
+
+Actions come in two kinds, told apart per sample by `action_index`: -1 for a continuous action
+(manipulation: ACTION_DIM normalised components in `action`), else the index of a discrete
+action (navigation). One model trains on both.
+"""
 
 from __future__ import annotations
 
@@ -18,8 +25,17 @@ LOG_STD_RANGE = (-5.0, 2.0)
 class ModelDims:
     image_size: int
     proprio_dim: int
-    action_dim: int
+    action_dim: int  # continuous components
+    discrete_actions: int  # size of the discrete action set
     language_dim: int
+
+
+@dataclass
+class ModelOutput:
+    z_ol: torch.Tensor  # (B, dim) joint observation-language embedding
+    mu: torch.Tensor  # (B, action_dim) Gaussian mean, normalised units
+    log_std: torch.Tensor  # (B, action_dim) diagonal: Sigma = diag(exp(2 log_std))
+    logits: torch.Tensor  # (B, discrete_actions)
 
 
 def _transformer(dim: int, depth: int, heads: int) -> nn.TransformerEncoder:
@@ -33,7 +49,7 @@ class ViTEncoder(nn.Module):
     def __init__(self, image_size: int, patch_size: int, dim: int, depth: int, heads: int):
         super().__init__()
         if image_size % patch_size:
-            raise ValueError(f"image_size {image_size} is not a multiple of patch_size {patch_size}")
+            raise ValueError(f"train.model.patch_size: {patch_size} does not divide render.image_size {image_size}")
         patches = (image_size // patch_size) ** 2
         self.patchify = nn.Conv2d(3, dim, kernel_size=patch_size, stride=patch_size)
         self.position = nn.Parameter(torch.randn(1, patches, dim) * 0.02)
@@ -44,12 +60,61 @@ class ViTEncoder(nn.Module):
         return self.blocks(tokens + self.position)
 
 
+class _BasicBlock(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.shortcut = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+            if stride != 1 or cin != cout else nn.Identity()
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = F.relu(self.bn1(self.conv1(x)))
+        return F.relu(self.bn2(self.conv2(out)) + self.shortcut(x))
+
+
+class ResNet18Encoder(nn.Module):
+    """ResNet-18 (He et al. 2016: stem, four stages of two basic blocks) at a chosen width, from
+    scratch; its last feature map becomes tokens: (B, 3, H, W) in [0, 1] -> (B, cells, dim)."""
+
+    def __init__(self, image_size: int, width: int, dim: int):
+        super().__init__()
+        layers: list[nn.Module] = [
+            nn.Conv2d(3, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
+        ]
+        channels = width
+        for stage, stride in enumerate((1, 2, 2, 2)):
+            out = width * 2**stage
+            layers += [_BasicBlock(channels, out, stride), _BasicBlock(out, out, 1)]
+            channels = out
+        self.features = nn.Sequential(*layers, nn.Conv2d(channels, dim, 1))
+        with torch.no_grad():
+            cells = self.features(torch.zeros(1, 3, image_size, image_size)).flatten(2).shape[-1]
+        self.position = nn.Parameter(torch.randn(1, cells, dim) * 0.02)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.features(image * 2.0 - 1.0).flatten(2).transpose(1, 2) + self.position
+
+
 class VLAModel(nn.Module):
     def __init__(self, config: ModelConfig, dims: ModelDims):
         super().__init__()
         self.config, self.dims = config, dims
         d = config.dim
-        self.vision = ViTEncoder(dims.image_size, config.patch_size, d, config.vision_depth, config.heads)
+        self.vision = (
+            ViTEncoder(dims.image_size, config.patch_size, d, config.vision_depth, config.heads)
+            if config.vision == "vit" else ResNet18Encoder(dims.image_size, config.resnet_width, d)
+        )
+        if config.language_trainable:
+            from policies.language import TextEncoder
+
+            self.text = TextEncoder(config.language_encoder)
+        else:
+            self.text = None
         self.language = nn.Linear(dims.language_dim, d)
         self.proprio = nn.Linear(dims.proprio_dim, d)
         self.cls = nn.Parameter(torch.zeros(1, 1, d))
@@ -58,13 +123,22 @@ class VLAModel(nn.Module):
         self.norm = nn.LayerNorm(d)
         self.mu = nn.Linear(d, dims.action_dim)
         self.log_std = nn.Linear(d, dims.action_dim)
+        self.logits = nn.Linear(d, dims.discrete_actions)
         self.action_encoder = nn.Sequential(nn.Linear(dims.action_dim, d), nn.GELU(), nn.Linear(d, d))
+        self.discrete_action_encoder = nn.Embedding(dims.discrete_actions, d)
         self.joint_projection = nn.Linear(d, d)
 
-    def forward(
-        self, image: torch.Tensor, language: torch.Tensor, proprio: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """-> (z_ol, mu, log_std); actions are in normalised units."""
+    def language_input(self, instructions: list[str], cached: torch.Tensor | None) -> torch.Tensor:
+        """The instruction embeddings the model reads: its own encoder's when fine-tuned, else the
+        frozen encoder's cached ones."""
+        if self.text is not None:
+            return self.text(instructions)
+        if cached is None:
+            raise ValueError("a model with a frozen language encoder needs the cached instruction embeddings")
+        return cached
+
+    def forward(self, image: torch.Tensor, language: torch.Tensor, proprio: torch.Tensor) -> ModelOutput:
+        """image (B, 3, H, W) in [0, 1]; language (B, language_dim); proprio normalised."""
         batch = image.shape[0]
         tokens = torch.cat(
             [
@@ -76,22 +150,44 @@ class VLAModel(nn.Module):
             dim=1,
         )
         joint = self.norm(self.fusion(tokens)[:, 0])
-        log_std = self.log_std(joint).clamp(*LOG_STD_RANGE)
-        return self.joint_projection(joint), self.mu(joint), log_std
+        return ModelOutput(
+            z_ol=self.joint_projection(joint),
+            mu=self.mu(joint),
+            log_std=self.log_std(joint).clamp(*LOG_STD_RANGE),
+            logits=self.logits(joint),
+        )
+
+    def encode_action(self, action: torch.Tensor, action_index: torch.Tensor) -> torch.Tensor:
+        """z_a: continuous actions through an MLP, discrete ones through an embedding."""
+        discrete = (action_index >= 0).unsqueeze(-1)
+        return torch.where(
+            discrete, self.discrete_action_encoder(action_index.clamp(min=0)), self.action_encoder(action)
+        )
 
     def dims_dict(self) -> dict[str, int]:
         return asdict(self.dims)
 
 
+def uncertainty(output: ModelOutput, discrete: bool) -> torch.Tensor:
+    """Per sample: the policy's entropy over discrete actions (nats), or log det Sigma of its
+    Gaussian for continuous ones (normalised units). Higher: less sure."""
+    if discrete:
+        return torch.distributions.Categorical(logits=output.logits.float()).entropy()
+    return 2.0 * output.log_std.float().sum(-1)
+
+
 def info_nce(z_ol: torch.Tensor, z_a: torch.Tensor, temperature: float) -> torch.Tensor:
     """Symmetric InfoNCE: each (observation, language) embedding should pick out its own action."""
-    logits = F.normalize(z_ol, dim=-1) @ F.normalize(z_a, dim=-1).T / temperature
+    logits = F.normalize(z_ol.float(), dim=-1) @ F.normalize(z_a.float(), dim=-1).T / temperature
     targets = torch.arange(len(logits), device=logits.device)
     return 0.5 * (F.cross_entropy(logits, targets) + F.cross_entropy(logits.T, targets))
 
 
-def gaussian_nll(action: torch.Tensor, mu: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    return (0.5 * ((action - mu) / log_std.exp()) ** 2 + log_std).sum(-1).mean()
+@dataclass
+class Losses:
+    total: torch.Tensor
+    terms: dict[str, torch.Tensor]  # detached, each a mean over `counts[name]` samples
+    counts: dict[str, int]
 
 
 def vla_loss(
@@ -100,15 +196,32 @@ def vla_loss(
     language: torch.Tensor,
     proprio: torch.Tensor,
     action: torch.Tensor,
+    action_index: torch.Tensor,
     contrastive_weight: float,
     temperature: float,
-) -> dict[str, torch.Tensor]:
-    z_ol, mu, log_std = model(image, language, proprio)
-    contrastive = info_nce(z_ol, model.action_encoder(action), temperature)
+) -> Losses:
+    """lambda * InfoNCE(z_ol, z_a) + (1 - lambda) * BC, BC per sample: for continuous actions the
+    squared error of mu plus the Gaussian NLL, for discrete ones the cross-entropy."""
+    out = model(image, language, proprio)
+    contrastive = info_nce(out.z_ol, model.encode_action(action, action_index), temperature)
+    discrete = action_index >= 0
+    mu, log_std = out.mu.float(), out.log_std.float()
     # mu learns from the squared error and Sigma from the NLL around a detached mu: trained jointly,
     # the NLL shrinks Sigma on easy dimensions faster than it fits mu, and mu barely moves.
-    mse = F.mse_loss(mu, action)
-    nll = gaussian_nll(action, mu.detach(), log_std)
-    bc = mse + nll
+    mse = ((mu - action) ** 2).mean(-1)
+    nll = (0.5 * ((action - mu.detach()) / log_std.exp()) ** 2 + log_std).sum(-1)
+    cross_entropy = F.cross_entropy(out.logits.float(), action_index.clamp(min=0), reduction="none")
+    bc = torch.where(discrete, cross_entropy, mse + nll).mean()
     total = contrastive_weight * contrastive + (1.0 - contrastive_weight) * bc
-    return {"loss": total, "infonce": contrastive, "bc": bc, "bc_nll": nll, "action_mse": mse}
+    n, n_discrete = len(action_index), int(discrete.sum())
+    terms = {"loss": total, "infonce": contrastive, "bc": bc}
+    counts = {"loss": n, "infonce": n, "bc": n}
+    if n_discrete < n:
+        continuous = ~discrete
+        terms.update(action_mse=mse[continuous].mean(), bc_nll=nll[continuous].mean())
+        counts.update(action_mse=n - n_discrete, bc_nll=n - n_discrete)
+    if n_discrete:
+        hit = (out.logits.argmax(-1) == action_index)[discrete].float()
+        terms.update(discrete_ce=cross_entropy[discrete].mean(), discrete_accuracy=hit.mean())
+        counts.update(discrete_ce=n_discrete, discrete_accuracy=n_discrete)
+    return Losses(total, {k: v.detach() for k, v in terms.items()}, counts)

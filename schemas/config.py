@@ -157,12 +157,21 @@ class FilterConfig(_Strict):
 
 
 class ModelConfig(_Strict):
-    patch_size: PositiveInt = 12
+    """The VLA model's sizes (policies/model.py, docs/training.md)."""
+
+    vision: Literal["vit", "resnet18"] = Field(
+        default="vit", description="vision encoder: a ViT, or a ResNet-18 trained from scratch (ablation)"
+    )
+    patch_size: PositiveInt = Field(default=12, description="ViT patch side in pixels; divides render.image_size")
+    resnet_width: PositiveInt = Field(default=16, description="ResNet-18 channels of its first stage (64 in the paper)")
     dim: PositiveInt = 64
     vision_depth: PositiveInt = 2
     fusion_depth: PositiveInt = 2
     heads: PositiveInt = 4
     language_encoder: Literal["all-MiniLM-L6-v2"] = "all-MiniLM-L6-v2"
+    language_trainable: bool = Field(
+        default=False, description="fine-tune the language encoder (else frozen: cached embeddings)"
+    )
 
     @model_validator(mode="after")
     def _heads_divide_dim(self) -> ModelConfig:
@@ -175,11 +184,24 @@ class TrainConfig(_Strict):
     epochs: PositiveInt = 10
     batch_size: PositiveInt = 64
     lr: float = Field(default=1e-3, gt=0)
+    language_lr: float = Field(default=2e-5, gt=0, description="learning rate of a fine-tuned language encoder")
     weight_decay: float = Field(default=0.01, ge=0)
     contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")
     temperature: float = Field(default=0.1, gt=0)
     grad_clip: float = Field(default=1.0, gt=0)
     shuffle_buffer: PositiveInt = 2048
+    where: str | None = Field(
+        default=None, min_length=1,
+        description="SQL condition over the steps columns narrowing the iteration's kept steps, e.g. "
+        "\"task_id LIKE 'lift-%'\"",
+    )
+    loader_workers: int = Field(
+        default=1, ge=0, le=32, description="processes reading and decoding batches (0: the training process)"
+    )
+    checkpoint_every: PositiveInt = Field(default=200, description="steps between resumable checkpoints")
+    log_every: PositiveInt = Field(default=20, description="steps between MLflow metric points")
+    device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="auto: cuda when there is one")
+    amp: bool = Field(default=True, description="bf16 autocast on cuda (no effect on cpu)")
     threads: PositiveInt = 2
     model: ModelConfig = ModelConfig()
 
@@ -258,6 +280,22 @@ def describe_validation_error(exc: ValidationError) -> str:
         message += f" (got {first.get('input')!r})"
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
     return f"{field}: {message}{more}"
+
+
+def parse_settings(settings: list[str]) -> dict[str, Any]:
+    """`--set train.contrastive_weight=0 tasks.colours=[red,blue]` -> nested overrides; each value
+    is read as YAML (numbers, booleans, lists), the dotted path names the field."""
+    overrides: dict[str, Any] = {}
+    for setting in settings:
+        path, sep, text = setting.partition("=")
+        if not sep or not path:
+            raise ConfigError(f"--set: {setting!r} is not FIELD.PATH=VALUE")
+        *parents, leaf = path.split(".")
+        target = overrides
+        for part in parents:
+            target = target.setdefault(part, {})
+        target[leaf] = _read_yaml(f"value: {text}", f"--set {path}")["value"]
+    return overrides
 
 
 def load_config(

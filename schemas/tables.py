@@ -202,6 +202,8 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             ("unit_key", pa.string()), ("model_key", pa.string()), ("campaign", pa.string()),
             ("iteration", pa.int32()), ("registered_model", pa.string()), ("version", pa.int32()),
             ("alias", pa.string()), ("champion_version", pa.int32()), ("champion_model_key", pa.string()),
+            # whether the evaluation moved the alias to this version, and why (stages.evaluate.Promotion)
+            ("promoted", pa.bool_()), ("decision", pa.string()),
             ("mlflow_run_id", pa.string()),
         ]),
         ("unit_key",),
@@ -212,6 +214,8 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             ("model_key", pa.string()), ("task_id", pa.string()), ("split", pa.string()),
             ("instruction", pa.string()), ("episodes", pa.int32()), ("successes", pa.int32()),
             ("success_rate", pa.float64()), ("mean_return", pa.float64()), ("mean_length", pa.float64()),
+            # the policy's mean per-step uncertainty: entropy (discrete) or log det Sigma (continuous)
+            ("uncertainty", pa.float64()),
             ("media_path", pa.string()),
         ]),
         ("unit_key",),

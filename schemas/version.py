@@ -7,6 +7,8 @@
 4: episodes.render (the visual settings each episode was rendered with, for replay and
    evaluation); episodes.explorer_stats (the expert's noise level; a VLM's calls, retries,
    timeouts, invalid answers); steps.expert_action (DAgger labels: the expert's noiseless action at each state).
+5: evaluations.uncertainty (the policy's mean per-step uncertainty on the task); deployments.promoted
+   and deployments.decision (the alias moves only when the evaluation says the new model is better).
 """
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5

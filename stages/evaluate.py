@@ -18,7 +18,7 @@ from stages.explore import rollout, worker_env
 from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 
-STAGE, VERSION = "evaluate", 1
+STAGE, VERSION = "evaluate", 2
 log = logging.getLogger("sim2act.stages.evaluate")
 
 
@@ -43,6 +43,7 @@ class TaskEvaluation(BaseModel):
     successes: int
     mean_return: float
     mean_length: float
+    uncertainty: float  # the policy's, per step, averaged over the episodes (policies.model.uncertainty)
     media_path: str | None
 
     @property
@@ -50,27 +51,67 @@ class TaskEvaluation(BaseModel):
         return self.successes / self.episodes
 
 
+class Promotion(BaseModel):
+    """The evaluation's decision on the registry alias: the alias moves only when this says so."""
+
+    promote: bool
+    reason: str
+    success: float  # mean success of the new model over the evaluation cases
+    champion_success: float | None  # the current champion's over the same cases; None without one
+
+
 class EvaluateResult(BaseModel):
     model_key: str
     tasks: list[TaskEvaluation]
     skipped_units: int
+    promotion: Promotion
+
+
+def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluations: list[TaskEvaluation]) -> Promotion:
+    """Promote when there is no champion, or when the new model's mean success over every
+    evaluation case (seen, unseen, held-out paraphrases; same seeds) beats the champion's."""
+    success = float(np.mean([t.success_rate for t in evaluations]))
+    champion = catalog.query(
+        "SELECT champion_model_key FROM deployments WHERE campaign = ? AND model_key <> ? "
+        "ORDER BY iteration DESC LIMIT 1", [campaign, model_key],
+    )
+    if not champion:
+        return Promotion(promote=True, reason="no champion yet", success=success, champion_success=None)
+    rows = dict(
+        ((task_id, split), rate) for task_id, split, rate in catalog.query(
+            "SELECT task_id, split, success_rate FROM evaluations WHERE model_key = ?", [champion[0][0]])
+    )
+    shared = [t for t in evaluations if (t.task_id, t.split) in rows]
+    if not shared:
+        return Promotion(promote=True, reason="the champion was never evaluated on these tasks", success=success,
+                         champion_success=None)
+    success = float(np.mean([t.success_rate for t in shared]))
+    before = float(np.mean([rows[(t.task_id, t.split)] for t in shared]))
+    better = success > before
+    reason = f"success {success:.0%} {'beats' if better else 'does not beat'} the champion's {before:.0%} on {len(shared)} cases"
+    return Promotion(promote=better, reason=reason, success=success, champion_success=before)
 
 
 def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
-    """Worker: the policy's mean action, episodes until success or the horizon."""
+    """Worker: the policy's mean (or most likely) action, episodes until success or the horizon;
+    its uncertainty at every step."""
     import imageio.v3 as iio
 
     from envs.randomisation import sample_randomisation
     from policies.policy import Policy
 
-    policy = Policy.load(Path(unit.checkpoint))
+    policy = Policy.load(Path(unit.checkpoint), {unit.instruction: np.asarray(unit.embedding, dtype=np.float32)})
     env = worker_env(unit.task, unit.render)
-    embedding = np.asarray(unit.embedding, dtype=np.float32)
-    successes, returns, lengths = 0, [], []
+    successes, returns, lengths, uncertainties = 0, [], [], []
+
+    def act(obs):
+        decision = policy.act(obs.image, obs.proprio, unit.instruction, unit.task.family)
+        uncertainties.append(decision.uncertainty)
+        return decision.action
+
     for index, seed in enumerate(unit.seeds):
         rows, final_image, success = rollout(
-            env, unit.task, seed, lambda obs: policy.act(obs.image, obs.proprio, embedding),
-            sample_randomisation(unit.randomise, seed, env.RANDOMISES),
+            env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
         )
         successes += success
         returns.append(sum(r["reward"] for r in rows))
@@ -84,7 +125,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     return TaskEvaluation(
         task_id=unit.task.task_id, split=unit.split, instruction=unit.instruction, episodes=len(unit.seeds),
         successes=successes, mean_return=float(np.mean(returns)), mean_length=float(np.mean(lengths)),
-        media_path=unit.gif_path,
+        uncertainty=float(np.mean(uncertainties)), media_path=unit.gif_path,
     )
 
 
@@ -137,13 +178,15 @@ def run_evaluate(
     finally:
         progress.close()
     rows = catalog.query(
-        "SELECT task_id, split, instruction, episodes, successes, mean_return, mean_length, media_path "
+        "SELECT task_id, split, instruction, episodes, successes, mean_return, mean_length, uncertainty, media_path "
         "FROM evaluations WHERE list_contains(?, unit_key) ORDER BY task_id, split",
         [[u.unit_key for u in units]],
     )
     evaluations = [
         TaskEvaluation(task_id=r[0], split=r[1], instruction=r[2], episodes=r[3], successes=r[4], mean_return=r[5],
-                       mean_length=r[6], media_path=r[7])
+                       mean_length=r[6], uncertainty=r[7], media_path=r[8])
         for r in rows
     ]
-    return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=len(done))
+    promotion = decide_promotion(catalog, config.name, model_key, evaluations)
+    log.info("evaluate it%d: %s: %s", iteration, "promote" if promotion.promote else "keep the champion", promotion.reason)
+    return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=len(done), promotion=promotion)

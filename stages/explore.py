@@ -212,8 +212,7 @@ def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
 
         vlm = VlmExplorer(unit.vlm, unit.task.family, plan.instruction)
         return Explorer(act=vlm.act, stats=vlm.stats)
-    embedding = np.asarray(unit.embeddings[plan.instruction], dtype=np.float32)
-    return Explorer(act=lambda obs: policy.act(obs.image, obs.proprio, embedding))
+    return Explorer(act=lambda obs: policy.act(obs.image, obs.proprio, plan.instruction, unit.task.family).action)
 
 
 def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
@@ -232,7 +231,8 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     if unit.policy is not None:
         from policies.policy import Policy
 
-        policy = Policy.load(Path(unit.policy.checkpoint))
+        policy = Policy.load(Path(unit.policy.checkpoint),
+                             {text: np.asarray(vector, dtype=np.float32) for text, vector in unit.embeddings.items()})
     env = worker_env(unit.task, unit.render)
     episode_rows, step_rows = [], []
     common = {"campaign": unit.campaign, "iteration": unit.iteration, "task_id": unit.task.task_id}

@@ -33,6 +33,21 @@ class IndexResult(BaseModel):
         return Selection(tuple(self.explore_units), tuple(self.filter_units))
 
 
+def latest_index(workspace: Workspace, campaign: str, iteration: int | None = None) -> IndexResult | None:
+    """A campaign's registered dataset of `iteration` (default: its latest), or None."""
+    rows = Catalog(workspace.catalog).query(
+        "SELECT unit_key, iteration, dataset_digest, explore_units, filter_units, episodes, kept_episodes, triplets "
+        "FROM iterations WHERE campaign = ? AND (? IS NULL OR iteration = ?) ORDER BY iteration DESC LIMIT 1",
+        [campaign, iteration, iteration],
+    )
+    if not rows:
+        return None
+    key, it, digest, explore_units, filter_units, episodes, kept, triplets = rows[0]
+    return IndexResult(unit_key=key, iteration=it, dataset_digest=digest, explore_units=explore_units,
+                       filter_units=filter_units, episodes=episodes, kept_episodes=kept, triplets=triplets,
+                       skipped=True)
+
+
 def run_index(
     workspace: Workspace,
     config: CampaignConfig,

@@ -58,7 +58,8 @@ class Progress:
         # disable=None: drawn only on a terminal; logs and Prefect get the lines below
         self.bar = tqdm(total=total, desc=label, unit=count_name, disable=None, leave=False, file=sys.stderr)
 
-    def advance(self, count: int, amount: int) -> None:
+    def advance(self, count: int, amount: int, log: bool = True) -> None:
+        """`log=False`: the bar moves, no log line (units far shorter than a log line's worth)."""
         self.done += count
         self.amount += amount
         elapsed = max(time.monotonic() - self.started, 1e-6)
@@ -66,10 +67,11 @@ class Progress:
         eta = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
         self.bar.update(count)
         self.bar.set_postfix_str(f"{rate:.1f} {self.rate_name}/s", refresh=False)
-        self.logger.info(
-            "%s: %d/%d %s, %d %s, %.1f %s/s, ETA %.0fs", self.label, self.done, self.total, self.count_name,
-            self.amount, self.rate_name, rate, self.rate_name, eta,
-        )
+        if log:
+            self.logger.info(
+                "%s: %d/%d %s, %d %s, %.1f %s/s, ETA %.0fs", self.label, self.done, self.total, self.count_name,
+                self.amount, self.rate_name, rate, self.rate_name, eta,
+            )
         if self.on_update is not None:
             self.on_update(self.done / max(self.total, 1))
 

@@ -1,10 +1,12 @@
-"""redeploy: register the trained model in MLflow's model registry, point the alias at it, and
-name the explorer the next iteration uses."""
+"""redeploy: register the trained model in MLflow's model registry (with its signature and an
+input example from the warehouse), move the alias to it when the evaluation decided so, and name
+the explorer the next iteration uses: the champion, new or kept."""
 
 from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 from mlflow import MlflowClient
 from pydantic import BaseModel
@@ -12,10 +14,11 @@ from pydantic import BaseModel
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
+from stages.evaluate import Promotion
 from stages.explore import PolicyExplorer
 from warehouse.catalog import Catalog
 
-STAGE, VERSION = "redeploy", 1
+STAGE, VERSION = "redeploy", 2
 MODEL_KEY_TAG = "sim2act.model_key"
 log = logging.getLogger("sim2act.stages.redeploy")
 
@@ -52,13 +55,43 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
     )
 
 
-def run_redeploy(
-    workspace: Workspace, config: CampaignConfig, iteration: int, model_key: str, checkpoint: str, mlflow_run_id: str
-) -> RedeployResult:
+def input_example(catalog: Catalog, campaign: str):
+    """One stored step of the campaign, as the MLflow model takes it."""
+    import pandas as pd
+
+    [(image, proprio, instruction, family)] = catalog.query(
+        "SELECT s.image, s.proprio, s.instruction, t.family FROM steps s "
+        "JOIN task_families t ON t.campaign = s.campaign AND t.task_id = s.task_id "
+        "WHERE s.campaign = ? ORDER BY s.episode_id, s.step LIMIT 1", [campaign],
+    )
+    return pd.DataFrame({"image": [image], "proprio": [[float(x) for x in proprio]], "instruction": [instruction],
+                         "family": [family]})
+
+
+def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, model_key: str, checkpoint: str,
+              mlflow_run_id: str) -> int:
     import mlflow
+    from mlflow.models import infer_signature
 
-    from policies.mlflow_model import MODEL_CODE
+    from policies.mlflow_model import MODEL_CODE, predict_frame
+    from policies.policy import Policy
 
+    example = input_example(catalog, config.name)
+    signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
+    mlflow.set_tracking_uri(workspace.tracking_uri)
+    with mlflow.start_run(run_id=mlflow_run_id):
+        info = mlflow.pyfunc.log_model(
+            name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
+            signature=signature, input_example=example, pip_requirements=["sim2act", "torch==2.13.0"],
+        )
+    return int(mlflow.register_model(info.model_uri, config.registered_model_name,
+                                     tags={MODEL_KEY_TAG: model_key}).version)
+
+
+def run_redeploy(
+    workspace: Workspace, config: CampaignConfig, iteration: int, model_key: str, checkpoint: str,
+    mlflow_run_id: str, promotion: Promotion,
+) -> RedeployResult:
     catalog = Catalog(workspace.catalog)
     name, alias = config.registered_model_name, config.redeploy.alias
     key = unit_key(STAGE, VERSION, config.redeploy, [model_key])
@@ -73,26 +106,23 @@ def run_redeploy(
     started = time.monotonic()
     version = _registered_version(client, name, model_key)
     if version is None:
-        mlflow.set_tracking_uri(workspace.tracking_uri)
-        with mlflow.start_run(run_id=mlflow_run_id):
-            info = mlflow.pyfunc.log_model(
-                name="policy",
-                python_model=MODEL_CODE,
-                artifacts={"checkpoint": checkpoint},
-                pip_requirements=["sim2act", "torch==2.13.0"],
-            )
-        version = int(mlflow.register_model(info.model_uri, name, tags={MODEL_KEY_TAG: model_key}).version)
-    # Every new model becomes the champion for now; gating on held-out evaluation is issue 7's.
-    client.set_registered_model_alias(name, alias, str(version))
+        version = _register(workspace, catalog, config, model_key, checkpoint, mlflow_run_id)
+    if promotion.promote:
+        client.set_registered_model_alias(name, alias, str(version))
+    champion = int(client.get_model_version_by_alias(name, alias).version)
+    champion_key = client.get_model_version(name, str(champion)).tags[MODEL_KEY_TAG]
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-        summary={"registered_model": name, "version": version, "alias": alias}, wall_s=time.monotonic() - started,
+        summary={"registered_model": name, "version": version, "alias": alias, "champion_version": champion,
+                 "decision": promotion.reason}, wall_s=time.monotonic() - started,
         rows={"deployments": [{
             "unit_key": key, "model_key": model_key, "campaign": config.name, "iteration": iteration,
-            "registered_model": name, "version": version, "alias": alias, "champion_version": version,
-            "champion_model_key": model_key, "mlflow_run_id": mlflow_run_id,
+            "registered_model": name, "version": version, "alias": alias, "champion_version": champion,
+            "champion_model_key": champion_key, "promoted": promotion.promote, "decision": promotion.reason,
+            "mlflow_run_id": mlflow_run_id,
         }]},
     )
-    log.info("redeploy it%d: registered %s version %d, alias %s -> v%d", iteration, name, version, alias, version)
+    log.info("redeploy it%d: registered %s version %d; %s -> v%d (%s)", iteration, name, version, alias, champion,
+             promotion.reason)
     return RedeployResult(registered_model=name, version=version, alias=alias, skipped=False,
-                          champion=champion_explorer(workspace, client, name, version))
+                          champion=champion_explorer(workspace, client, name, champion))

@@ -1,11 +1,14 @@
 """train: the VLA model on the iteration's selection, lambda*InfoNCE + (1-lambda)*BC, AdamW with
-warm-up and cosine decay, gradient clipping, seeded. One unit = one training run."""
+warm-up and cosine decay, gradient clipping, bf16 autocast on a GPU, seeded. One unit = one
+training run; it checkpoints every `train.checkpoint_every` steps and a killed run resumes from
+the last checkpoint (weights, optimiser, schedule, step and data position) to the same result."""
 
 from __future__ import annotations
 
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,63 +16,152 @@ import torch
 from pydantic import BaseModel
 from torch.utils.data import DataLoader
 
+from envs.navigation_env import ACTIONS as NAVIGATION_ACTIONS
 from envs.observation import ACTION_DIM, PROPRIO_DIM
-from policies.language import ENCODER_DIMS
+from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, vla_loss
-from policies.policy import Normaliser, save_checkpoint
-from schemas.config import CampaignConfig, ConfigError
-from schemas.keys import derive_seed, unit_key
-from schemas.tasks import TaskRecord
+from policies.policy import Normaliser, policy_state, save_atomically
+from schemas.config import CampaignConfig, TrainConfig
+from schemas.keys import derive_seed, digest_of, unit_key
 from schemas.workspace import Workspace
 from stages.index import IndexResult
+from stages.pool import Progress
 from warehouse.catalog import Catalog
-from warehouse.training_reader import Sample, StepStream
+from warehouse.training_reader import SelectionError, StepBatches, check_where, decode_rows
 
-STAGE, VERSION = "train", 1
+STAGE, VERSION = "train", 2
 WARMUP_FRACTION = 0.05
+# How a run computes, not what it learns: left out of the unit key (a GPU re-run of a CPU-trained
+# config finds the CPU model).
+EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 log = logging.getLogger("sim2act.stages.train")
+
+OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
 
 
 class TrainResult(BaseModel):
     model_key: str
     checkpoint: str
-    dataset_digest: str
+    dataset_digest: str  # of the training selection: the iteration's dataset narrowed by train.where
     samples: int
     dataset_shards: list[str]  # relative to the warehouse
     history: list[dict[str, float]]  # one entry per epoch (empty when skipped)
+    resumed_at_step: int  # 0: trained from the start
     skipped: bool
 
 
-def check_trainable(tasks: list[TaskRecord]) -> None:
-    """The model has the continuous (Gaussian) head only; discrete actions wait for the softmax head."""
-    discrete = sorted({t.spec for t in tasks if t.family == "navigation"})
-    if discrete:
-        raise ConfigError(
-            f"tasks.specs: {discrete[0]} is a navigation task with discrete actions, which campaigns cannot "
-            "train on yet (the softmax head is to come); explore its tasks with `sim2act tasks experts`"
-        )
-
-
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
-    reads = {"train": config.train.model_dump(exclude={"threads"}), "seed": config.seed, "image": config.render.image_size}
+    reads = {"train": config.train.model_dump(exclude=EXECUTION_FIELDS), "seed": config.seed,
+             "image": config.render.image_size}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 
 
-def _collate(samples: list[Sample]) -> dict[str, np.ndarray]:
-    return {
-        "image": np.stack([s.image for s in samples]),
-        "language": np.stack([s.language for s in samples]),
-        "proprio": np.stack([s.proprio for s in samples]),
-        "action": np.stack([s.action for s in samples]),
-    }
+def selection_digest(dataset: IndexResult, where: str | None) -> str:
+    return dataset.dataset_digest if where is None else digest_of([dataset.dataset_digest, where])
 
 
-def _normalisers(catalog: Catalog, dataset: IndexResult) -> tuple[Normaliser, Normaliser]:
-    """Action and proprio statistics over exactly the kept steps of the selection."""
-    table = dataset.selection.kept_steps(catalog, ["action", "proprio"])
-    actions = np.asarray(table["action"].to_pylist(), dtype=np.float32)
+def model_dims(config: CampaignConfig) -> ModelDims:
+    return ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, len(NAVIGATION_ACTIONS),
+                     ENCODERS[config.train.model.language_encoder].dim)
+
+
+def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Stored actions -> (continuous (n, ACTION_DIM), zero where discrete; discrete index (n,), -1
+    where continuous). A discrete action is stored as [index] (envs.observation.DISCRETE_FAMILIES)."""
+    continuous = np.zeros((len(actions), ACTION_DIM), np.float32)
+    index = np.full(len(actions), -1, np.int64)
+    for i, action in enumerate(actions):
+        if len(action) == 1:
+            index[i] = int(action[0])
+        elif len(action) == ACTION_DIM:
+            continuous[i] = action
+        else:
+            raise ValueError(f"a stored action of {len(action)} components: neither [index] nor {ACTION_DIM}")
+    return continuous, index
+
+
+class TrainingCollate:
+    """Rows -> a ready batch, in the loader workers: frames decoded, actions split by kind and
+    normalised, proprio normalised, the frozen encoder's embeddings looked up."""
+
+    def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None):
+        self.action, self.proprio, self.embeddings = action, proprio, embeddings
+
+    def __call__(self, rows: list[dict]) -> dict:
+        batch = decode_rows(rows)
+        continuous, index = split_actions(batch.pop("action"))
+        batch["action"] = np.where((index < 0)[:, None], self.action.encode(continuous), 0.0).astype(np.float32)
+        batch["action_index"] = index
+        batch["proprio"] = self.proprio.encode(batch["proprio"])
+        if self.embeddings is not None:
+            batch["language"] = np.stack([self.embeddings[text] for text in batch["instruction"]])
+        return batch
+
+
+def normalisers(catalog: Catalog, dataset: IndexResult, where: str | None) -> tuple[Normaliser, Normaliser]:
+    """Action and proprio statistics over exactly the training selection (continuous actions only)."""
+    table = dataset.selection.kept_steps(catalog, ["action", "proprio"], where)
+    continuous, index = split_actions(table["action"].to_pylist())
     proprio = np.asarray(table["proprio"].to_pylist(), dtype=np.float32)
-    return Normaliser.fit(actions), Normaliser.fit(proprio)
+    return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM)
+
+
+def training_device(choice: str) -> torch.device:
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("train.device: cuda asked for, and torch sees no GPU")
+    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
+
+
+def warmup_cosine(total_steps: int) -> Callable[[int], float]:
+    warmup = max(1, int(WARMUP_FRACTION * total_steps))
+    return lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(1.0, s / total_steps)))
+
+
+def optimiser_for(model: VLAModel, cfg: TrainConfig) -> torch.optim.AdamW:
+    """AdamW; a fine-tuned language encoder gets its own, smaller learning rate."""
+    text = {id(p) for p in model.text.parameters()} if model.text is not None else set()
+    groups = [{"params": [p for p in model.parameters() if id(p) not in text], "lr": cfg.lr}]
+    if text:
+        groups.append({"params": list(model.text.parameters()), "lr": cfg.language_lr})
+    return torch.optim.AdamW(groups, weight_decay=cfg.weight_decay)
+
+
+class _Means:
+    """Sample-weighted means of the loss terms (each term over the samples it applies to). Sums
+    stay on the training device, read only when reported: a read per step would make the CPU wait
+    for the GPU at every step."""
+
+    def __init__(self, state: dict | None = None):
+        self.sums: dict[str, list] = {name: list(total) for name, total in (state or {}).items()}
+
+    def add(self, terms: dict[str, torch.Tensor], counts: dict[str, int]) -> None:
+        for name, value in terms.items():
+            total = self.sums.setdefault(name, [0.0, 0])
+            total[0] = total[0] + value * counts[name]
+            total[1] += counts[name]
+
+    def means(self) -> dict[str, float]:
+        return {name: float(total) / count for name, (total, count) in self.sums.items() if count}
+
+    def state(self) -> dict[str, list]:
+        return {name: [float(total), count] for name, (total, count) in self.sums.items()}
+
+
+def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device):
+    image = batch["image"].to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255.0)
+    cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
+        losses = vla_loss(
+            model, image, model.language_input(batch["instruction"], cached),
+            batch["proprio"].to(device, non_blocking=True), batch["action"].to(device, non_blocking=True),
+            batch["action_index"].to(device, non_blocking=True), cfg.contrastive_weight, cfg.temperature,
+        )
+    optimiser.zero_grad(set_to_none=True)
+    losses.total.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    optimiser.step()
+    schedule.step()
+    return losses
 
 
 def run_train(
@@ -79,83 +171,115 @@ def run_train(
     dataset: IndexResult,
     tasks_key: str,
     embeddings: dict[str, np.ndarray],
+    on_metrics: OnMetrics | None = None,
 ) -> TrainResult:
     catalog = Catalog(workspace.catalog)
+    cfg = config.train
     key = train_unit_key(config, dataset, tasks_key)
-    checkpoint = workspace.checkpoint(key)
+    checkpoint, state_path = workspace.checkpoint(key), workspace.train_state(key)
+    digest = selection_digest(dataset, cfg.where)
     existing = catalog.query("SELECT train_samples, dataset_shards FROM models WHERE model_key = ?", [key])
     if existing:
-        log.info("train it%d: model %s already trained on dataset %s, skipped", iteration, key, dataset.dataset_digest[:12])
-        return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=dataset.dataset_digest,
-                           samples=existing[0][0], dataset_shards=existing[0][1], history=[], skipped=True)
+        log.info("train it%d: model %s already trained on dataset %s, skipped", iteration, key, digest[:12])
+        return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=digest, samples=existing[0][0],
+                           dataset_shards=existing[0][1], history=[], resumed_at_step=0, skipped=True)
 
-    cfg = config.train
+    check_where(cfg.where)
     started = time.monotonic()
-    torch.manual_seed(derive_seed(config.name, config.seed, "train", key))
+    device = training_device(cfg.device)
+    threads_before = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
-    action_norm, proprio_norm = _normalisers(catalog, dataset)
-    rows = dataset.selection.rows(catalog)
+    torch.manual_seed(derive_seed(config.name, config.seed, "train", key))
+    rows = dataset.selection.rows(catalog, cfg.where)
+    if not rows:
+        raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
+    action_norm, proprio_norm = normalisers(catalog, dataset, cfg.where)
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
-    stream = StepStream(
-        rows, embeddings, cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"),
+    model = VLAModel(cfg.model, model_dims(config)).to(device)
+    optimiser = optimiser_for(model, cfg)
+    batches = StepBatches(
+        rows, cfg.batch_size, cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"), cfg.epochs,
+        cfg.loader_workers, TrainingCollate(action_norm, proprio_norm, embeddings if model.text is None else None),
     )
-    dims = ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, ENCODER_DIMS[cfg.model.language_encoder])
-    model = VLAModel(cfg.model, dims)
-    optimiser = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    total_steps = cfg.epochs * math.ceil(dataset.triplets / cfg.batch_size)
-    warmup = max(1, int(WARMUP_FRACTION * total_steps))
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimiser,
-        lambda s: min(1.0, (s + 1) / warmup) * 0.5 * (1 + math.cos(math.pi * min(1.0, s / total_steps))),
-    )
-    loader = DataLoader(stream, batch_size=cfg.batch_size, collate_fn=_collate, num_workers=0)
+    total_steps = cfg.epochs * batches.batches_per_epoch
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
+    step, history, epoch_means = 0, [], _Means()
+    if state_path.exists():
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        schedule.load_state_dict(state["schedule"])
+        torch.set_rng_state(state["rng"])
+        step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
+        log.info("train it%d: resuming %s at step %d/%d", iteration, key, step, total_steps)
+    resumed_at = step
+    batches.start_batch = step
     log.info(
-        "train it%d: %d triplets, %d epochs x %d steps, %.2fM parameters, dataset %s",
-        iteration, dataset.triplets, cfg.epochs, total_steps // cfg.epochs,
-        sum(p.numel() for p in model.parameters()) / 1e6, dataset.dataset_digest[:12],
+        "train it%d: %d triplets (%s), %d epochs x %d steps, %.2fM parameters on %s, dataset %s",
+        iteration, batches.rows_per_epoch, cfg.where or "all kept", cfg.epochs, batches.batches_per_epoch,
+        sum(p.numel() for p in model.parameters()) / 1e6, device, digest[:12],
     )
-    history = []
-    for epoch in range(cfg.epochs):
-        stream.set_epoch(epoch)
-        epoch_started, totals, seen = time.monotonic(), {}, 0
-        model.train()
+    loader = DataLoader(
+        batches, batch_size=None, num_workers=cfg.loader_workers, pin_memory=device.type == "cuda",
+        # spawned: a process forked after a Prefect flow ran in this one fails at exit (code 1)
+        multiprocessing_context="spawn" if cfg.loader_workers else None,
+        prefetch_factor=4 if cfg.loader_workers else None,
+    )
+    progress = Progress(log, f"train it{iteration}", total_steps, "steps", "samples")
+    progress.done = step
+    window, window_started, waited = _Means(), time.monotonic(), 0.0
+    epoch_started, epoch_samples = time.monotonic(), 0
+    model.train()
+    try:
+        wait_started = time.monotonic()
         for batch in loader:
-            losses = vla_loss(
-                model,
-                torch.from_numpy(batch["image"]).permute(0, 3, 1, 2).float() / 255.0,
-                torch.from_numpy(batch["language"]),
-                torch.from_numpy(proprio_norm.encode(batch["proprio"])),
-                torch.from_numpy(action_norm.encode(batch["action"])),
-                cfg.contrastive_weight,
-                cfg.temperature,
-            )
-            optimiser.zero_grad(set_to_none=True)
-            losses["loss"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            optimiser.step()
-            schedule.step()
-            size = len(batch["action"])
-            seen += size
-            for name, value in losses.items():
-                totals[name] = totals.get(name, 0.0) + value.item() * size
-        elapsed = time.monotonic() - epoch_started
-        record = {name: total / max(seen, 1) for name, total in totals.items()}
-        record.update(samples_per_s=seen / elapsed, lr=schedule.get_last_lr()[0])
-        history.append(record)
-        log.info(
-            "train it%d: epoch %d/%d loss %.3f (infonce %.3f, bc %.3f, action mse %.3f), %.0f samples/s",
-            iteration, epoch + 1, cfg.epochs, record["loss"], record["infonce"], record["bc"],
-            record["action_mse"], record["samples_per_s"],
-        )
-    save_checkpoint(checkpoint, model, action_norm, proprio_norm, cfg.model.language_encoder)
+            waited += time.monotonic() - wait_started
+            if int(batch["batch"]) != step:
+                raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
+            losses = train_step(model, optimiser, schedule, batch, cfg, device)
+            step += 1
+            size = len(batch["instruction"])
+            window.add(losses.terms, losses.counts)
+            epoch_means.add(losses.terms, losses.counts)
+            epoch_samples += size
+            progress.advance(1, size, log=step % cfg.log_every == 0)
+            if step % cfg.log_every == 0 or step == total_steps:
+                elapsed = time.monotonic() - window_started
+                metrics = {**window.means(), "lr": schedule.get_last_lr()[0],
+                           "samples_per_s": window.sums["loss"][1] / elapsed,
+                           "data_wait": waited / elapsed}
+                if on_metrics is not None:
+                    on_metrics(step, metrics)
+                window, window_started, waited = _Means(), time.monotonic(), 0.0
+            if step % batches.batches_per_epoch == 0:
+                record = {**epoch_means.means(), "lr": schedule.get_last_lr()[0],
+                          "samples_per_s": epoch_samples / (time.monotonic() - epoch_started)}
+                history.append(record)
+                log.info("train it%d: epoch %d/%d %s", iteration, len(history), cfg.epochs,
+                         ", ".join(f"{k} {v:.3g}" for k, v in record.items()))
+                epoch_means, epoch_started, epoch_samples = _Means(), time.monotonic(), 0
+            if step % cfg.checkpoint_every == 0 and step < total_steps:
+                save_atomically(state_path, {
+                    "model": model.state_dict(), "optimiser": optimiser.state_dict(),
+                    "schedule": schedule.state_dict(), "rng": torch.get_rng_state(), "step": step,
+                    "history": history, "epoch_means": epoch_means.state(),
+                })
+            wait_started = time.monotonic()
+    finally:
+        progress.close()
+        torch.set_num_threads(threads_before)
+    save_atomically(checkpoint, policy_state(model, action_norm, proprio_norm))
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-        summary={"final_loss": history[-1]["loss"], "epochs": cfg.epochs}, wall_s=time.monotonic() - started,
+        summary={"final_loss": history[-1]["loss"], "epochs": cfg.epochs, "steps": total_steps,
+                 "resumed_at_step": resumed_at, "where": cfg.where}, wall_s=time.monotonic() - started,
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,
-            "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": dataset.dataset_digest,
-            "dataset_shards": shards_read, "train_samples": dataset.triplets, "final_loss": history[-1]["loss"], "unit_key": key,
+            "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": digest,
+            "dataset_shards": shards_read, "train_samples": batches.rows_per_epoch,
+            "final_loss": history[-1]["loss"], "unit_key": key,
         }]},
     )
-    return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=dataset.dataset_digest,
-                       samples=dataset.triplets, dataset_shards=shards_read, history=history, skipped=False)
+    state_path.unlink(missing_ok=True)
+    return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=digest, samples=batches.rows_per_epoch,
+                       dataset_shards=shards_read, history=history, resumed_at_step=resumed_at, skipped=False)

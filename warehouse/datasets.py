@@ -14,6 +14,11 @@ from warehouse.training_reader import RowRange, select_rows
 _KEPT = "SELECT episode_id FROM filter_decisions WHERE kept AND list_contains(?, filter_key)"
 
 
+def _narrowed(where: str | None) -> str:
+    kept = f"episode_id IN ({_KEPT})"
+    return kept if where is None else f"{kept} AND ({where})"
+
+
 @dataclass(frozen=True)
 class Selection:
     explore_units: tuple[str, ...]
@@ -22,15 +27,16 @@ class Selection:
     def _params(self) -> list:
         return [list(self.explore_units), list(self.filter_units)]
 
-    def rows(self, catalog: Catalog) -> list[RowRange]:
-        """The kept steps, as the streaming reader takes them."""
-        return select_rows(catalog, f"episode_id IN ({_KEPT})", [list(self.filter_units)])
+    def rows(self, catalog: Catalog, where: str | None = None) -> list[RowRange]:
+        """The kept steps (those also matching `where`, SQL over the steps columns), as the
+        streaming reader takes them."""
+        return select_rows(catalog, _narrowed(where), [list(self.filter_units)])
 
-    def kept_steps(self, catalog: Catalog, columns: list[str]) -> pa.Table:
-        """Columns of the kept steps, in a fixed order: a parallel scan returns rows in varying
-        order, and float sums in another order differ in the last bits."""
+    def kept_steps(self, catalog: Catalog, columns: list[str], where: str | None = None) -> pa.Table:
+        """Columns of the kept steps (matching `where`), in a fixed order: a parallel scan returns
+        rows in varying order, and float sums in another order differ in the last bits."""
         return catalog.query_arrow(
-            f"SELECT {', '.join(columns)} FROM steps WHERE episode_id IN ({_KEPT}) ORDER BY episode_id, step",
+            f"SELECT {', '.join(columns)} FROM steps WHERE {_narrowed(where)} ORDER BY episode_id, step",
             [list(self.filter_units)],
         )
 

@@ -1,14 +1,19 @@
-"""Stream training samples out of the warehouse: a SQL WHERE over the steps picks the rows, the
+"""Stream training batches out of the warehouse: a SQL WHERE over the steps picks the rows, the
 rows stream from the Parquet shards row group by row group, split across DataLoader workers,
-through a shuffle buffer, images decoded in the workers as they are drawn.
+through a shuffle buffer, and are made into batches (frames decoded) in the workers.
 
 Memory is bounded by configuration (the shuffle buffer plus one row group per worker), never
 by the warehouse: the selection itself is held as row ranges (an episode is one range).
+
+The batch sequence is a pure function of (selection, seed, batch size, workers): batch g comes
+from worker g % W, every worker yields the same number per epoch, so a training resumed at batch
+g reads exactly what it would have read (`start_batch`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+import math
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,12 +40,9 @@ class RowRange:
     stop: int  # one past the last
 
 
-@dataclass
-class Sample:
-    image: np.ndarray  # uint8 (H, W, 3)
-    language: np.ndarray  # float32 instruction embedding
-    proprio: np.ndarray
-    action: np.ndarray
+Segment = tuple[str, int, int]  # (path, first row, one past the last)
+Piece = list[Segment]  # consecutive selected rows, the unit the shuffle permutes
+Collate = Callable[[list[dict]], dict[str, Any]]  # rows (COLUMNS, raw) -> a batch
 
 
 def select_rows(
@@ -72,23 +74,86 @@ def select_rows(
     return [RowRange(path, int(start), int(stop)) for path, start, stop in rows]
 
 
-class StepStream(IterableDataset):
+def partition(ranges: list[RowRange], workers: int, piece_rows: int) -> list[list[Piece]]:
+    """Each worker's pieces: the selection in order, cut into pieces of at most `piece_rows` rows
+    dealt round-robin, every worker getting exactly total // workers rows (so every worker yields
+    as many batches; the last total % workers rows of the selection are left out)."""
+    quota = sum(r.stop - r.start for r in ranges) // workers
+    remaining, parts = [quota] * workers, [[] for _ in range(workers)]
+    spans = iter(sorted((r.path, r.start, r.stop) for r in ranges))
+    path, start, stop = next(spans, ("", 0, 0))
+    worker = 0
+    while any(remaining):
+        want, piece = min(piece_rows, remaining[worker]), []
+        remaining[worker] -= want
+        while want:
+            if start == stop:
+                path, start, stop = next(spans)
+                continue
+            take = min(want, stop - start)
+            piece.append((path, start, start + take))
+            start, want = start + take, want - take
+        if piece:
+            parts[worker].append(piece)
+        worker = (worker + 1) % workers
+    return parts
+
+
+def decode_rows(rows: list[dict]) -> dict[str, Any]:
+    """The plain batch: frames decoded and stacked, the other columns as read."""
+    return {
+        "image": np.stack([decode_frame(r["image"]) for r in rows]),
+        "instruction": [r["instruction"] for r in rows],
+        "proprio": np.asarray([r["proprio"] for r in rows], dtype=np.float32),
+        "action": [r["action"] for r in rows],
+    }
+
+
+def check_where(where: str | None) -> None:
+    """Refuse a selection that does not parse or bind, before any work: bound against empty
+    tables of the warehouse's schemas (steps columns; subqueries over any table or view)."""
+    if where is None:
+        return
+    from schemas.tables import CATALOG_TABLES, EPISODES, FILTER_DECISIONS, INSTRUCTIONS, STEPS, VIEWS, catalog_ddl
+
+    with duckdb.connect() as con:
+        for name, schema in (("steps", STEPS), ("episodes", EPISODES), ("filter_decisions", FILTER_DECISIONS),
+                             ("instructions", INSTRUCTIONS)):
+            con.register(name, schema.empty_table())
+        for name in CATALOG_TABLES:
+            con.execute(catalog_ddl(name))
+        for name, sql in VIEWS.items():
+            con.execute(f"CREATE VIEW {name} AS {sql}")
+        try:
+            con.execute(f"SELECT count(*) FROM steps WHERE ({where})").fetchall()
+        except duckdb.Error as exc:
+            raise SelectionError(f"train.where: {where!r}: {str(exc).splitlines()[0]}") from None
+
+
+class StepBatches(IterableDataset):
+    """Batches (dicts from `collate`, plus `batch`: the global batch number) over `epochs` epochs,
+    for a DataLoader with batch_size=None and num_workers=`workers` (0: in the calling process)."""
+
     def __init__(
-        self, ranges: list[RowRange], embeddings: dict[str, np.ndarray], shuffle_buffer: int, seed: int
+        self, ranges: list[RowRange], batch_size: int, shuffle_buffer: int, seed: int, epochs: int,
+        workers: int = 0, collate: Collate = decode_rows, start_batch: int = 0, piece_rows: int = 1024,
     ):
-        by_file: dict[str, list[tuple[int, int]]] = {}
-        for r in ranges:
-            by_file.setdefault(r.path, []).append((r.start, r.stop))
-        self.files = sorted(by_file.items())
-        self.rows = sum(r.stop - r.start for r in ranges)
-        self.embeddings, self.shuffle_buffer, self.seed = embeddings, shuffle_buffer, seed
-        self.epoch = 0
+        self.streams = max(1, workers)
+        self.parts = partition(ranges, self.streams, piece_rows)
+        rows = sum(stop - start for piece in self.parts[0] for _, start, stop in piece)
+        if rows == 0:
+            raise SelectionError(f"{sum(r.stop - r.start for r in ranges)} selected rows cannot feed {self.streams} workers")
+        self.worker_batches = math.ceil(rows / batch_size)  # per worker per epoch
+        self.rows_per_epoch = rows * self.streams
+        self.batch_size, self.shuffle_buffer, self.seed, self.epochs = batch_size, shuffle_buffer, seed, epochs
+        self.collate, self.start_batch = collate, start_batch
+
+    @property
+    def batches_per_epoch(self) -> int:
+        return self.worker_batches * self.streams
 
     def __len__(self) -> int:
-        return self.rows
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
+        return max(0, self.epochs * self.batches_per_epoch - self.start_batch)
 
     @staticmethod
     def _rows(path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
@@ -104,26 +169,42 @@ class StepStream(IterableDataset):
                     yield from table.slice(a, b - a).to_pylist()
             first = last
 
-    def _sample(self, row: dict) -> Sample:
-        return Sample(
-            decode_frame(row["image"]),
-            self.embeddings[row["instruction"]],
-            np.asarray(row["proprio"], dtype=np.float32),
-            np.asarray(row["action"], dtype=np.float32),
-        )
+    def _epoch(self, stream: int, epoch: int) -> Iterator[list[dict]]:
+        """One worker's batches of rows for one epoch: its pieces in a seeded order, through the buffer."""
+        rng = np.random.default_rng([self.seed, epoch, stream])
+        pieces = self.parts[stream]
+        buffer: list[dict] = []
+        batch: list[dict] = []
+        for pick in rng.permutation(len(pieces)):
+            for path, start, stop in pieces[pick]:
+                for row in self._rows(path, [(start, stop)]):
+                    buffer.append(row)
+                    if len(buffer) >= self.shuffle_buffer:
+                        chosen = int(rng.integers(len(buffer)))
+                        buffer[chosen], buffer[-1] = buffer[-1], buffer[chosen]
+                        batch.append(buffer.pop())
+                        if len(batch) == self.batch_size:
+                            yield batch
+                            batch = []
+        for chosen in rng.permutation(len(buffer)):
+            batch.append(buffer[chosen])
+            if len(batch) == self.batch_size:
+                yield batch
+                batch = []
+        if batch:
+            yield batch
 
-    def __iter__(self) -> Iterator[Sample]:
+    def __iter__(self) -> Iterator[dict[str, Any]]:
         worker = get_worker_info()
         index, count = (worker.id, worker.num_workers) if worker else (0, 1)
-        rng = np.random.default_rng([self.seed, self.epoch, index])
-        mine = self.files[index::count]
-        buffer: list[dict] = []
-        for pick in rng.permutation(len(mine)):
-            for row in self._rows(*mine[pick]):
-                buffer.append(row)
-                if len(buffer) >= self.shuffle_buffer:
-                    chosen = int(rng.integers(len(buffer)))
-                    buffer[chosen], buffer[-1] = buffer[-1], buffer[chosen]
-                    yield self._sample(buffer.pop())
-        for chosen in rng.permutation(len(buffer)):
-            yield self._sample(buffer[chosen])
+        # The DataLoader takes batches from its workers round-robin starting at worker 0, so that
+        # worker plays the stream whose turn is next
+        stream = (index + self.start_batch) % count
+        if count != self.streams:
+            raise RuntimeError(f"StepBatches was split for {self.streams} workers, the DataLoader runs {count}")
+        per_epoch = self.worker_batches
+        skip = max(0, -(-(self.start_batch - stream) // count))  # this worker's batches before start_batch
+        for epoch in range(skip // per_epoch, self.epochs):
+            for k, rows in enumerate(self._epoch(stream, epoch)):
+                if epoch * per_epoch + k >= skip:  # skipped batches are read, never decoded
+                    yield {**self.collate(rows), "batch": (epoch * per_epoch + k) * count + stream}

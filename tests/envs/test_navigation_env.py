@@ -73,19 +73,6 @@ def test_bad_actions_are_refused():
         env.step(np.array([7]))
 
 
-def test_campaigns_refuse_navigation_until_the_discrete_head_exists(tmp_path):
-    import subprocess
-
-    from tests.conftest import SIM2ACT
-
-    config = tmp_path / "nav.yaml"
-    config.write_text("tasks: {specs: [lift, nav-room]}\n")
-    result = subprocess.run([SIM2ACT, "run", "--preset", "smoke", "--config", str(config), "--workspace",
-                             str(tmp_path / "ws")], capture_output=True, text=True, timeout=120)
-    assert result.returncode == 2 and "nav-room is a navigation task" in result.stderr
-    assert not (tmp_path / "ws").exists()
-
-
 def test_frames_stay_real_when_robosuite_renders_in_the_same_worker():
     """A worker caches one env per family; robosuite's renderer used to leave ours reading black."""
     from envs.robosuite_env import RobosuiteEnv

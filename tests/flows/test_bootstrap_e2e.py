@@ -125,7 +125,10 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         assert "filter.pass_rate" in metrics and "train.loss" in metrics
         lifts = {f"success.lift-{colour}" for colour in ("red", "green", "blue")}
         assert {k for k in metrics if k.startswith("success.")} == lifts | {f"{name}.paraphrase" for name in lifts}
-        assert len(client.get_metric_history(child.info.run_id, "train.loss")) == 4  # one point per epoch
+        # a point every train.log_every steps as it trains, and one at its last step
+        steps = [m.step for m in client.get_metric_history(child.info.run_id, "train.loss")]
+        assert len(steps) >= 4 and steps == sorted(set(steps)) and all(s % 20 == 0 for s in steps[:-1])
+        assert {"train.lr", "train.samples_per_s", "train.data_wait"} <= set(metrics)
         artifacts = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red")]
         assert any(path.endswith(".gif") for path in artifacts)
         # the training run's dataset input: the digest and the exact shard set it read
@@ -139,7 +142,17 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         registered = Catalog(ws.catalog).query(
             "SELECT path FROM shards WHERE table_name = 'steps' AND iteration <= ? ORDER BY path", [iteration])
         assert shards and set(shards) <= {path for (path,) in registered}
-    assert int(client.get_model_version_by_alias("sim2act-smoke", "champion").version) == 2
+    # the alias moved to iteration 1's model only if its evaluation beat iteration 0's
+    [(promoted, decision)] = Catalog(ws.catalog).query("SELECT promoted, decision FROM deployments WHERE iteration = 1")
+    champion = int(client.get_model_version_by_alias("sim2act-smoke", "champion").version)
+    assert champion == (2 if promoted else 1) and "champion" in decision
+    import mlflow
+    from mlflow.models import get_model_info
+
+    mlflow.set_tracking_uri(ws.tracking_uri)
+    info = get_model_info("models:/sim2act-smoke/2")
+    assert info.signature.inputs.input_names() == ["image", "proprio", "instruction", "family"]
+    assert info.signature.outputs.input_names() == ["action", "uncertainty"]
 
 
 def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(finished_campaign, prefect_api):

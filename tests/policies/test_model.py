@@ -1,26 +1,48 @@
+import math
+
+import numpy as np
+import pytest
 import torch
 
-from policies.model import ModelDims, VLAModel, info_nce, vla_loss
+from policies.model import ModelDims, ModelOutput, VLAModel, info_nce, uncertainty, vla_loss
 from schemas.config import ModelConfig
 
-DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, language_dim=384)
+DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, discrete_actions=4, language_dim=384)
+SMALL = ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1)
 
 
-def _batch(n: int = 16):
+def _batch(n: int = 16, discrete: int = 0):
+    """n samples, the last `discrete` of them with a discrete action."""
     generator = torch.Generator().manual_seed(0)
+    action = torch.randn(n, 7, generator=generator)
+    index = torch.full((n,), -1, dtype=torch.long)
+    if discrete:
+        index[n - discrete:] = torch.arange(discrete) % 4
+        action[n - discrete:] = 0.0
     return (
         torch.rand(n, 3, 84, 84, generator=generator),
         torch.randn(n, 384, generator=generator),
         torch.randn(n, 9, generator=generator),
-        torch.randn(n, 7, generator=generator),
+        action,
+        index,
     )
 
 
-def test_forward_shapes():
-    model = VLAModel(ModelConfig(dim=32, heads=4), DIMS)
-    image, language, proprio, _ = _batch(5)
-    z, mu, log_std = model(image, language, proprio)
-    assert z.shape == (5, 32) and mu.shape == (5, 7) and log_std.shape == (5, 7)
+@pytest.mark.parametrize("vision", ["vit", "resnet18"])
+def test_forward_shapes(vision):
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision=vision), DIMS)
+    image, language, proprio, _, _ = _batch(5)
+    out = model(image, language, proprio)
+    assert out.z_ol.shape == (5, 32) and out.mu.shape == (5, 7) and out.log_std.shape == (5, 7)
+    assert out.logits.shape == (5, 4)
+
+
+def test_resnet18_has_the_paper_layout():
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision="resnet18", resnet_width=64), DIMS)
+    convs = [m for m in model.vision.features.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size != (1, 1)]
+    assert len(convs) == 17  # the stem and 16 in the 8 basic blocks: 18 weight layers with the fc
+    vision_parameters = sum(p.numel() for p in model.vision.parameters()) - 512 * 32 - 32 - model.vision.position.numel()
+    assert abs(vision_parameters - 11.17e6) < 0.05e6  # torchvision's resnet18 less its fc layer
 
 
 def test_info_nce_prefers_matching_pairs():
@@ -30,22 +52,58 @@ def test_info_nce_prefers_matching_pairs():
 
 def test_loss_mixes_infonce_and_bc_by_lambda():
     torch.manual_seed(0)
-    model = VLAModel(ModelConfig(dim=32, heads=4), DIMS)
+    model = VLAModel(SMALL, DIMS)
     losses = vla_loss(model, *_batch(), contrastive_weight=0.25, temperature=0.1)
-    expected = 0.25 * losses["infonce"] + 0.75 * (losses["action_mse"] + losses["bc_nll"])
-    assert torch.allclose(losses["loss"], expected)
+    t = losses.terms
+    assert torch.allclose(losses.total.detach(), 0.25 * t["infonce"] + 0.75 * (t["action_mse"] + t["bc_nll"]))
+    assert "discrete_ce" not in t and losses.counts["action_mse"] == 16
 
 
-def test_training_fits_a_small_batch():
+def test_bc_is_cross_entropy_for_discrete_samples_and_gaussian_for_continuous():
     torch.manual_seed(0)
-    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1), DIMS)
-    batch = _batch(16)
+    model = VLAModel(SMALL, DIMS)
+    losses = vla_loss(model, *_batch(16, discrete=6), contrastive_weight=0.0, temperature=0.1)
+    t, c = losses.terms, losses.counts
+    assert c["discrete_ce"] == 6 and c["action_mse"] == 10
+    expected = (6 * t["discrete_ce"] + 10 * (t["action_mse"] + t["bc_nll"])) / 16
+    assert torch.allclose(losses.total.detach(), expected, atol=1e-5)
+
+
+def test_training_fits_a_small_mixed_batch():
+    torch.manual_seed(0)
+    model = VLAModel(SMALL, DIMS)
+    batch = _batch(16, discrete=8)
     optimiser = torch.optim.AdamW(model.parameters(), lr=3e-3)
-    first = None
+    first = vla_loss(model, *batch, contrastive_weight=0.2, temperature=0.1).terms
     for _ in range(150):
         losses = vla_loss(model, *batch, contrastive_weight=0.2, temperature=0.1)
         optimiser.zero_grad()
-        losses["loss"].backward()
+        losses.total.backward()
         optimiser.step()
-        first = first if first is not None else losses["action_mse"].item()
-    assert losses["action_mse"].item() < 0.35 * first
+    assert losses.terms["action_mse"] < 0.35 * first["action_mse"]
+    assert losses.terms["discrete_accuracy"] == 1.0 and losses.terms["infonce"] < first["infonce"]
+
+
+def test_uncertainty_is_entropy_or_log_det_sigma():
+    uniform = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -1.0), torch.zeros(1, 4))
+    assert uncertainty(uniform, discrete=True).item() == pytest.approx(math.log(4))
+    assert uncertainty(uniform, discrete=False).item() == pytest.approx(2 * 7 * -1.0)
+    sure = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -3.0), torch.tensor([[20.0, 0, 0, 0]]))
+    assert uncertainty(sure, True) < uncertainty(uniform, True) and uncertainty(sure, False) < uncertainty(uniform, False)
+
+
+def test_fine_tuned_language_encoder_starts_from_the_pretrained_weights_and_learns():
+    from policies.language import encode
+
+    torch.manual_seed(0)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, language_trainable=True), DIMS)
+    texts = ["lift the red cube", "pick up the green block", "lift the red cube"]
+    embedded = model.language_input(texts, cached=None)
+    assert np.allclose(embedded.detach().numpy(), encode("all-MiniLM-L6-v2", texts), atol=1e-5)
+    image, _, proprio, action, index = _batch(3)
+    losses = vla_loss(model, image, embedded, proprio, action, index, 0.5, 0.1)
+    losses.total.backward()
+    gradients = [p.grad for p in model.text.parameters() if p.grad is not None]
+    assert gradients and any(g.abs().sum() > 0 for g in gradients)
+    with pytest.raises(ValueError, match="cached instruction embeddings"):
+        VLAModel(SMALL, DIMS).language_input(texts, cached=None)

@@ -75,3 +75,16 @@ def test_seeds_are_stable_and_distinct():
 def test_config_error_is_a_value_error():
     with pytest.raises(ConfigError, match="unknown preset"):
         load_config("huge")
+
+
+def test_set_overrides_name_fields_by_path_and_are_validated_like_the_file():
+    from schemas.config import parse_settings
+
+    overrides = parse_settings(["train.contrastive_weight=0", "tasks.colours=[red, blue]", "train.model.vision=resnet18"])
+    config = load_config("smoke", None, overrides)
+    assert (config.train.contrastive_weight, config.tasks.colours, config.train.model.vision) == (0.0, ["red", "blue"], "resnet18")
+    assert config.train.epochs == load_config("smoke").train.epochs  # the rest stays the preset's
+    with pytest.raises(ConfigError, match=r"^train\.model\.vision: "):
+        load_config("smoke", None, parse_settings(["train.model.vision=alexnet"]))
+    with pytest.raises(ConfigError, match="is not FIELD.PATH=VALUE"):
+        parse_settings(["contrastive_weight"])

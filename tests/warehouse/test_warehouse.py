@@ -11,6 +11,7 @@ from collections import Counter
 import numpy as np
 import pyarrow as pa
 import pytest
+import torch
 from torch.utils.data import DataLoader
 
 from schemas.workspace import Workspace
@@ -18,7 +19,7 @@ from tests.warehouse.filled import fill
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import SchemaMismatch, write_shard
 from warehouse.sql import run_sql
-from warehouse.training_reader import SelectionError, StepStream, select_rows
+from warehouse.training_reader import RowRange, SelectionError, StepBatches, partition, select_rows
 
 
 @pytest.fixture
@@ -126,30 +127,58 @@ def test_verify_finds_a_file_whose_bytes_changed(filled):
     assert [p for p, _ in bad] == [victim] and "sha256" in bad[0][1]
 
 
-def test_select_rows_and_stream_every_selected_step_once_across_workers(filled):
+def _actions(batches) -> list[tuple]:
+    return [tuple(np.float32(a).tolist()) for b in batches for a in b["action"]]
+
+
+def test_select_rows_and_stream_every_selected_step_once_per_epoch_across_workers(filled):
     catalog = Catalog(filled.catalog)
     where = "task_id LIKE 'lift%' AND step < 7"
     ranges = select_rows(catalog, where)
     expected = catalog.query(f"SELECT count(*) FROM steps WHERE {where}")[0][0]
     assert expected > 0 and sum(r.stop - r.start for r in ranges) == expected
     assert len(ranges) <= catalog.query(f"SELECT count(DISTINCT episode_id) FROM steps WHERE {where}")[0][0]
-    embeddings = {f"do {t}": np.full(4, i, np.float32) for i, t in enumerate(
-        r[0] for r in catalog.query("SELECT DISTINCT task_id FROM steps"))}
-    stream = StepStream(ranges, embeddings, shuffle_buffer=8, seed=1)
+    batches = StepBatches(ranges, batch_size=5, shuffle_buffer=8, seed=1, epochs=2, workers=2, piece_rows=7)
     # spawned, as training inside a flow must: a child forked after Prefect ran in this process
     # (another test's flow) fails at exit on Prefect's inherited at-exit hooks (exit code 1)
-    loader = DataLoader(stream, batch_size=None, num_workers=2, multiprocessing_context="spawn")
-    samples = list(loader)
-    assert len(samples) == expected
-    assert all(s.image.shape == (84, 84, 3) and s.image.dtype == np.uint8 for s in samples)
-    actions = sorted(tuple(s.action.tolist()) for s in samples)
-    stored = sorted(tuple(np.float32(a).tolist()) for (a,) in catalog.query(f"SELECT action FROM steps WHERE {where}"))
-    assert actions == stored
-    # shuffled, reproducibly per epoch
-    once = [tuple(s.action) for s in StepStream(ranges, embeddings, 8, seed=1)]
-    again = [tuple(s.action) for s in StepStream(ranges, embeddings, 8, seed=1)]
-    assert once == again and once != [tuple(a) for (a,) in catalog.query(
-        f"SELECT action FROM steps WHERE {where} ORDER BY episode_id, step")]
+    loader = DataLoader(batches, batch_size=None, num_workers=2, multiprocessing_context="spawn")
+    read = list(loader)
+    assert [int(b["batch"]) for b in read] == list(range(len(batches))) and len(batches) == 2 * batches.batches_per_epoch
+    assert all(b["image"].shape[1:] == (84, 84, 3) and b["image"].dtype == torch.uint8 for b in read)
+    per_epoch = batches.batches_per_epoch
+    stored = Counter(tuple(np.float32(a).tolist()) for (a,) in catalog.query(f"SELECT action FROM steps WHERE {where}"))
+    for epoch in range(2):
+        seen = Counter(_actions(read[epoch * per_epoch:(epoch + 1) * per_epoch]))
+        # every step at most once; workers get equal shares, so up to workers - 1 steps sit an epoch out
+        assert not seen - stored and sum((stored - seen).values()) == expected % 2
+    assert _actions(read[:per_epoch]) != _actions(read[per_epoch:])  # each epoch reshuffled
+
+
+def test_a_resumed_stream_reads_exactly_the_rest_of_the_sequence(filled):
+    ranges = select_rows(Catalog(filled.catalog), "TRUE")
+    sizes = dict(batch_size=4, shuffle_buffer=16, seed=3, epochs=3, piece_rows=9)
+    for workers in (0, 2):
+        context = "spawn" if workers else None
+        full = list(DataLoader(StepBatches(ranges, workers=workers, **sizes), batch_size=None, num_workers=workers,
+                               multiprocessing_context=context))
+        for start in (1, 7, len(full) // 2 + 1):
+            rest = list(DataLoader(StepBatches(ranges, workers=workers, start_batch=start, **sizes), batch_size=None,
+                                   num_workers=workers, multiprocessing_context=context))
+            assert [int(b["batch"]) for b in rest] == list(range(start, len(full)))
+            assert _actions(rest) == _actions(full[start:])
+    shuffled = _actions(full[: len(full) // 3])
+    in_order = [tuple(np.float32(a).tolist()) for (a,) in Catalog(filled.catalog).query(
+        "SELECT action FROM steps ORDER BY episode_id, step")]
+    assert shuffled != in_order[: len(shuffled)]
+
+
+def test_partition_gives_every_worker_the_same_rows():
+    ranges = [RowRange("a", 0, 10), RowRange("a", 20, 23), RowRange("b", 5, 30)]
+    parts = partition(ranges, workers=3, piece_rows=4)
+    rows = [[(p, r) for piece in part for p, a, b in piece for r in range(a, b)] for part in parts]
+    assert [len(r) for r in rows] == [12, 12, 12]
+    everything = [(r.path, n) for r in ranges for n in range(r.start, r.stop)]
+    assert sorted(sum(rows, [])) == everything[:36]  # the last 38 % 3 rows of the selection sit out
 
 
 def test_a_bad_selection_is_one_clear_error(filled):

@@ -1,0 +1,384 @@
+"""`sim2act bench train`: training throughput through the real train stage, and the trained
+policy's latency, side by side in one run.
+
+- the train stage end to end (`run_train`: SQL selection, Parquet reads, shuffle buffer, frames
+  decoded in the DataLoader worker, AdamW steps, checkpoints, registration) on a fresh copy of a
+  synthetic warehouse (real Parquet shards, real PNG frames, decided by the real filter stage and
+  indexed by the real index stage), the campaign's default train settings; its own
+  `on_metrics` points give samples/s and the fraction of wall time spent waiting for data;
+- (reference) the same training steps on batches built once in memory by the same collate, no
+  reader and no DataLoader: what the reader costs is the ratio of the two;
+- the same stage with `loader_workers: 0`, with the ResNet-18 vision encoder, and with the
+  language encoder fine-tuned (full size only);
+- on a GPU, the default stage case on cuda at batch sizes 256 and 1024;
+- `Policy.act` latency at batch 1 on an 84x84 frame, with 1 torch thread (what evaluation and
+  explore workers run with) and with 2.
+
+Every stage figure skips the run's first logged window (loader start, warm-up).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import os
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel
+
+from bench.rollout import _Meter
+from bench.synthetic import TASKS, frame, register_explore_unit
+from envs.observation import PROPRIO_DIM
+from schemas.config import CampaignConfig, TrainConfig
+from schemas.workspace import Workspace
+from stages.index import IndexResult
+from warehouse.catalog import Catalog
+
+CAMPAIGN = "bench"  # the synthetic units' campaign: the config's name must match it
+TASKS_KEY = "bench-tasks"
+FAMILY = "robosuite"
+LANGUAGE_DIM = 384  # all-MiniLM-L6-v2, the default (frozen) encoder
+DATA_WAIT_TARGET = 0.10  # at most
+LATENCY_P95_TARGET_MS = 20.0  # at most
+
+
+class TrainSizes(BaseModel):
+    units: int = 10  # synthetic explore units of the warehouse
+    episodes_per_unit: int = 4
+    steps_per_episode: int = 100  # every frame of an episode differs
+    steps: int = 300  # training steps per stage case at least: epochs are rounded up to reach it
+    log_every: int = 10  # steps per metrics window
+    latency_calls: int = 200
+    latency_warmup: int = 10
+    variants: bool = True  # loader_workers 0, resnet18, fine-tuned language encoder
+    cuda_batches: list[int] = [256, 1024]
+
+
+# seconds, for tests and a smoke check; the figures mean little at these sizes
+QUICK = TrainSizes(units=2, episodes_per_unit=4, steps_per_episode=50, steps=6, log_every=2, latency_calls=20,
+                   variants=False)
+
+
+class TrainRow(BaseModel):
+    case: str
+    name: str
+    device: str | None = None
+    batch_size: int | None = None
+    loader_workers: int | None = None  # None: no DataLoader
+    steps: int | None = None  # training steps run (latency: act() calls timed)
+    windows: int | None = None  # metrics windows the figures are over (the first skipped)
+    samples_per_s: float | None = None  # median over the windows
+    data_wait: float | None = None  # mean over the windows: fraction of wall time waiting for the DataLoader
+    threads: int | None = None  # torch threads
+    p50_ms: float | None = None
+    p95_ms: float | None = None
+    wall_s: float | None = None
+    other_load: float | None = None  # cores the machine's other processes kept busy meanwhile
+    note: str = ""
+
+
+class Ratio(BaseModel):
+    name: str
+    value: float
+    unit: str = "x"  # x (a ratio), % (a fraction, shown as a percentage) or ms
+    target: float | None = None
+    at_most: bool = False  # the target is an upper bound
+    met: bool | None = None
+
+
+class TrainBench(BaseModel):
+    cpus: int
+    torch_threads: int  # torch's threads when the bench started (the stage sets train.threads)
+    gpu: str  # its name, or "no GPU"
+    triplets: int  # training samples per epoch
+    frame_size: int
+    rows: list[TrainRow]
+    ratios: list[Ratio]
+
+
+def _config(train: dict[str, Any]) -> CampaignConfig:
+    return CampaignConfig.model_validate({"name": CAMPAIGN, "train": train})
+
+
+def _embeddings() -> dict[str, np.ndarray]:
+    return {f"do {task}": np.zeros(LANGUAGE_DIM, np.float32) for task in TASKS}
+
+
+def _register_tasks(workspace: Workspace) -> None:
+    rows = [
+        {"campaign": CAMPAIGN, "task_id": t, "spec": t.split("-")[0],
+         "family": "metaworld" if t.startswith("mw") else FAMILY, "env_name": "Lift", "instruction": f"do {t}",
+         "instructions": [f"do {t}"], "unseen_instructions": [], "object_colours": json.dumps({}), "split": "seen",
+         "horizon": 100, "unit_key": TASKS_KEY}
+        for t in TASKS
+    ]
+    Catalog(workspace.catalog).register_unit(unit_key=TASKS_KEY, stage="generate_tasks", campaign=CAMPAIGN,
+                                             iteration=0, summary={}, rows={"tasks": rows})
+
+
+def build_warehouse(workspace: Workspace, sizes: TrainSizes) -> IndexResult:
+    """Synthetic explore units, decided by the real filter stage and indexed by the real index stage."""
+    from stages.filter import run_filter
+    from stages.index import run_index
+
+    Catalog(workspace.catalog).initialise()
+    _register_tasks(workspace)
+    keys = [f"explore-u{u}" for u in range(sizes.units)]
+    for u, key in enumerate(keys):
+        register_explore_unit(workspace, key, campaign=CAMPAIGN, seed=u, episodes=sizes.episodes_per_unit,
+                              steps=sizes.steps_per_episode, unique_frames=sizes.steps_per_episode)
+    config = _config({})
+    filtered = run_filter(workspace, config, 0, keys)
+    return run_index(workspace, config, 0, keys, filtered.unit_keys, None)
+
+
+def _batches_per_epoch(catalog: Catalog, dataset: IndexResult, batch_size: int, workers: int) -> int:
+    from warehouse.training_reader import StepBatches
+
+    return StepBatches(dataset.selection.rows(catalog), batch_size, 1, 0, 1, workers).batches_per_epoch
+
+
+def _window_figures(samples_per_s: list[float], data_wait: list[float] | None) -> tuple[float, float | None, int]:
+    """(median samples/s, mean data wait, windows) over the windows after the first (warm-up)."""
+    skip = 1 if len(samples_per_s) > 1 else 0
+    rates = samples_per_s[skip:]
+    waits = None if data_wait is None else data_wait[skip:]
+    return statistics.median(rates), None if waits is None else statistics.fmean(waits), len(rates)
+
+
+def _parameters(checkpoint: Path) -> float:
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"]
+    return sum(v.numel() for v in state.values()) / 1e6
+
+
+def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: TrainSizes, case: str, name: str,
+                   train: dict[str, Any]) -> tuple[TrainRow, Path]:
+    """The train stage on a fresh copy of the warehouse: -> (its row, the checkpoint it wrote)."""
+    from stages.train import run_train, training_device
+
+    workspace = Workspace.at(root / case)
+    shutil.copytree(source.root, workspace.root)
+    defaults = TrainConfig()
+    batch_size = train.get("batch_size", defaults.batch_size)
+    workers = train.get("loader_workers", defaults.loader_workers)
+    per_epoch = _batches_per_epoch(Catalog(workspace.catalog), dataset, batch_size, workers)
+    epochs = max(1, math.ceil(sizes.steps / per_epoch))
+    config = _config({**train, "epochs": epochs, "log_every": sizes.log_every})
+    device = training_device(config.train.device).type
+    points: list[tuple[int, dict[str, float]]] = []
+    meter = _Meter()
+    result = run_train(workspace, config, 0, dataset, TASKS_KEY, _embeddings(),
+                       on_metrics=lambda step, metrics: points.append((step, metrics)))
+    wall_s = time.perf_counter() - meter.wall
+    if result.skipped or not points:
+        raise RuntimeError(f"bench train {case}: the stage trained nothing ({len(points)} metrics points)")
+    rate, wait, windows = _window_figures([m["samples_per_s"] for _, m in points], [m["data_wait"] for _, m in points])
+    checkpoint = Path(result.checkpoint)
+    steps = epochs * per_epoch
+    row = TrainRow(
+        case=case, name=name, device=device, batch_size=batch_size, loader_workers=workers, steps=steps,
+        windows=windows, samples_per_s=rate, data_wait=wait, threads=config.train.threads, wall_s=wall_s,
+        other_load=meter.other_load(),
+        note=f"{epochs} epoch(s) x {per_epoch} steps; {_parameters(checkpoint):.2f}M parameters; "
+             f"{steps / wall_s:.1f} steps/s over the whole stage call (loader start, checkpoints included)",
+    )
+    return row, checkpoint
+
+
+def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, steps: int) -> TrainRow:
+    """The reference: `steps` training steps as the stage takes them (same model, optimiser, schedule,
+    threads, device, batch size, collate), on batches built once in memory; windows as the stage's."""
+    from torch.utils.data import default_convert
+
+    from policies.model import VLAModel
+    from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, train_step, training_device,
+                              warmup_cosine)
+    from warehouse.training_reader import COLUMNS
+
+    catalog = Catalog(source.catalog)
+    config = _config({"log_every": sizes.log_every})
+    cfg = config.train
+    device = training_device(cfg.device)
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(0)
+    action_norm, proprio_norm = normalisers(catalog, dataset, cfg.where)
+    rows = dataset.selection.kept_steps(catalog, list(COLUMNS), cfg.where).to_pylist()
+    collate = TrainingCollate(action_norm, proprio_norm, _embeddings())
+    order = np.random.default_rng(0).permutation(len(rows))
+    batches = [default_convert(collate([rows[i] for i in order[first : first + cfg.batch_size]]))
+               for first in range(0, len(rows), cfg.batch_size)]
+    if device.type == "cuda":  # as the stage's DataLoader hands them over (pin_memory)
+        batches = [{k: v.pin_memory() if torch.is_tensor(v) else v for k, v in b.items()} for b in batches]
+    model = VLAModel(cfg.model, model_dims(config)).to(device)
+    optimiser = optimiser_for(model, cfg)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(steps))
+    model.train()
+    rates: list[float] = []
+    meter = _Meter()
+    window_started, samples = time.perf_counter(), 0
+    for step in range(1, steps + 1):
+        batch = batches[(step - 1) % len(batches)]
+        train_step(model, optimiser, schedule, batch, cfg, device)
+        samples += len(batch["instruction"])
+        if step % cfg.log_every == 0 or step == steps:
+            now = time.perf_counter()
+            rates.append(samples / (now - window_started))
+            window_started, samples = now, 0
+    wall_s = time.perf_counter() - meter.wall
+    rate, _, windows = _window_figures(rates, None)
+    return TrainRow(
+        case="memory", name="the same steps on in-memory batches (no reader, no DataLoader)", device=device.type,
+        batch_size=cfg.batch_size, steps=steps, windows=windows, samples_per_s=rate, threads=cfg.threads,
+        wall_s=wall_s, other_load=meter.other_load(),
+        note=f"{len(batches)} batches collated once (frames decoded, tensors), cycled",
+    )
+
+
+def run_latency(checkpoint: Path, vision: str, threads: int, sizes: TrainSizes, image_size: int) -> TrainRow:
+    """`Policy.act` at batch 1 on real-sized frames, as evaluation and explore workers call it."""
+    from policies.policy import Policy
+
+    instruction = f"do {TASKS[0]}"
+    policy = Policy.load(checkpoint, {instruction: _embeddings()[instruction]})  # embeddings cached, as workers have
+    frames = [frame(image_size, (200, 40, 40), step) for step in range(8)]
+    proprio = np.random.default_rng(0).normal(size=(8, PROPRIO_DIM)).astype(np.float32)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for call in range(sizes.latency_warmup):
+            policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)
+        times = []
+        meter = _Meter()
+        for call in range(sizes.latency_calls):
+            started = time.perf_counter()
+            decision = policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)
+            times.append(time.perf_counter() - started)
+        wall_s = time.perf_counter() - meter.wall
+    finally:
+        torch.set_num_threads(previous)
+    if decision.action.shape != (7,) or not np.isfinite(decision.uncertainty):
+        raise RuntimeError(f"bench train: act() gave {decision}")
+    p50, p95 = np.percentile(np.asarray(times) * 1000, [50, 95])
+    return TrainRow(
+        case=f"act-{vision}-{threads}", name=f"Policy.act, {vision}, batch 1, {threads} thread{'s' * (threads > 1)}",
+        device="cpu", batch_size=1, steps=sizes.latency_calls, threads=threads, p50_ms=float(p50), p95_ms=float(p95),
+        wall_s=wall_s, other_load=meter.other_load(),
+        note=f"{image_size}x{image_size} uint8 frame, {sizes.latency_warmup} warm-up calls; checkpoint loaded on CPU",
+    )
+
+
+def _gpu() -> str:
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+
+
+def _ratio(name: str, value: float, unit: str = "x", target: float | None = None, at_most: bool = False) -> Ratio:
+    met = None if target is None else (value <= target if at_most else value >= target)
+    return Ratio(name=name, value=value, unit=unit, target=target, at_most=at_most, met=met)
+
+
+def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
+    cpus, torch_threads = os.cpu_count() or 1, torch.get_num_threads()
+    image_size = CampaignConfig().render.image_size
+    root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
+    try:
+        source = Workspace.at(root / "warehouse").create()
+        dataset = build_warehouse(source, sizes)
+        default, checkpoint = run_stage_case(source, dataset, root, sizes, "stage",
+                                             "train stage, default settings (ViT, loader_workers 1)", {})
+        rows = [default, run_in_memory(source, dataset, sizes, default.steps)]
+        checkpoints = {"vit": checkpoint}
+        if sizes.variants:
+            variants = [
+                ("workers0", "train stage, loader_workers 0 (decoding in the training process)",
+                 {"loader_workers": 0}),
+                ("resnet18", "train stage, ResNet-18 vision encoder (width 16)", {"model": {"vision": "resnet18"}}),
+                ("minilm", "train stage, language encoder fine-tuned (MiniLM in the model)",
+                 {"model": {"language_trainable": True}}),
+            ]
+            for case, name, train in variants:
+                row, trained = run_stage_case(source, dataset, root, sizes, case, name, train)
+                rows.append(row)
+                if case == "resnet18":
+                    checkpoints["resnet18"] = trained
+        if torch.cuda.is_available():
+            for batch_size in sizes.cuda_batches:
+                rows.append(run_stage_case(source, dataset, root, sizes, f"cuda{batch_size}",
+                                           f"train stage on cuda, batch {batch_size}",
+                                           {"device": "cuda", "batch_size": batch_size})[0])
+        else:
+            rows.append(TrainRow(case="cuda", name="train stage on cuda, batch " +
+                                 " and ".join(map(str, sizes.cuda_batches)), note="skipped: torch sees no GPU"))
+        for vision, trained in checkpoints.items():
+            rows += [run_latency(trained, vision, threads, sizes, image_size) for threads in (1, 2)]
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    return TrainBench(cpus=cpus, torch_threads=torch_threads, gpu=_gpu(), triplets=dataset.triplets,
+                      frame_size=image_size, rows=rows, ratios=_ratios({r.case: r for r in rows}))
+
+
+def _ratios(rows: dict[str, TrainRow]) -> list[Ratio]:
+    stage = rows["stage"]
+    ratios = [_ratio("train stage / in-memory batches, samples/s", stage.samples_per_s / rows["memory"].samples_per_s)]
+    for case in ("stage", "cuda256", "cuda1024"):
+        if case in rows and rows[case].data_wait is not None:
+            ratios.append(_ratio(f"data wait, {rows[case].name}", rows[case].data_wait, "%", DATA_WAIT_TARGET,
+                                 at_most=True))
+    for case, name in (("workers0", "loader_workers 0 / 1"), ("resnet18", "ResNet-18 / ViT"),
+                       ("minilm", "fine-tuned / frozen language encoder")):
+        if case in rows:
+            ratios.append(_ratio(f"{name}, stage samples/s", rows[case].samples_per_s / stage.samples_per_s))
+    for row in rows.values():
+        if row.p95_ms is not None:
+            ratios.append(_ratio(f"p95 latency, {row.name}", row.p95_ms, "ms", LATENCY_P95_TARGET_MS, at_most=True))
+    return ratios
+
+
+def _figure(value: float | None, digits: int = 0) -> str:
+    return "" if value is None else f"{value:,.{digits}f}"
+
+
+def _value(ratio: Ratio, value: float) -> str:
+    return f"{value:.1%}" if ratio.unit == "%" else f"{value:.1f} ms" if ratio.unit == "ms" else f"{value:.2f}"
+
+
+def markdown(bench: TrainBench, command: str) -> str:
+    lines = [
+        "# Training benchmark: the train stage vs in-memory batches, and the policy's latency",
+        "",
+        f"Made by `{command}` on {datetime.date.today().isoformat()}, {bench.cpus} CPUs, torch {bench.torch_threads} "
+        f"threads, {bench.gpu}. A synthetic warehouse of {bench.triplets:,} triplets ({bench.frame_size}x"
+        f"{bench.frame_size} PNG frames, real Parquet shards, the real filter and index stages); every stage case "
+        "trains on a fresh copy of it through `run_train` with the campaign's default train settings but the "
+        "row's, its figures from the stage's own metrics points: samples/s the median and data wait (the share "
+        "of wall time blocked on the DataLoader) the mean over the windows after the first (loader start, "
+        "warm-up). The in-memory reference runs the same steps on batches collated once. Latency: `Policy.act` "
+        "on one frame, cached instruction embedding. Other load = cores the machine's other processes kept busy "
+        "meanwhile (above ~0.1, the figures are slowed by them).",
+        "",
+        "| case | what | device | batch | loader workers | steps | samples/s | data wait | threads | p50 ms | p95 ms "
+        "| wall s | other load | notes |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r.case} | {r.name} | {r.device or ''} | {_figure(r.batch_size)} | {_figure(r.loader_workers)} | "
+        f"{_figure(r.steps)} | {_figure(r.samples_per_s)} | "
+        f"{'' if r.data_wait is None else f'{r.data_wait:.1%}'} | {_figure(r.threads)} | {_figure(r.p50_ms, 2)} | "
+        f"{_figure(r.p95_ms, 2)} | {_figure(r.wall_s, 2 if (r.wall_s or 0) < 1 else 1)} | {_figure(r.other_load, 2)} | {r.note} |"
+        for r in bench.rows
+    ]
+    lines += ["", "| ratio | value | target | met |", "|---|---|---|---|"]
+    lines += [
+        f"| {r.name} | {_value(r, r.value)} | "
+        f"{'' if r.target is None else ('<= ' if r.at_most else '>= ') + _value(r, r.target)} | "
+        f"{'' if r.met is None else '✓' if r.met else '✗'} |"
+        for r in bench.ratios
+    ]
+    return "\n".join(lines) + "\n"

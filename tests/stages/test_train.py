@@ -1,0 +1,164 @@
+"""Training on a real warehouse (lift and navigation rollouts by the scripted experts): mixed
+discrete and continuous actions, `sim2act train` alone with MLflow metrics, a real SIGKILL and
+resume to the same weights, bad selections refused before any work."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from mlflow import MlflowClient
+
+from policies.policy import Policy
+from schemas.config import load_config
+from schemas.workspace import Workspace
+from stages.explore import run_explore
+from stages.filter import run_filter
+from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
+from stages.index import run_index
+from stages.train import run_train
+from tests.conftest import SIM2ACT
+from warehouse.catalog import Catalog
+
+CAMPAIGN = {
+    "name": "train-test",
+    "tasks": {"specs": ["lift", "nav-room"], "colours": ["red", "green"], "horizon": {"lift": 40, "nav-room": 12}},
+    "explore": {"episodes_per_task": 2, "episodes_per_shard": 2, "workers": 2},
+    "filter": {"min_return": 0.0},
+    "train": {"epochs": 3, "batch_size": 16, "checkpoint_every": 4, "log_every": 2, "loader_workers": 1,
+              "model": {"dim": 32, "heads": 4, "vision_depth": 1, "fusion_depth": 1}},
+}
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory) -> tuple[Path, Path]:
+    """(config file, workspace holding iteration 0's dataset, nothing trained)."""
+    root = tmp_path_factory.mktemp("train")
+    config_file = root / "campaign.yaml"
+    config_file.write_text(yaml.safe_dump(CAMPAIGN))
+    config = load_config("smoke", config_file)
+    workspace = Workspace.at(root / "workspace").create()
+    Catalog(workspace.catalog).initialise()
+    tasks = run_generate_tasks(workspace, config)
+    embeddings = load_embeddings(workspace, tasks.unit_key, config.train.model.language_encoder)
+    explored = run_explore(workspace, config, 0, load_tasks(workspace, tasks.unit_key), None, embeddings)
+    filtered = run_filter(workspace, config, 0, explored.unit_keys)
+    run_index(workspace, config, 0, explored.unit_keys, filtered.unit_keys, None)
+    return config_file, workspace.root
+
+
+def _copy(campaign, tmp_path: Path, name: str) -> Path:
+    target = tmp_path / name
+    shutil.copytree(campaign[1], target)
+    return target
+
+
+def _train(config_file: Path, workspace: Path, *extra: str, **popen) -> subprocess.Popen:
+    return subprocess.Popen([SIM2ACT, "train", "--preset", "smoke", "--config", str(config_file),
+                             "--workspace", str(workspace), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **popen)
+
+
+def _weights(workspace: Path) -> dict[str, torch.Tensor]:
+    [checkpoint] = (workspace / "models").glob("*/policy.pt")
+    return torch.load(checkpoint, weights_only=False)["state_dict"]
+
+
+def test_a_sigkilled_training_resumes_to_the_same_weights(campaign, tmp_path):
+    config_file = campaign[0]
+    straight, killed = _copy(campaign, tmp_path, "straight"), _copy(campaign, tmp_path, "killed")
+    run = _train(config_file, straight)
+    output = run.communicate(timeout=600)[0]
+    assert run.returncode == 0, output
+
+    victim = _train(config_file, killed, start_new_session=True)
+    deadline = time.monotonic() + 300
+    states = []
+    while not states and victim.poll() is None and time.monotonic() < deadline:
+        states = list((killed / "models").glob("*/train-state.pt"))
+        time.sleep(0.05)
+    assert states, victim.communicate()[0]
+    time.sleep(0.3)  # a few more steps past the checkpoint, lost with the kill
+    os.killpg(victim.pid, signal.SIGKILL)  # the trainer and its loader worker
+    victim.wait()
+    assert victim.returncode == -signal.SIGKILL
+    killed_at = torch.load(states[0], weights_only=False)["step"]
+
+    resumed = _train(config_file, killed)
+    output = resumed.communicate(timeout=600)[0]
+    assert resumed.returncode == 0 and f"resumed at step {killed_at}" in output, output
+    a, b = _weights(straight), _weights(killed)
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert not list((killed / "models").glob("*/train-state.pt"))  # removed once the model is registered
+
+    again = _train(config_file, killed)
+    assert "already trained" in again.communicate(timeout=300)[0] and again.returncode == 0
+
+
+def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaign, tmp_path):
+    workspace = _copy(campaign, tmp_path, "logged")
+    run = _train(campaign[0], workspace)
+    output = run.communicate(timeout=600)[0]
+    assert run.returncode == 0, output
+    client = MlflowClient(tracking_uri=Workspace.at(workspace).tracking_uri)
+    [iteration_run] = client.search_runs(
+        [client.get_experiment_by_name("sim2act").experiment_id], "tags.`sim2act.kind` = 'iteration'")
+    metrics = iteration_run.data.metrics
+    for name in ("train.loss", "train.infonce", "train.bc", "train.action_mse", "train.discrete_ce",
+                 "train.discrete_accuracy", "train.lr", "train.samples_per_s", "train.data_wait"):
+        assert name in metrics, name
+    history = client.get_metric_history(iteration_run.info.run_id, "train.loss")
+    assert [m.step for m in history] == sorted(m.step for m in history) and len(history) >= 3
+    lr = [m.value for m in client.get_metric_history(iteration_run.info.run_id, "train.lr")]
+    peak = lr.index(max(lr))
+    assert lr[peak:] == sorted(lr[peak:], reverse=True) and lr[-1] < 0.05 * lr[peak]  # cosine decay to ~0
+    [dataset] = iteration_run.inputs.dataset_inputs
+    [(digest,)] = Catalog(Workspace.at(workspace).catalog).query("SELECT dataset_digest FROM models")
+    assert dataset.dataset.digest == digest
+
+
+def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, tmp_path):
+    workspace = Workspace.at(_copy(campaign, tmp_path, "inproc"))
+    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0}})
+    catalog = Catalog(workspace.catalog)
+    [(tasks_key,)] = catalog.query("SELECT DISTINCT unit_key FROM tasks")
+    from stages.index import latest_index
+
+    embeddings = load_embeddings(workspace, tasks_key, config.train.model.language_encoder)
+    result = run_train(workspace, config, 0, latest_index(workspace, config.name), tasks_key, embeddings)
+    assert len(result.history) == 3 and "discrete_accuracy" in result.history[-1]
+    policy = Policy.load(Path(result.checkpoint))  # no cached embeddings: encodes on first use
+    image = np.zeros((84, 84, 3), np.uint8)
+    nav = policy.act(image, np.zeros(9, np.float32), "go to the red room", "navigation")
+    arm = policy.act(image, np.zeros(9, np.float32), "lift the red cube", "robosuite")
+    assert nav.action.shape == (1,) and float(nav.action[0]).is_integer() and 0 <= nav.action[0] < 4
+    assert arm.action.shape == (7,) and np.all(np.abs(arm.action) <= 1.0)
+    assert 0.0 <= nav.uncertainty <= np.log(4) + 1e-6 and np.isfinite(arm.uncertainty)
+
+
+def test_a_bad_selection_is_refused_before_any_work(campaign, tmp_path):
+    workspace = _copy(campaign, tmp_path, "refused")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({**CAMPAIGN, "train": {**CAMPAIGN["train"], "where": "no_such_column > 1"}}))
+    run = _train(bad, workspace)
+    output = run.communicate(timeout=300)[0]
+    assert run.returncode == 2 and output.strip().splitlines() == [
+        "sim2act: train.where: 'no_such_column > 1': Binder Error: Referenced column \"no_such_column\" not found "
+        "in FROM clause!"], output
+    empty = tmp_path / "empty.yaml"
+    empty.write_text(yaml.safe_dump({**CAMPAIGN, "train": {**CAMPAIGN["train"], "where": "task_id = 'nope'"}}))
+    run = _train(empty, workspace)
+    output = run.communicate(timeout=300)[0]
+    assert run.returncode != 0 and "leaves no step" in output
+    assert not list((workspace / "models").glob("*/*"))
+    missing = _train(campaign[0], tmp_path / "nowhere")
+    output = missing.communicate(timeout=300)[0]
+    assert missing.returncode == 2 and "no warehouse catalog" in output, output
