@@ -106,7 +106,7 @@ def _machine_busy_s() -> float:
     return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
 
 
-class _Meter:
+class LoadMeter:
     """Wall, our CPU (this process and its reaped children) and the machine's, from creation on."""
 
     def __init__(self) -> None:
@@ -182,7 +182,7 @@ def run_stage(task: TaskRecord, sizes: RolloutSizes, workers: int, root: Path) -
     workspace = Workspace.at(root / f"workers-{workers}").create()
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
-    meter = _Meter()
+    meter = LoadMeter()
     result = run_explore(workspace, _config(sizes, workers), 0, [task], None, {})
     wall_s = time.perf_counter() - meter.wall
     cpu_s = meter.ours()  # the pool's workers are reaped by now
@@ -214,7 +214,7 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
                                    ("b", None, "plain robosuite loop, physics only (no renderer)")):
             loop = LoopCase(task=task, camera=camera, image_size=sizes.image_size, noise=config.explore.noise_of(0),
                             seeds=seeds)
-            meter = _Meter()
+            meter = LoadMeter()
             [(_, done, _)] = run_in_pool(run_loop, [loop], workers=1)  # a fresh process each
             rows.append(_row(case, name, 1, len(seeds), done["successes"], done["steps"], done["wall_s"],
                              done["cpu_s"], meter.other_load(),

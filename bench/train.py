@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel
 
-from bench.rollout import _Meter
+from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
 from envs.observation import PROPRIO_DIM
 from schemas.config import CampaignConfig, TrainConfig
@@ -174,7 +174,7 @@ def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: T
     config = _config({**train, "epochs": epochs, "log_every": sizes.log_every})
     device = training_device(config.train.device).type
     points: list[tuple[int, dict[str, float]]] = []
-    meter = _Meter()
+    meter = LoadMeter()
     result = run_train(workspace, config, 0, dataset, TASKS_KEY, _embeddings(),
                        on_metrics=lambda step, metrics: points.append((step, metrics)))
     wall_s = time.perf_counter() - meter.wall
@@ -222,7 +222,7 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(steps))
     model.train()
     rates: list[float] = []
-    meter = _Meter()
+    meter = LoadMeter()
     window_started, samples = time.perf_counter(), 0
     for step in range(1, steps + 1):
         batch = batches[(step - 1) % len(batches)]
@@ -256,7 +256,7 @@ def run_latency(checkpoint: Path, vision: str, threads: int, sizes: TrainSizes, 
         for call in range(sizes.latency_warmup):
             policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)
         times = []
-        meter = _Meter()
+        meter = LoadMeter()
         for call in range(sizes.latency_calls):
             started = time.perf_counter()
             decision = policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)

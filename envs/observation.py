@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import mujoco
 import numpy as np
 
 ACTION_DIM = 7
@@ -52,6 +51,8 @@ class MujocoState:
         after mj_step shows them: mj_step computes the poses, then integrates qpos with the new
         qvel (Euler and implicit integrators, all our models'), which qpos - dt * qvel undoes up to
         rounding."""
+        import mujoco  # here, not at module level: mujoco picks its GL backend (MUJOCO_GL) when first imported
+
         data.qpos[:] = self.qpos
         data.qvel[:] = self.qvel
         data.act[:] = self.act

@@ -92,10 +92,8 @@ def train_task(
 ) -> TrainResult:
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
-    tracking = Tracking(ws, config)
     return run_train(ws, config, iteration, dataset, tasks_key, embeddings,
-                     on_metrics=lambda step, metrics: tracking.log_metrics(
-                         mlflow_run_id, {f"train.{k}": v for k, v in metrics.items()}, step=step))
+                     on_metrics=Tracking(ws, config).step_logger(mlflow_run_id, "train."))
 
 
 @stage_task(name="evaluate")

@@ -98,13 +98,14 @@ def cmd_train(args: argparse.Namespace) -> int:
     result = run_train(
         workspace, config, dataset.iteration, dataset, tasks_key,
         load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
-        on_metrics=lambda step, metrics: tracking.log_metrics(run_id, {f"train.{k}": v for k, v in metrics.items()}, step),
+        on_metrics=tracking.step_logger(run_id, "train."),
     )
-    if not result.skipped:
+    if result.skipped:
+        state = "already trained"
+    else:
         tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
-    state = "already trained" if result.skipped else (
-        f"resumed at step {result.resumed_at_step}, " if result.resumed_at_step else "") + (
-        f"final loss {result.history[-1]['loss']:.4f}" if result.history else "")
+        resumed = f"resumed at step {result.resumed_at_step}, " if result.resumed_at_step else ""
+        state = f"{resumed}final loss {result.history[-1]['loss']:.4f}"
     print(f"model {result.model_key}: {state}; checkpoint {result.checkpoint}")
     return 0
 
@@ -218,16 +219,12 @@ def cmd_bench_warehouse(args: argparse.Namespace) -> int:
             raise ConfigError(f"bench warehouse: --sql-steps must be positive, got {args.sql_steps}")
         sizes = sizes.model_copy(update={"sql_steps": args.sql_steps})
     measures = bench_warehouse(sizes, args.scratch)
-    table = markdown(measures, args.command_line)
-    print(json.dumps([m.model_dump() for m in measures], indent=1) if args.json else table)
-    if args.out:
-        write_text_atomically(args.out, table)
-    return 0
+    return _report(args, json.dumps([m.model_dump() for m in measures], indent=1), markdown(measures, args.command_line))
 
 
-def _report(args: argparse.Namespace, bench, table: str) -> int:
-    """A bench's result: its table (or JSON with --json) printed, the table written to --out."""
-    print(bench.model_dump_json(indent=1) if args.json else table)
+def _report(args: argparse.Namespace, as_json: str, table: str) -> int:
+    """A bench's result: its table (or its JSON with --json) printed, the table written to --out."""
+    print(as_json if args.json else table)
     if args.out:
         write_text_atomically(args.out, table)
     return 0
@@ -238,7 +235,7 @@ def cmd_bench_rollout(args: argparse.Namespace) -> int:
 
     os.environ.setdefault("MUJOCO_GL", "egl")
     bench = bench_rollout(QUICK if args.quick else RolloutSizes(), args.scratch)
-    return _report(args, bench, markdown(bench, args.command_line))
+    return _report(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
 
 
 def cmd_bench_train(args: argparse.Namespace) -> int:
@@ -248,7 +245,7 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
     from bench.train import QUICK, TrainSizes, bench_train, markdown
 
     bench = bench_train(QUICK if args.quick else TrainSizes(), args.scratch)
-    return _report(args, bench, markdown(bench, args.command_line))
+    return _report(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
@@ -366,27 +363,23 @@ def build_parser() -> argparse.ArgumentParser:
     bench_env.add_argument("--out", type=Path, help="also write the table as markdown here")
     bench_env.set_defaults(handler=cmd_bench_envs)
 
-    bench_wh = bench_commands.add_parser("warehouse", help="ingest, SQL and training-read speed vs bare references")
-    bench_wh.add_argument("--json", action="store_true", help="print the measures as JSON")
-    bench_wh.add_argument("--quick", action="store_true", help="small sizes (seconds, for a smoke check)")
-    bench_wh.add_argument("--sql-steps", type=int, nargs="+", help="warehouse sizes for the SQL measure")
-    bench_wh.add_argument("--scratch", type=Path, help="folder for the throwaway warehouses (default: $TMPDIR)")
-    bench_wh.add_argument("--out", type=Path, help="also write the table as markdown here")
-    bench_wh.set_defaults(handler=cmd_bench_warehouse)
+    def bench_parser(name: str, help: str, quick: str, handler) -> argparse.ArgumentParser:
+        """A benchmark command with the options every side-by-side bench takes."""
+        command = bench_commands.add_parser(name, help=help)
+        command.add_argument("--json", action="store_true", help="print the figures as JSON")
+        command.add_argument("--quick", action="store_true", help=quick)
+        command.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
+        command.add_argument("--out", type=Path, help="also write the table as markdown here")
+        command.set_defaults(handler=handler)
+        return command
 
-    bench_ro = bench_commands.add_parser("rollout", help="explore stage vs plain robosuite loops, steps/s")
-    bench_ro.add_argument("--json", action="store_true", help="print the rows and ratios as JSON")
-    bench_ro.add_argument("--quick", action="store_true", help="a few short episodes (seconds, for a smoke check)")
-    bench_ro.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
-    bench_ro.add_argument("--out", type=Path, help="also write the table as markdown here")
-    bench_ro.set_defaults(handler=cmd_bench_rollout)
-
-    bench_tr = bench_commands.add_parser("train", help="train stage samples/s vs in-memory batches; policy latency")
-    bench_tr.add_argument("--json", action="store_true", help="print the rows and ratios as JSON")
-    bench_tr.add_argument("--quick", action="store_true", help="a few steps, default case only (seconds, a smoke check)")
-    bench_tr.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
-    bench_tr.add_argument("--out", type=Path, help="also write the table as markdown here")
-    bench_tr.set_defaults(handler=cmd_bench_train)
+    bench_parser("warehouse", "ingest, SQL and training-read speed vs bare references",
+                 "small sizes (seconds, for a smoke check)", cmd_bench_warehouse
+                 ).add_argument("--sql-steps", type=int, nargs="+", help="warehouse sizes for the SQL measure")
+    bench_parser("rollout", "explore stage vs plain robosuite loops, steps/s",
+                 "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout)
+    bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
+                 "a few steps, default case only (seconds, a smoke check)", cmd_bench_train)
 
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")

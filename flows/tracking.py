@@ -73,6 +73,10 @@ class Tracking:
     def log_artifact(self, run_id: str, path: str, folder: str) -> None:
         self.client.log_artifact(run_id, path, folder)
 
+    def step_logger(self, run_id: str, prefix: str):
+        """(step, metrics) -> logged to the run under `prefix`: a stage's live metrics."""
+        return lambda step, metrics: self.log_metrics(run_id, {f"{prefix}{k}": v for k, v in metrics.items()}, step)
+
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
 

@@ -24,6 +24,7 @@ from envs.navigation_env import ACTIONS
 from envs.observation import ACTION_DIM, Observation
 from policies.openai_chat import ChatUnavailable, Failure, complete
 from schemas.config import VlmExplorerConfig
+from schemas.tasks import FAMILIES
 
 log = logging.getLogger("sim2act.policies.vlm_explorer")
 
@@ -72,7 +73,7 @@ class VlmExplorer:
     """One episode's explorer: build one per episode, so stats() counts that episode."""
 
     def __init__(self, config: VlmExplorerConfig, family: str, instruction: str):
-        if family not in ("navigation", "robosuite", "metaworld"):
+        if family not in FAMILIES:
             raise ValueError(f"VLM explorer: unknown family {family!r}")
         self.config, self.family, self.instruction = config, family, instruction
         self.answer = NavigationAnswer if family == "navigation" else ManipulationAnswer

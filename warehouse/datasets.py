@@ -30,7 +30,7 @@ class Selection:
     def rows(self, catalog: Catalog, where: str | None = None) -> list[RowRange]:
         """The kept steps (those also matching `where`, SQL over the steps columns), as the
         streaming reader takes them."""
-        return select_rows(catalog, _narrowed(where), [list(self.filter_units)])
+        return select_rows(catalog, _narrowed(where), [list(self.filter_units)], units=list(self.explore_units))
 
     def kept_steps(self, catalog: Catalog, columns: list[str], where: str | None = None) -> pa.Table:
         """Columns of the kept steps (matching `where`), in a fixed order: a parallel scan returns

@@ -12,6 +12,7 @@ g reads exactly what it would have read (`start_batch`).
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -46,14 +47,18 @@ Collate = Callable[[list[dict]], dict[str, Any]]  # rows (COLUMNS, raw) -> a bat
 
 
 def select_rows(
-    catalog: Catalog, where: str = "TRUE", params: Sequence[Any] = (), as_of_iteration: int | None = None
+    catalog: Catalog, where: str = "TRUE", params: Sequence[Any] = (), as_of_iteration: int | None = None,
+    units: Sequence[str] | None = None,
 ) -> list[RowRange]:
     """The registered steps rows matching `where` (SQL over the steps columns; subqueries may use
-    any catalog table or view), as runs of consecutive rows per shard file."""
+    any catalog table or view), as runs of consecutive rows per shard file; with `units`, only
+    the steps shards those units wrote are read."""
     with catalog.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
         paths = [
             (catalog.warehouse / p).as_posix()
-            for (p,) in con.execute("SELECT path FROM shards WHERE table_name = 'steps' ORDER BY path").fetchall()
+            for (p,) in con.execute(
+                "SELECT path FROM shards WHERE table_name = 'steps' AND (?::VARCHAR[] IS NULL OR list_contains(?, unit_key)) "
+                "ORDER BY path", [units, units]).fetchall()
         ]
         if not paths:
             raise SelectionError("the warehouse holds no steps yet")
@@ -169,29 +174,28 @@ class StepBatches(IterableDataset):
                     yield from table.slice(a, b - a).to_pylist()
             first = last
 
-    def _epoch(self, stream: int, epoch: int) -> Iterator[list[dict]]:
-        """One worker's batches of rows for one epoch: its pieces in a seeded order, through the buffer."""
-        rng = np.random.default_rng([self.seed, epoch, stream])
-        pieces = self.parts[stream]
+    def _piece_rows(self, piece: Piece) -> Iterator[dict]:
+        """A piece's rows in order, each of its files opened once."""
+        for path, segments in itertools.groupby(piece, key=lambda segment: segment[0]):
+            yield from self._rows(path, [(start, stop) for _, start, stop in segments])
+
+    def _shuffled(self, rng: np.random.Generator, pieces: list[Piece]) -> Iterator[dict]:
+        """The pieces in a seeded order, their rows through the shuffle buffer."""
         buffer: list[dict] = []
-        batch: list[dict] = []
         for pick in rng.permutation(len(pieces)):
-            for path, start, stop in pieces[pick]:
-                for row in self._rows(path, [(start, stop)]):
-                    buffer.append(row)
-                    if len(buffer) >= self.shuffle_buffer:
-                        chosen = int(rng.integers(len(buffer)))
-                        buffer[chosen], buffer[-1] = buffer[-1], buffer[chosen]
-                        batch.append(buffer.pop())
-                        if len(batch) == self.batch_size:
-                            yield batch
-                            batch = []
+            for row in self._piece_rows(pieces[pick]):
+                buffer.append(row)
+                if len(buffer) >= self.shuffle_buffer:
+                    chosen = int(rng.integers(len(buffer)))
+                    buffer[chosen], buffer[-1] = buffer[-1], buffer[chosen]
+                    yield buffer.pop()
         for chosen in rng.permutation(len(buffer)):
-            batch.append(buffer[chosen])
-            if len(batch) == self.batch_size:
-                yield batch
-                batch = []
-        if batch:
+            yield buffer[chosen]
+
+    def _epoch(self, stream: int, epoch: int) -> Iterator[list[dict]]:
+        """One worker's batches of rows for one epoch."""
+        rows = self._shuffled(np.random.default_rng([self.seed, epoch, stream]), self.parts[stream])
+        while batch := list(itertools.islice(rows, self.batch_size)):
             yield batch
 
     def __iter__(self) -> Iterator[dict[str, Any]]:
