@@ -47,6 +47,9 @@ TASKS_KEY = "bench-tasks"
 FAMILY = "robosuite"
 LANGUAGE_DIM = 384  # all-MiniLM-L6-v2, the default (frozen) encoder
 DATA_WAIT_TARGET = 0.10  # at most
+# the bench's cases, as `sim2act bench train --cases` names them
+CASES = ("stage", "memory", "workers0", "resnet18", "minilm", "cuda", "act")
+CUDA_LOADER_WORKERS = 8  # at most: a GPU step outruns one worker decoding PNG frames
 LATENCY_P95_TARGET_MS = 20.0  # at most
 
 
@@ -60,6 +63,7 @@ class TrainSizes(BaseModel):
     latency_warmup: int = 10
     variants: bool = True  # loader_workers 0, resnet18, fine-tuned language encoder
     cuda_batches: list[int] = [256, 1024]
+    cases: list[str] = list(CASES)  # which to run ("stage" always runs: every ratio is against it)
 
 
 # seconds, for tests and a smoke check; the figures mean little at these sizes
@@ -209,9 +213,9 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     device = training_device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
-    action_norm, proprio_norm = normalisers(catalog, dataset, cfg.where)
+    action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
     rows = dataset.selection.kept_steps(catalog, list(COLUMNS), cfg.where).to_pylist()
-    collate = TrainingCollate(action_norm, proprio_norm, _embeddings())
+    collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets)
     order = np.random.default_rng(0).permutation(len(rows))
     batches = [default_convert(collate([rows[i] for i in order[first : first + cfg.batch_size]]))
                for first in range(0, len(rows), cfg.batch_size)]
@@ -284,40 +288,64 @@ def _ratio(name: str, value: float, unit: str = "x", target: float | None = None
     return Ratio(name=name, value=value, unit=unit, target=target, at_most=at_most, met=met)
 
 
+def _weights_missing(encoder: str) -> str | None:
+    """Why the encoder cannot load here (its weights package absent), or None."""
+    from policies.language import ENCODERS
+
+    try:
+        ENCODERS[encoder].weights()
+    except ImportError as exc:
+        return f"skipped: {encoder}'s weights are not installed ({exc})"
+    return None
+
+
 def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
+    unknown = sorted(set(sizes.cases) - set(CASES))
+    if unknown:
+        raise ValueError(f"bench train: unknown case(s) {', '.join(unknown)} (known: {', '.join(CASES)})")
     cpus, torch_threads = os.cpu_count() or 1, torch.get_num_threads()
     image_size = CampaignConfig().render.image_size
+    wanted = set(sizes.cases) | {"stage"}
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
     try:
         source = Workspace.at(root / "warehouse").create()
         dataset = build_warehouse(source, sizes)
         default, checkpoint = run_stage_case(source, dataset, root, sizes, "stage",
                                              "train stage, default settings (ViT, loader_workers 1)", {})
-        rows = [default, run_in_memory(source, dataset, sizes, default.steps)]
+        rows = [default]
+        if "memory" in wanted:
+            rows.append(run_in_memory(source, dataset, sizes, default.steps))
         checkpoints = {"vit": checkpoint}
-        if sizes.variants:
-            variants = [
-                ("workers0", "train stage, loader_workers 0 (decoding in the training process)",
-                 {"loader_workers": 0}),
-                ("resnet18", "train stage, ResNet-18 vision encoder (width 16)", {"model": {"vision": "resnet18"}}),
-                ("minilm", "train stage, language encoder fine-tuned (MiniLM in the model)",
-                 {"model": {"language_trainable": True}}),
-            ]
-            for case, name, train in variants:
-                row, trained = run_stage_case(source, dataset, root, sizes, case, name, train)
-                rows.append(row)
-                if case == "resnet18":
-                    checkpoints["resnet18"] = trained
-        if torch.cuda.is_available():
+        variants = [
+            ("workers0", "train stage, loader_workers 0 (decoding in the training process)", {"loader_workers": 0}),
+            ("resnet18", "train stage, ResNet-18 vision encoder (width 16)", {"model": {"vision": "resnet18"}}),
+            ("minilm", "train stage, language encoder fine-tuned (MiniLM in the model)",
+             {"model": {"language_trainable": True}}),
+        ]
+        for case, name, train in variants if sizes.variants else []:
+            if case not in wanted:
+                continue
+            missing = _weights_missing(TrainConfig().model.language_encoder) if case == "minilm" else None
+            if missing:
+                rows.append(TrainRow(case=case, name=name, note=missing))
+                continue
+            row, trained = run_stage_case(source, dataset, root, sizes, case, name, train)
+            rows.append(row)
+            if case == "resnet18":
+                checkpoints["resnet18"] = trained
+        if "cuda" in wanted and torch.cuda.is_available():
+            workers = max(1, min(CUDA_LOADER_WORKERS, cpus // 2))
             for batch_size in sizes.cuda_batches:
                 rows.append(run_stage_case(source, dataset, root, sizes, f"cuda{batch_size}",
-                                           f"train stage on cuda, batch {batch_size}",
-                                           {"device": "cuda", "batch_size": batch_size})[0])
-        else:
+                                           f"train stage on cuda, batch {batch_size}, {workers} loader workers",
+                                           {"device": "cuda", "batch_size": batch_size,
+                                            "loader_workers": workers})[0])
+        elif "cuda" in wanted:
             rows.append(TrainRow(case="cuda", name="train stage on cuda, batch " +
                                  " and ".join(map(str, sizes.cuda_batches)), note="skipped: torch sees no GPU"))
-        for vision, trained in checkpoints.items():
-            rows += [run_latency(trained, vision, threads, sizes, image_size) for threads in (1, 2)]
+        if "act" in wanted:
+            for vision, trained in checkpoints.items():
+                rows += [run_latency(trained, vision, threads, sizes, image_size) for threads in (1, 2)]
     finally:
         shutil.rmtree(root, ignore_errors=True)
     return TrainBench(cpus=cpus, torch_threads=torch_threads, gpu=_gpu(), triplets=dataset.triplets,
@@ -326,14 +354,16 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
 
 def _ratios(rows: dict[str, TrainRow]) -> list[Ratio]:
     stage = rows["stage"]
-    ratios = [_ratio("train stage / in-memory batches, samples/s", stage.samples_per_s / rows["memory"].samples_per_s)]
-    for case in ("stage", "cuda256", "cuda1024"):
-        if case in rows and rows[case].data_wait is not None:
-            ratios.append(_ratio(f"data wait, {rows[case].name}", rows[case].data_wait, "%", DATA_WAIT_TARGET,
-                                 at_most=True))
+    ratios = []
+    if "memory" in rows:
+        ratios.append(_ratio("train stage / in-memory batches, samples/s",
+                             stage.samples_per_s / rows["memory"].samples_per_s))
+    for row in rows.values():
+        if row.data_wait is not None and (row.case == "stage" or row.case.startswith("cuda")):
+            ratios.append(_ratio(f"data wait, {row.name}", row.data_wait, "%", DATA_WAIT_TARGET, at_most=True))
     for case, name in (("workers0", "loader_workers 0 / 1"), ("resnet18", "ResNet-18 / ViT"),
                        ("minilm", "fine-tuned / frozen language encoder")):
-        if case in rows:
+        if case in rows and rows[case].samples_per_s is not None:
             ratios.append(_ratio(f"{name}, stage samples/s", rows[case].samples_per_s / stage.samples_per_s))
     for row in rows.values():
         if row.p95_ms is not None:

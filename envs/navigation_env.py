@@ -16,6 +16,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.gl import select_offscreen  # noqa: E402
+from envs.observation import NAVIGATION_ACTIONS as ACTIONS  # noqa: E402
 from envs.observation import NO_IMAGE, PROPRIO_DIM, MujocoState, Observation  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -24,7 +25,6 @@ from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 ROOMS, ROOM_SIZE, DOOR_HALF_WIDTH = 3, 4.0, 0.6
 SHAPES = ("ball", "box")
 OBJECTS_PER_SHAPE = 2
-ACTIONS = ("forward", "turn_left", "turn_right", "backward")
 SPEED, TURN_RATE = 1.5, 2.5  # m/s, rad/s
 CONTROL_DT, SUBSTEPS = 0.1, 5
 REACH = 0.7  # an object is found within this distance

@@ -16,6 +16,7 @@ ACTION_DIM = 7
 PROPRIO_DIM = 9
 # Families that act by the index of an action from a discrete set, stored as [index] (navigation).
 DISCRETE_FAMILIES = frozenset({"navigation"})
+NAVIGATION_ACTIONS = ("forward", "turn_left", "turn_right", "backward")  # its discrete action set, by index
 NO_IMAGE = np.zeros((0, 0, 3), dtype=np.uint8)  # what a camera-less adapter returns
 
 

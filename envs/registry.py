@@ -6,7 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from envs.observation import Observation
+from envs.observation import NAVIGATION_ACTIONS, Observation
 from schemas.config import ConfigError, RenderConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import TaskRecord
@@ -32,9 +32,7 @@ def action_bounds(family: str) -> tuple[float, float]:
     """The range every action component of a family lies in: end-effector deltas and gripper in
     [-1, 1]; navigation's discrete action index."""
     if family == "navigation":
-        from envs.navigation_env import ACTIONS
-
-        return 0.0, float(len(ACTIONS) - 1)
+        return 0.0, float(len(NAVIGATION_ACTIONS) - 1)
     return -1.0, 1.0
 
 

@@ -244,7 +244,10 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     from bench.train import QUICK, TrainSizes, bench_train, markdown
 
-    bench = bench_train(QUICK if args.quick else TrainSizes(), args.scratch)
+    sizes = QUICK if args.quick else TrainSizes()
+    if args.cases:
+        sizes = sizes.model_copy(update={"cases": args.cases.split(",")})
+    bench = bench_train(sizes, args.scratch)
     return _report(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
 
 
@@ -379,7 +382,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench_parser("rollout", "explore stage vs plain robosuite loops, steps/s",
                  "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout)
     bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
-                 "a few steps, default case only (seconds, a smoke check)", cmd_bench_train)
+                 "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
+                 ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
+                                "stage, memory, workers0, resnet18, minilm, cuda, act")
 
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")

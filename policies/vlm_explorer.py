@@ -20,8 +20,8 @@ import numpy as np
 from PIL import Image
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from envs.navigation_env import ACTIONS
 from envs.observation import ACTION_DIM, Observation
+from envs.observation import NAVIGATION_ACTIONS as ACTIONS
 from policies.openai_chat import ChatUnavailable, Failure, complete
 from schemas.config import VlmExplorerConfig
 from schemas.tasks import FAMILIES

@@ -190,6 +190,16 @@ class TrainConfig(_Strict):
     temperature: float = Field(default=0.1, gt=0)
     grad_clip: float = Field(default=1.0, gt=0)
     shuffle_buffer: PositiveInt = 2048
+    augment_shift: int = Field(
+        default=4, ge=0, le=16,
+        description="shift each training frame by up to this many pixels each way (edges repeated); 0: off",
+    )
+    targets: Literal["expert", "executed"] = Field(
+        default="expert",
+        description="what the policy learns to output: the expert's noiseless action at each state where the "
+        "episode recorded one (expert explorers, DAgger labels), else the executed action; or always the "
+        "executed action (exploration noise included)",
+    )
     where: str | None = Field(
         default=None, min_length=1,
         description="SQL condition over the steps columns narrowing the iteration's kept steps, e.g. "

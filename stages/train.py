@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from pydantic import BaseModel
 from torch.utils.data import DataLoader
 
-from envs.navigation_env import ACTIONS as NAVIGATION_ACTIONS
-from envs.observation import ACTION_DIM, PROPRIO_DIM
+from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, vla_loss
 from policies.policy import Normaliser, policy_state, save_atomically
@@ -80,16 +80,26 @@ def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
     return continuous, index
 
 
-class TrainingCollate:
-    """Rows -> a ready batch, in the loader workers: frames decoded, actions split by kind and
-    normalised, proprio normalised, the frozen encoder's embeddings looked up."""
+def action_targets(actions: list[list[float]], expert_actions: list[list[float] | None],
+                   targets: str) -> list[list[float]]:
+    """What the policy learns to output per step (train.targets): the expert's noiseless action
+    where the step recorded one, else the executed action; or always the executed action."""
+    if targets == "executed":
+        return actions
+    return [action if label is None else label for action, label in zip(actions, expert_actions)]
 
-    def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None):
-        self.action, self.proprio, self.embeddings = action, proprio, embeddings
+
+class TrainingCollate:
+    """Rows -> a ready batch, in the loader workers: frames decoded, the action targets chosen,
+    split by kind and normalised, proprio normalised, the frozen encoder's embeddings looked up."""
+
+    def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None,
+                 targets: str):
+        self.action, self.proprio, self.embeddings, self.targets = action, proprio, embeddings, targets
 
     def __call__(self, rows: list[dict]) -> dict:
         batch = decode_rows(rows)
-        continuous, index = split_actions(batch.pop("action"))
+        continuous, index = split_actions(action_targets(batch.pop("action"), batch.pop("expert_action"), self.targets))
         batch["action"] = np.where((index < 0)[:, None], self.action.encode(continuous), 0.0).astype(np.float32)
         batch["action_index"] = index
         batch["proprio"] = self.proprio.encode(batch["proprio"])
@@ -98,10 +108,11 @@ class TrainingCollate:
         return batch
 
 
-def normalisers(catalog: Catalog, dataset: IndexResult, where: str | None) -> tuple[Normaliser, Normaliser]:
-    """Action and proprio statistics over exactly the training selection (continuous actions only)."""
-    table = dataset.selection.kept_steps(catalog, ["action", "proprio"], where)
-    continuous, index = split_actions(table["action"].to_pylist())
+def normalisers(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig) -> tuple[Normaliser, Normaliser]:
+    """Action-target and proprio statistics over exactly the training selection (continuous actions only)."""
+    table = dataset.selection.kept_steps(catalog, ["action", "expert_action", "proprio"], cfg.where)
+    continuous, index = split_actions(
+        action_targets(table["action"].to_pylist(), table["expert_action"].to_pylist(), cfg.targets))
     proprio = np.asarray(table["proprio"].to_pylist(), dtype=np.float32)
     return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM)
 
@@ -147,8 +158,24 @@ class _Means:
         return {name: [float(total), count] for name, (total, count) in self.sums.items()}
 
 
+def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
+    """Each frame moved by up to `pad` pixels each way, edges repeated (DrQ's augmentation: with few
+    demonstrations it keeps a from-scratch encoder from memorising where things are on screen).
+    The shifts come from torch's CPU generator, which a resumed training restores."""
+    if pad == 0:
+        return image
+    b, c, h, w = image.shape
+    shifts = torch.randint(0, 2 * pad + 1, (b, 2)).to(image.device)
+    padded = F.pad(image, (pad, pad, pad, pad), mode="replicate")
+    rows = torch.arange(h, device=image.device)[None, :] + shifts[:, :1]
+    cols = torch.arange(w, device=image.device)[None, :] + shifts[:, 1:]
+    padded = padded.gather(2, rows[:, None, :, None].expand(b, c, h, w + 2 * pad))
+    return padded.gather(3, cols[:, None, None, :].expand(b, c, h, w))
+
+
 def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device):
     image = batch["image"].to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255.0)
+    image = random_shift(image, cfg.augment_shift)
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
         losses = vla_loss(
@@ -193,13 +220,14 @@ def run_train(
     rows = dataset.selection.rows(catalog, cfg.where)
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
-    action_norm, proprio_norm = normalisers(catalog, dataset, cfg.where)
+    action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     model = VLAModel(cfg.model, model_dims(config)).to(device)
     optimiser = optimiser_for(model, cfg)
     batches = StepBatches(
         rows, cfg.batch_size, cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"), cfg.epochs,
-        cfg.loader_workers, TrainingCollate(action_norm, proprio_norm, embeddings if model.text is None else None),
+        cfg.loader_workers,
+        TrainingCollate(action_norm, proprio_norm, embeddings if model.text is None else None, cfg.targets),
     )
     total_steps = cfg.epochs * batches.batches_per_epoch
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))

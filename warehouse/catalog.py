@@ -93,6 +93,8 @@ class Catalog:
         try:
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
+            elif self._moved(con):
+                self._follow_move(con, read_only)
             yield con
         finally:
             con.close()
@@ -225,6 +227,24 @@ class Catalog:
             ).fetchall()
         ]
         return f"read_parquet({paths!r})" if paths else f"{persistent}._empty_{table}"
+
+    def _moved(self, con: duckdb.DuckDBPyConnection) -> bool:
+        """Whether the shard views name files under another folder than this warehouse (it was
+        copied or moved: views hold absolute paths, DuckDB has no paths relative to its file)."""
+        if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
+            return False  # not initialised yet
+        root = con.execute(f"SELECT value FROM {self._persistent(con)}.catalog_meta WHERE key = 'root'").fetchone()
+        return root is None or root[0] != self.warehouse.resolve().as_posix()
+
+    def _follow_move(self, con: duckdb.DuckDBPyConnection, read_only: bool) -> None:
+        """Point the shard views at this folder's files: for good when writing, for this
+        connection (temporary views) when reading."""
+        if read_only:
+            for name in SHARD_TABLES:
+                con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None)}")
+            return
+        self._refresh_views(con, SHARD_TABLES)
+        con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
 
     def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.

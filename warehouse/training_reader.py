@@ -27,7 +27,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from schemas.frames import decode_frame
 from warehouse.catalog import Catalog
 
-COLUMNS = ["instruction", "image", "proprio", "action"]
+COLUMNS = ["instruction", "image", "proprio", "action", "expert_action"]
 
 
 class SelectionError(ValueError):
@@ -111,6 +111,7 @@ def decode_rows(rows: list[dict]) -> dict[str, Any]:
         "instruction": [r["instruction"] for r in rows],
         "proprio": np.asarray([r["proprio"] for r in rows], dtype=np.float32),
         "action": [r["action"] for r in rows],
+        "expert_action": [r["expert_action"] for r in rows],
     }
 
 

@@ -17,14 +17,15 @@ import torch
 import yaml
 from mlflow import MlflowClient
 
-from policies.policy import Policy
+from policies.policy import Normaliser, Policy
 from schemas.config import load_config
+from schemas.frames import encode_frame
 from schemas.workspace import Workspace
 from stages.explore import run_explore
 from stages.filter import run_filter
 from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
 from stages.index import run_index
-from stages.train import run_train
+from stages.train import TrainingCollate, action_targets, random_shift, run_train
 from tests.conftest import SIM2ACT
 from warehouse.catalog import Catalog
 
@@ -162,3 +163,37 @@ def test_a_bad_selection_is_refused_before_any_work(campaign, tmp_path):
     missing = _train(campaign[0], tmp_path / "nowhere")
     output = missing.communicate(timeout=300)[0]
     assert missing.returncode == 2 and "no warehouse catalog" in output, output
+
+
+def test_the_targets_are_the_expert_labels_where_recorded_else_the_executed_actions():
+    executed, labels = [[0.5] * 7, [0.2] * 7, [2.0]], [[0.1] * 7, None, [1.0]]
+    assert action_targets(executed, labels, "expert") == [[0.1] * 7, [0.2] * 7, [1.0]]
+    assert action_targets(executed, labels, "executed") == executed
+    identity = Normaliser.fit(np.zeros((0, 9)), 9)  # no values: mean 0, std 1
+    collate = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity,
+                              None, "expert")
+    frame = encode_frame(np.zeros((8, 8, 3), np.uint8))
+    rows = [{"instruction": "x", "image": frame, "proprio": [0.0] * 9, "action": a, "expert_action": e}
+            for a, e in zip(executed, labels)]
+    batch = collate(rows)
+    assert batch["action_index"].tolist() == [-1, -1, 1]  # a navigation label stays discrete
+    assert batch["action"][0] == pytest.approx(np.full(7, 0.1), abs=1e-3)  # the label, not the noisy action
+    assert batch["action"][1] == pytest.approx(np.full(7, 0.2), abs=1e-3)  # no label recorded: the action
+
+
+def test_random_shift_moves_whole_frames_by_at_most_the_pad():
+    torch.manual_seed(0)
+    frames = torch.rand(16, 3, 12, 12)
+    assert random_shift(frames, 0) is frames
+    shifted = random_shift(frames, 2)
+    assert shifted.shape == frames.shape
+    padded = torch.nn.functional.pad(frames, (2, 2, 2, 2), mode="replicate")
+    moves = set()
+    for i in range(16):  # each output frame is one crop of the edge-padded frame
+        [(dy, dx)] = [(dy, dx) for dy in range(5) for dx in range(5)
+                      if torch.equal(padded[i, :, dy:dy + 12, dx:dx + 12], shifted[i])]
+        moves.add((dy, dx))
+    assert len(moves) > 4  # frames of one batch move independently
+    torch.manual_seed(0)
+    torch.rand(16, 3, 12, 12)
+    assert torch.equal(random_shift(frames, 2), shifted)  # drawn from torch's generator: a resume repeats it

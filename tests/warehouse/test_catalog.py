@@ -107,3 +107,19 @@ def test_catalog_opens_in_a_plain_duckdb_client(workspace):
 def test_missing_catalog_is_a_clear_error(tmp_path):
     with pytest.raises(CatalogMissing, match="sim2act run"):
         Catalog(tmp_path / "nope.duckdb").query("SELECT 1")
+
+
+def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory):
+    """Views name shard files by absolute path: a copied or moved workspace must follow its own."""
+    import shutil
+
+    _register(workspace, "filter-a", 4)
+    moved = Workspace.at(tmp_path_factory.mktemp("elsewhere") / "workspace")
+    shutil.move(workspace.root, moved.root)  # nothing is left at the old path
+    catalog = Catalog(moved.catalog)
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(4,)]  # read-only: this connection's views
+    assert catalog.query("SELECT count(*) FROM filter_decisions", as_of_iteration=0) == [(4,)]
+    assert _register(moved, "filter-b", 2)  # a writer re-points the views for good
+    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'root'") == [(moved.warehouse.resolve().as_posix(),)]
+    with duckdb.connect(str(moved.catalog), read_only=True) as con:  # a plain client sees the moved files too
+        assert con.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(6,)]
