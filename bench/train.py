@@ -8,7 +8,7 @@ policy's latency, side by side in one run.
   `on_metrics` points give samples/s and the fraction of wall time spent waiting for data;
 - (reference) the same training steps on batches built once in memory by the same collate, no
   reader and no DataLoader: what the reader costs is the ratio of the two;
-- the same stage with `loader_workers: 0`, with the ResNet-18 vision encoder, and with the
+- the same stage with `loader_workers: 0`, with the ResNet-18 and the patch-ViT vision encoders, and with the
   language encoder fine-tuned (full size only);
 - on a GPU, the default stage case on cuda at batch sizes 256 and 1024;
 - `Policy.act` latency at batch 1 on an 84x84 frame, with 1 torch thread (what evaluation and
@@ -48,7 +48,7 @@ FAMILY = "robosuite"
 LANGUAGE_DIM = 384  # all-MiniLM-L6-v2, the default (frozen) encoder
 DATA_WAIT_TARGET = 0.10  # at most
 # the bench's cases, as `sim2act bench train --cases` names them
-CASES = ("stage", "memory", "workers0", "resnet18", "minilm", "cuda", "act")
+CASES = ("stage", "memory", "workers0", "resnet18", "vit", "minilm", "cuda", "act")
 CUDA_LOADER_WORKERS = 8  # at most: a GPU step outruns one worker decoding PNG frames
 LATENCY_P95_TARGET_MS = 20.0  # at most
 
@@ -311,14 +311,15 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
         source = Workspace.at(root / "warehouse").create()
         dataset = build_warehouse(source, sizes)
         default, checkpoint = run_stage_case(source, dataset, root, sizes, "stage",
-                                             "train stage, default settings (ViT, loader_workers 1)", {})
+                                             "train stage, default settings (ViT-hybrid, loader_workers 1)", {})
         rows = [default]
         if "memory" in wanted:
             rows.append(run_in_memory(source, dataset, sizes, default.steps))
-        checkpoints = {"vit": checkpoint}
+        checkpoints = {"hybrid": checkpoint}
         variants = [
             ("workers0", "train stage, loader_workers 0 (decoding in the training process)", {"loader_workers": 0}),
             ("resnet18", "train stage, ResNet-18 vision encoder (width 16)", {"model": {"vision": "resnet18"}}),
+            ("vit", "train stage, ViT over pixel patches (patch 12)", {"model": {"vision": "vit"}}),
             ("minilm", "train stage, language encoder fine-tuned (MiniLM in the model)",
              {"model": {"language_trainable": True}}),
         ]
@@ -331,8 +332,8 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
                 continue
             row, trained = run_stage_case(source, dataset, root, sizes, case, name, train)
             rows.append(row)
-            if case == "resnet18":
-                checkpoints["resnet18"] = trained
+            if case in ("resnet18", "vit"):
+                checkpoints[case] = trained
         if "cuda" in wanted and torch.cuda.is_available():
             workers = max(1, min(CUDA_LOADER_WORKERS, cpus // 2))
             for batch_size in sizes.cuda_batches:
@@ -361,7 +362,8 @@ def _ratios(rows: dict[str, TrainRow]) -> list[Ratio]:
     for row in rows.values():
         if row.data_wait is not None and (row.case == "stage" or row.case.startswith("cuda")):
             ratios.append(_ratio(f"data wait, {row.name}", row.data_wait, "%", DATA_WAIT_TARGET, at_most=True))
-    for case, name in (("workers0", "loader_workers 0 / 1"), ("resnet18", "ResNet-18 / ViT"),
+    for case, name in (("workers0", "loader_workers 0 / 1"), ("resnet18", "ResNet-18 / ViT-hybrid"),
+                       ("vit", "patch ViT / ViT-hybrid"),
                        ("minilm", "fine-tuned / frozen language encoder")):
         if case in rows and rows[case].samples_per_s is not None:
             ratios.append(_ratio(f"{name}, stage samples/s", rows[case].samples_per_s / stage.samples_per_s))

@@ -100,15 +100,33 @@ class ResNet18Encoder(nn.Module):
         return self.features(image * 2.0 - 1.0).flatten(2).transpose(1, 2) + self.position
 
 
+class HybridViTEncoder(nn.Module):
+    """ViT-hybrid (Dosovitskiy et al. 2021, section 3.1): the transformer's patches are the cells of a
+    ResNet-18 trunk's feature map instead of linearly embedded pixels -> (B, cells, dim)."""
+
+    def __init__(self, image_size: int, width: int, dim: int, depth: int, heads: int):
+        super().__init__()
+        self.stem = ResNet18Encoder(image_size, width, dim)
+        self.blocks = _transformer(dim, depth, heads)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return self.blocks(self.stem(image))
+
+
+def vision_encoder(config: ModelConfig, image_size: int) -> nn.Module:
+    if config.vision == "vit":
+        return ViTEncoder(image_size, config.patch_size, config.dim, config.vision_depth, config.heads)
+    if config.vision == "hybrid":
+        return HybridViTEncoder(image_size, config.resnet_width, config.dim, config.vision_depth, config.heads)
+    return ResNet18Encoder(image_size, config.resnet_width, config.dim)
+
+
 class VLAModel(nn.Module):
     def __init__(self, config: ModelConfig, dims: ModelDims):
         super().__init__()
         self.config, self.dims = config, dims
         d = config.dim
-        self.vision = (
-            ViTEncoder(dims.image_size, config.patch_size, d, config.vision_depth, config.heads)
-            if config.vision == "vit" else ResNet18Encoder(dims.image_size, config.resnet_width, d)
-        )
+        self.vision = vision_encoder(config, dims.image_size)
         if config.language_trainable:
             from policies.language import TextEncoder
 

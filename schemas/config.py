@@ -159,8 +159,10 @@ class FilterConfig(_Strict):
 class ModelConfig(_Strict):
     """The VLA model's sizes (policies/model.py, docs/training.md)."""
 
-    vision: Literal["vit", "resnet18"] = Field(
-        default="vit", description="vision encoder: a ViT, or a ResNet-18 trained from scratch (ablation)"
+    vision: Literal["vit", "hybrid", "resnet18"] = Field(
+        default="hybrid",
+        description="vision encoder, trained from scratch: a ViT over pixel patches; a ViT-hybrid over a ResNet-18 "
+        "trunk's feature-map cells; or the ResNet-18 alone (its cells go straight to the fusion transformer)",
     )
     patch_size: PositiveInt = Field(default=12, description="ViT patch side in pixels; divides render.image_size")
     resnet_width: PositiveInt = Field(default=16, description="ResNet-18 channels of its first stage (64 in the paper)")
@@ -183,7 +185,7 @@ class ModelConfig(_Strict):
 class TrainConfig(_Strict):
     epochs: PositiveInt = 10
     batch_size: PositiveInt = 64
-    lr: float = Field(default=1e-3, gt=0)
+    lr: float = Field(default=3e-4, gt=0)
     language_lr: float = Field(default=2e-5, gt=0, description="learning rate of a fine-tuned language encoder")
     weight_decay: float = Field(default=0.01, ge=0)
     contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")

@@ -23,7 +23,7 @@ def test_bench_train_reports_the_stage_the_reference_the_latency_and_the_ratios(
     assert bench["cpus"] == os.cpu_count() and (bench["gpu"] == "no GPU") == (not gpu)
     assert bench["triplets"] == 2 * 4 * 50 and bench["frame_size"] == 84  # QUICK's warehouse, every episode kept
     rows = {r["case"]: r for r in bench["rows"]}
-    assert list(rows) == ["stage", "memory", *(["cuda256", "cuda1024"] if gpu else ["cuda"]), "act-vit-1", "act-vit-2"]
+    assert list(rows) == ["stage", "memory", *(["cuda256", "cuda1024"] if gpu else ["cuda"]), "act-hybrid-1", "act-hybrid-2"]
 
     stage, memory = rows["stage"], rows["memory"]
     # the default train settings, epochs rounded up past QUICK's 6 steps: one epoch of ceil(400 / 64) batches
@@ -35,25 +35,25 @@ def test_bench_train_reports_the_stage_the_reference_the_latency_and_the_ratios(
     assert stage["samples_per_s"] > bench["triplets"] / stage["wall_s"]
     default_model = VLAModel(ModelConfig(), model_dims(CampaignConfig()))
     parameters = sum(p.numel() for p in default_model.parameters()) / 1e6
-    assert f"; {parameters:.2f}M parameters;" in stage["note"]  # the default ViT, as the stage saved it
+    assert f"; {parameters:.2f}M parameters;" in stage["note"]  # the default model, as the stage saved it
     assert memory["loader_workers"] is None and memory["data_wait"] is None
     assert (memory["batch_size"], memory["steps"], memory["windows"]) == (64, 7, 3) and memory["samples_per_s"] > 0
     if not gpu:
         assert rows["cuda"]["samples_per_s"] is None and "no GPU" in rows["cuda"]["note"]
 
     for threads in (1, 2):
-        act = rows[f"act-vit-{threads}"]
+        act = rows[f"act-hybrid-{threads}"]
         assert (act["threads"], act["steps"], act["batch_size"], act["device"]) == (threads, 20, 1, "cpu")
         assert 0 < act["p50_ms"] <= act["p95_ms"] and act["samples_per_s"] is None
 
     ratios = {r["name"]: r for r in bench["ratios"]}
     reader = ratios["train stage / in-memory batches, samples/s"]
     assert reader["value"] == pytest.approx(stage["samples_per_s"] / memory["samples_per_s"]) and reader["met"] is None
-    wait = ratios["data wait, train stage, default settings (ViT, loader_workers 1)"]
+    wait = ratios["data wait, train stage, default settings (ViT-hybrid, loader_workers 1)"]
     assert wait["value"] == stage["data_wait"] and wait["target"] == 0.1 and wait["at_most"]
     assert wait["met"] == (wait["value"] <= 0.1)
     for threads in (1, 2):
-        act = rows[f"act-vit-{threads}"]
+        act = rows[f"act-hybrid-{threads}"]
         latency = ratios[f"p95 latency, {act['name']}"]
         assert latency["value"] == act["p95_ms"] and latency["target"] == 20.0 and latency["unit"] == "ms"
         assert latency["met"] == (act["p95_ms"] <= 20.0)
