@@ -158,14 +158,15 @@ class _Means:
         return {name: [float(total), count] for name, (total, count) in self.sums.items()}
 
 
-def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
+def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
     """Each frame moved by up to `pad` pixels each way, edges repeated (DrQ's augmentation: with few
     demonstrations it keeps a from-scratch encoder from memorising where things are on screen).
-    The shifts come from torch's CPU generator, which a resumed training restores."""
+    The shifts are drawn on the CPU from `generator` (the training's own, which its checkpoints
+    save: the DataLoader draws from torch's global one when it starts, so a resume would shift it)."""
     if pad == 0:
         return image
     b, c, h, w = image.shape
-    shifts = torch.randint(0, 2 * pad + 1, (b, 2)).to(image.device)
+    shifts = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator).to(image.device)
     padded = F.pad(image, (pad, pad, pad, pad), mode="replicate")
     rows = torch.arange(h, device=image.device)[None, :] + shifts[:, :1]
     cols = torch.arange(w, device=image.device)[None, :] + shifts[:, 1:]
@@ -173,9 +174,10 @@ def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
     return padded.gather(3, cols[:, None, None, :].expand(b, c, h, w))
 
 
-def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device):
+def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device,
+               shifts: torch.Generator | None = None):
     image = batch["image"].to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255.0)
-    image = random_shift(image, cfg.augment_shift)
+    image = random_shift(image, cfg.augment_shift, shifts)
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
         losses = vla_loss(
@@ -232,12 +234,14 @@ def run_train(
     total_steps = cfg.epochs * batches.batches_per_epoch
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
     step, history, epoch_means = 0, [], _Means()
+    shifts = torch.Generator().manual_seed(derive_seed(config.seed, key, "augment"))
     if state_path.exists():
         state = torch.load(state_path, map_location="cpu", weights_only=False)
         model.load_state_dict(state["model"])
         optimiser.load_state_dict(state["optimiser"])
         schedule.load_state_dict(state["schedule"])
         torch.set_rng_state(state["rng"])
+        shifts.set_state(state["shifts"])
         step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
         log.info("train it%d: resuming %s at step %d/%d", iteration, key, step, total_steps)
     resumed_at = step
@@ -264,7 +268,7 @@ def run_train(
             waited += time.monotonic() - wait_started
             if int(batch["batch"]) != step:
                 raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
-            losses = train_step(model, optimiser, schedule, batch, cfg, device)
+            losses = train_step(model, optimiser, schedule, batch, cfg, device, shifts)
             step += 1
             size = len(batch["instruction"])
             window.add(losses.terms, losses.counts)
@@ -289,7 +293,8 @@ def run_train(
             if step % cfg.checkpoint_every == 0 and step < total_steps:
                 save_atomically(state_path, {
                     "model": model.state_dict(), "optimiser": optimiser.state_dict(),
-                    "schedule": schedule.state_dict(), "rng": torch.get_rng_state(), "step": step,
+                    "schedule": schedule.state_dict(), "rng": torch.get_rng_state(),
+                    "shifts": shifts.get_state(), "step": step,
                     "history": history, "epoch_means": epoch_means.state(),
                 })
             wait_started = time.monotonic()
