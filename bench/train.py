@@ -61,14 +61,13 @@ class TrainSizes(BaseModel):
     log_every: int = 10  # steps per metrics window
     latency_calls: int = 200
     latency_warmup: int = 10
-    variants: bool = True  # loader_workers 0, resnet18, fine-tuned language encoder
     cuda_batches: list[int] = [256, 1024]
     cases: list[str] = list(CASES)  # which to run ("stage" always runs: every ratio is against it)
 
 
 # seconds, for tests and a smoke check; the figures mean little at these sizes
 QUICK = TrainSizes(units=2, episodes_per_unit=4, steps_per_episode=50, steps=6, log_every=2, latency_calls=20,
-                   variants=False)
+                   cases=["stage", "memory", "cuda", "act"])
 
 
 class TrainRow(BaseModel):
@@ -323,7 +322,7 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
             ("minilm", "train stage, language encoder fine-tuned (MiniLM in the model)",
              {"model": {"language_trainable": True}}),
         ]
-        for case, name, train in variants if sizes.variants else []:
+        for case, name, train in variants:
             if case not in wanted:
                 continue
             missing = _weights_missing(TrainConfig().model.language_encoder) if case == "minilm" else None

@@ -314,23 +314,22 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sim2act", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
-    run = commands.add_parser("run", help="run a bootstrap campaign (embedded: no server needed)")
-    run.add_argument("--preset", choices=PRESETS, default="default")
-    run.add_argument("--config", type=Path, help="YAML file whose fields override the preset's")
-    run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
-    run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                     help="override one config field, e.g. --set train.contrastive_weight=0 (repeatable)")
-    run.add_argument("--workspace", default=_default_workspace(), help="default: $SIM2ACT_WORKSPACE or ./workspace")
-    run.set_defaults(handler=cmd_run)
+    def campaign_parser(name: str, help: str, handler) -> argparse.ArgumentParser:
+        """A command that reads a campaign config (preset, file, --set) and a workspace, as `run` does."""
+        command = commands.add_parser(name, help=help)
+        command.add_argument("--preset", choices=PRESETS, default="default")
+        command.add_argument("--config", type=Path, help="YAML file whose fields override the preset's")
+        command.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                             help="override one config field, e.g. --set train.contrastive_weight=0 (repeatable)")
+        command.add_argument("--workspace", default=_default_workspace(),
+                             help="default: $SIM2ACT_WORKSPACE or ./workspace")
+        command.set_defaults(handler=handler)
+        return command
 
-    train = commands.add_parser("train", help="train the model alone on a campaign's dataset (resumes if killed)")
-    train.add_argument("--preset", choices=PRESETS, default="default")
-    train.add_argument("--config", type=Path, help="YAML file whose fields override the preset's (as `run` takes)")
-    train.add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
-    train.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                       help="override one config field, e.g. --set train.model.vision=resnet18 (repeatable)")
-    train.add_argument("--workspace", default=_default_workspace())
-    train.set_defaults(handler=cmd_train)
+    campaign_parser("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run
+                    ).add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    campaign_parser("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train
+                    ).add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
 
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)

@@ -67,6 +67,7 @@ class Catalog:
     def __init__(self, path: Path):
         self.path = path
         self.warehouse = path.parent
+        self._in_place = False  # the shard views were seen pointing at this folder: no need to look again
 
     @property
     def quarantine_folder(self) -> Path:
@@ -93,7 +94,7 @@ class Catalog:
         try:
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
-            elif self._moved(con):
+            elif not self._in_place and self._moved(con):
                 self._follow_move(con, read_only)
             yield con
         finally:
@@ -234,7 +235,8 @@ class Catalog:
         if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
             return False  # not initialised yet
         root = con.execute(f"SELECT value FROM {self._persistent(con)}.catalog_meta WHERE key = 'root'").fetchone()
-        return root is None or root[0] != self.warehouse.resolve().as_posix()
+        self._in_place = root is not None and root[0] == self.warehouse.resolve().as_posix()
+        return not self._in_place
 
     def _follow_move(self, con: duckdb.DuckDBPyConnection, read_only: bool) -> None:
         """Point the shard views at this folder's files: for good when writing, for this
@@ -245,6 +247,7 @@ class Catalog:
             return
         self._refresh_views(con, SHARD_TABLES)
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
+        self._in_place = True
 
     def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.
