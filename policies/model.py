@@ -77,11 +77,34 @@ class _BasicBlock(nn.Module):
         return F.relu(self.bn2(self.conv2(out)) + self.shortcut(x))
 
 
+class SpatialSoftmax(nn.Module):
+    """Keypoints (Levine et al. 2016): for each channel of a learned 1x1 projection of a feature map,
+    the softmax-weighted mean image position, in [-1, 1]: where a feature is, to a fraction of a cell,
+    and differences of keypoints survive a shifted frame. (B, C, H, W) -> (B, keypoints, 2) as (x, y)."""
+
+    def __init__(self, channels: int, keypoints: int, height: int, width: int):
+        super().__init__()
+        self.project = nn.Conv2d(channels, keypoints, 1)
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+        ys, xs = torch.meshgrid(torch.linspace(-1, 1, height), torch.linspace(-1, 1, width), indexing="ij")
+        self.register_buffer("grid", torch.stack([xs.flatten(), ys.flatten()], -1), persistent=False)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        weights = (self.project(features).flatten(2).float() / self.log_temperature.exp()).softmax(-1)
+        return (weights @ self.grid).to(features.dtype)
+
+
+# Keypoints come from the feature map after this many ResNet stages (stride 8: 11x11 cells at 84 px),
+# fine enough to place a 4 px object; the last stage's 32 px cells are not.
+KEYPOINT_STAGE = 2
+
+
 class ResNet18Encoder(nn.Module):
     """ResNet-18 (He et al. 2016: stem, four stages of two basic blocks) at a chosen width, from
-    scratch; its last feature map becomes tokens: (B, 3, H, W) in [0, 1] -> (B, cells, dim)."""
+    scratch; its last feature map becomes tokens, plus one token of `keypoints` spatial-softmax
+    keypoints where asked: (B, 3, H, W) in [0, 1] -> (B, tokens, dim)."""
 
-    def __init__(self, image_size: int, width: int, dim: int):
+    def __init__(self, image_size: int, width: int, dim: int, keypoints: int = 0):
         super().__init__()
         layers: list[nn.Module] = [
             nn.Conv2d(3, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
@@ -92,21 +115,30 @@ class ResNet18Encoder(nn.Module):
             layers += [_BasicBlock(channels, out, stride), _BasicBlock(out, out, 1)]
             channels = out
         self.features = nn.Sequential(*layers, nn.Conv2d(channels, dim, 1))
+        self.tap = 4 + 2 * KEYPOINT_STAGE  # layers up to the keypoints' feature map: stem, two blocks a stage
         with torch.no_grad():
-            cells = self.features(torch.zeros(1, 3, image_size, image_size)).flatten(2).shape[-1]
+            probe = torch.zeros(1, 3, image_size, image_size)
+            tapped = self.features[: self.tap](probe)
+            cells = self.features[self.tap:](tapped).flatten(2).shape[-1]
         self.position = nn.Parameter(torch.randn(1, cells, dim) * 0.02)
+        self.keypoints = SpatialSoftmax(tapped.shape[1], keypoints, *tapped.shape[2:]) if keypoints else None
+        self.keypoint_token = nn.Linear(2 * keypoints, dim) if keypoints else None
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return self.features(image * 2.0 - 1.0).flatten(2).transpose(1, 2) + self.position
+        tapped = self.features[: self.tap](image * 2.0 - 1.0)
+        tokens = self.features[self.tap:](tapped).flatten(2).transpose(1, 2) + self.position
+        if self.keypoints is None:
+            return tokens
+        return torch.cat([tokens, self.keypoint_token(self.keypoints(tapped).flatten(1)).unsqueeze(1)], dim=1)
 
 
 class HybridViTEncoder(nn.Module):
     """ViT-hybrid (Dosovitskiy et al. 2021, section 3.1): the transformer's patches are the cells of a
     ResNet-18 trunk's feature map instead of linearly embedded pixels -> (B, cells, dim)."""
 
-    def __init__(self, image_size: int, width: int, dim: int, depth: int, heads: int):
+    def __init__(self, stem: ResNet18Encoder, dim: int, depth: int, heads: int):
         super().__init__()
-        self.stem = ResNet18Encoder(image_size, width, dim)
+        self.stem = stem
         self.blocks = _transformer(dim, depth, heads)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
@@ -116,9 +148,10 @@ class HybridViTEncoder(nn.Module):
 def vision_encoder(config: ModelConfig, image_size: int) -> nn.Module:
     if config.vision == "vit":
         return ViTEncoder(image_size, config.patch_size, config.dim, config.vision_depth, config.heads)
+    trunk = ResNet18Encoder(image_size, config.resnet_width, config.dim, config.keypoints)
     if config.vision == "hybrid":
-        return HybridViTEncoder(image_size, config.resnet_width, config.dim, config.vision_depth, config.heads)
-    return ResNet18Encoder(image_size, config.resnet_width, config.dim)
+        return HybridViTEncoder(trunk, config.dim, config.vision_depth, config.heads)
+    return trunk
 
 
 class VLAModel(nn.Module):

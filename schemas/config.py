@@ -166,6 +166,11 @@ class ModelConfig(_Strict):
     )
     patch_size: PositiveInt = Field(default=12, description="ViT patch side in pixels; divides render.image_size")
     resnet_width: PositiveInt = Field(default=16, description="ResNet-18 channels of its first stage (64 in the paper)")
+    keypoints: int = Field(
+        default=32, ge=0, le=128,
+        description="spatial-softmax keypoints (Levine et al. 2016) over the ResNet-18 trunk's stride-8 feature "
+        "map, as one more vision token (hybrid, resnet18): where things are, finer than the trunk's 32 px cells; 0: none",
+    )
     dim: PositiveInt = 64
     vision_depth: PositiveInt = 2
     fusion_depth: PositiveInt = 2

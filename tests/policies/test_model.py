@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from policies.model import ModelDims, ModelOutput, VLAModel, info_nce, uncertainty, vla_loss
+from policies.model import ModelDims, ModelOutput, SpatialSoftmax, VLAModel, info_nce, uncertainty, vla_loss, vision_encoder
 from schemas.config import ModelConfig
 
 DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, discrete_actions=4, language_dim=384)
@@ -38,11 +38,33 @@ def test_forward_shapes(vision):
 
 
 def test_resnet18_has_the_paper_layout():
-    model = VLAModel(ModelConfig(dim=32, heads=4, vision="resnet18", resnet_width=64), DIMS)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision="resnet18", resnet_width=64, keypoints=0), DIMS)
     convs = [m for m in model.vision.features.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size != (1, 1)]
     assert len(convs) == 17  # the stem and 16 in the 8 basic blocks: 18 weight layers with the fc
     vision_parameters = sum(p.numel() for p in model.vision.parameters()) - 512 * 32 - 32 - model.vision.position.numel()
     assert abs(vision_parameters - 11.17e6) < 0.05e6  # torchvision's resnet18 less its fc layer
+
+
+@pytest.mark.parametrize(("vision", "keypoints", "tokens"), [("hybrid", 0, 9), ("hybrid", 16, 10), ("resnet18", 8, 10)])
+def test_keypoints_are_one_more_vision_token(vision, keypoints, tokens):
+    encoder = vision_encoder(ModelConfig(dim=32, heads=4, vision=vision, keypoints=keypoints), 84)
+    assert encoder(torch.rand(2, 3, 84, 84)).shape == (2, tokens, 32)
+
+
+def test_spatial_softmax_finds_a_feature_where_it_is_and_follows_it():
+    keypoints = SpatialSoftmax(channels=1, keypoints=1, height=11, width=11)
+    with torch.no_grad():
+        keypoints.project.weight.fill_(1.0), keypoints.project.bias.zero_(), keypoints.log_temperature.fill_(-3.0)
+
+    def where(row: int, column: int) -> torch.Tensor:
+        features = torch.zeros(1, 1, 11, 11)
+        features[0, 0, row, column] = 1.0
+        return keypoints(features)[0, 0]
+
+    assert torch.allclose(where(5, 5), torch.zeros(2), atol=1e-3)  # the centre is (0, 0)
+    assert torch.allclose(where(0, 10), torch.tensor([1.0, -1.0]), atol=1e-3)  # (x, y): right, top
+    # a shifted feature moves its keypoint by as much: differences of keypoints survive a shifted frame
+    assert torch.allclose(where(3, 7) - where(3, 4), torch.tensor([0.6, 0.0]), atol=1e-3)
 
 
 def test_info_nce_prefers_matching_pairs():
