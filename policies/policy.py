@@ -95,7 +95,8 @@ class Policy:
     def act(self, image: np.ndarray, proprio: np.ndarray, instruction: str, family: str) -> Decision:
         """For one (H, W, 3) uint8 frame: the Gaussian's mean (clipped to the action bounds) or the
         most likely discrete action."""
-        pixels = torch.from_numpy(image).permute(2, 0, 1).unsqueeze(0).float() / 255.0
+        # a copy: frames decoded from the warehouse are read-only buffers, which torch warns about sharing
+        pixels = torch.tensor(image).permute(2, 0, 1).unsqueeze(0).float() / 255.0
         output = self.model(pixels, self._embedding(instruction), torch.from_numpy(self.proprio.encode(proprio)).unsqueeze(0))
         discrete = family in DISCRETE_FAMILIES
         if discrete:
