@@ -121,15 +121,16 @@ class ResNet18Encoder(nn.Module):
             tapped = self.features[: self.tap](probe)
             cells = self.features[self.tap:](tapped).flatten(2).shape[-1]
         self.position = nn.Parameter(torch.randn(1, cells, dim) * 0.02)
-        self.keypoints = SpatialSoftmax(tapped.shape[1], keypoints, *tapped.shape[2:]) if keypoints else None
-        self.keypoint_token = nn.Linear(2 * keypoints, dim) if keypoints else None
+        self.keypoints = nn.Sequential(  # the keypoints' (x, y), all of them, as one token
+            SpatialSoftmax(tapped.shape[1], keypoints, *tapped.shape[2:]), nn.Flatten(), nn.Linear(2 * keypoints, dim)
+        ) if keypoints else None
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         tapped = self.features[: self.tap](image * 2.0 - 1.0)
         tokens = self.features[self.tap:](tapped).flatten(2).transpose(1, 2) + self.position
         if self.keypoints is None:
             return tokens
-        return torch.cat([tokens, self.keypoint_token(self.keypoints(tapped).flatten(1)).unsqueeze(1)], dim=1)
+        return torch.cat([tokens, self.keypoints(tapped).unsqueeze(1)], dim=1)
 
 
 class HybridViTEncoder(nn.Module):
