@@ -36,7 +36,7 @@ from pydantic import BaseModel
 
 from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
-from envs.observation import PROPRIO_DIM
+from envs.observation import PROPRIO_DIM, Observation
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.workspace import Workspace
 from stages.index import IndexResult
@@ -251,18 +251,18 @@ def run_latency(checkpoint: Path, vision: str, threads: int, sizes: TrainSizes, 
 
     instruction = f"do {TASKS[0]}"
     policy = Policy.load(checkpoint, {instruction: _embeddings()[instruction]})  # embeddings cached, as workers have
-    frames = [frame(image_size, (200, 40, 40), step) for step in range(8)]
     proprio = np.random.default_rng(0).normal(size=(8, PROPRIO_DIM)).astype(np.float32)
+    observations = [Observation(frame(image_size, (200, 40, 40), step), proprio[step], {}) for step in range(8)]
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
         for call in range(sizes.latency_warmup):
-            policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)
+            policy.act(observations[call % 8], instruction, FAMILY)
         times = []
         meter = LoadMeter()
         for call in range(sizes.latency_calls):
             started = time.perf_counter()
-            decision = policy.act(frames[call % 8], proprio[call % 8], instruction, FAMILY)
+            decision = policy.act(observations[call % 8], instruction, FAMILY)
             times.append(time.perf_counter() - started)
         wall_s = time.perf_counter() - meter.wall
     finally:

@@ -14,7 +14,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.gl import select_offscreen  # noqa: E402
-from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
+from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
@@ -54,7 +54,7 @@ class MetaWorldEnv:
             self.env = self.benchmark.train_classes[env_name]()
         else:
             self.env = self.benchmark.train_classes[env_name](
-                render_mode="rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
+                render_mode="rgbd_tuple" if render.depth else "rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
                 height=render.image_size,
             )
             model = self.env.model
@@ -65,33 +65,40 @@ class MetaWorldEnv:
         self.randomiser = SceneRandomiser(self.env.model, CAMERAS[render.camera] if render else None,
                                           task_geoms=[], object_bodies=free_bodies(self.env.model))
 
-    def _render(self) -> np.ndarray:
+    def _render(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """(frame, depth in metres or None), upright."""
         if self.render_config is None:
-            return NO_IMAGE
+            return NO_IMAGE, None
         self._make_context_current()
-        image = self.env.render()
+        drawn = self.env.render()
         if not self._scene_configured:  # the viewer exists only after the first render
-            scene = self.env.mujoco_renderer._get_viewer("rgb_array").scn
+            scene = self._viewer().scn
             scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(self.render_config.shadows)
             scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.render_config.reflections)
             self._scene_configured = True
-            image = self.env.render()
-        return image[::-1].copy()  # OpenGL rows run bottom-up
+            drawn = self.env.render()
+        image, zbuffer = drawn if self.render_config.depth else (drawn, None)
+        depth = None if zbuffer is None else metric_depth(zbuffer[::-1], self.env.model)  # flipped as the frame
+        return image[::-1].copy(), depth  # OpenGL rows run bottom-up
+
+    def _viewer(self):
+        return self.env.mujoco_renderer._get_viewer(self.env.render_mode)
 
     def _make_context_current(self) -> None:
         """gymnasium switches GL contexts only between its own viewers (envs/gl.py)."""
-        viewer = self.env.mujoco_renderer._get_viewer("rgb_array")
+        viewer = self._viewer()
         select_offscreen(viewer.opengl_context, viewer.con)
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
         """The frame an observation at `state` showed. MetaWorld's step ends in mj_forward, so its
         frames show the state itself, after a step (`after_step`) or not."""
         state.restore(self.env.model, self.env.data)
-        return self._render()
+        return self._render()[0]
 
     def _observation(self, state: np.ndarray) -> Observation:
         proprio = np.concatenate([state[:3], IDENTITY_QUAT, [state[3], -state[3]]]).astype(np.float32)
-        return Observation(self._render(), proprio, {"state": np.asarray(state, dtype=np.float64)})
+        image, depth = self._render()
+        return Observation(image, proprio, {"state": np.asarray(state, dtype=np.float64)}, depth)
 
     def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
         if task.env_name != self.env_name:

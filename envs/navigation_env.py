@@ -197,27 +197,35 @@ class NavigationEnv:
             self.stage -= 1  # stay on the last goal: success holds while it holds
         return self._observation(), reward, success
 
-    def _render(self) -> np.ndarray:
+    def _render(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """(frame, depth in metres or None): the scene drawn once more for depth where recorded."""
         if self.renderer is None:
-            return NO_IMAGE
+            return NO_IMAGE, None
         self.renderer.update_scene(self.data, camera=self.camera)
         # Renderer.render() makes its context current but does not re-select the offscreen buffer
         select_offscreen(self.renderer._gl_context, self.renderer._mjr_context)
-        return self.renderer.render().copy()
+        image = self.renderer.render().copy()
+        if not self.render_config.depth:
+            return image, None
+        self.renderer.enable_depth_rendering()
+        try:
+            return image, self.renderer.render().copy()
+        finally:
+            self.renderer.disable_depth_rendering()
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
         """The frame an observation at `state` showed. after_step: `state` ended a step, whose
         frame was drawn right after mj_step, with the poses of before its last substep."""
         state.restore(self.model, self.data, before_last_substep=after_step)
-        return self._render()
+        return self._render()[0]
 
     def _observation(self) -> Observation:
-        image = self._render()
+        image, depth = self._render()
         x, y, yaw = self.data.qpos[:3]
         proprio = np.zeros(PROPRIO_DIM, dtype=np.float32)
         proprio[:4] = [x, y, np.cos(yaw), np.sin(yaw)]
         privileged = {"pose": self.data.qpos[:3].copy(), "goal": self.goal_point(), "stage": np.array([self.stage])}
-        return Observation(image, proprio, privileged)
+        return Observation(image, proprio, privileged, depth)
 
     def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
         """The MuJoCo model and data, and the mj_steps one action takes (benchmarks)."""

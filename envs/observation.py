@@ -25,6 +25,17 @@ class Observation:
     image: np.ndarray  # uint8 (H, W, 3), upright; OpenGL rows run bottom-up, adapters flip them
     proprio: np.ndarray  # float32 (PROPRIO_DIM,)
     privileged: dict[str, np.ndarray]  # simulator state only scripted experts may read
+    depth: np.ndarray | None = None  # float32 (H, W) metres along the camera axis, upright; render.depth only
+
+
+def metric_depth(zbuffer: np.ndarray, model) -> np.ndarray:
+    """OpenGL's depth buffer (non-linear, in [0, 1]) as metres along the camera axis, with the
+    model's clip planes (what mujoco.Renderer does for itself); 0 where nothing was drawn."""
+    extent = model.stat.extent
+    near, far = model.vis.map.znear * extent, model.vis.map.zfar * extent
+    zbuffer = np.asarray(zbuffer, dtype=np.float64)
+    metres = near / (1.0 - zbuffer * (1.0 - near / far))
+    return np.where(zbuffer < 1.0, metres, 0.0).astype(np.float32)
 
 
 @dataclass

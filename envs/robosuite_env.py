@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
 from envs.gl import select_offscreen  # noqa: E402
-from envs.observation import NO_IMAGE, MujocoState, Observation  # noqa: E402
+from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
@@ -156,13 +156,15 @@ def observe(env, scene: Scene, raw: dict[str, np.ndarray], camera: str | None, f
     proprio, and what the scene's expert reads. Works on any robosuite env of the scene, ours or
     one made by hand (bench rollout)."""
     image = NO_IMAGE if camera is None else raw[f"{camera}_image"][::-1].copy()
+    zbuffer = None if camera is None else raw.get(f"{camera}_depth")  # robosuite's camera_depths
+    depth = None if zbuffer is None else metric_depth(zbuffer[::-1, :, 0], env.sim.model._model)
     proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
     privileged = scene.privileged(env, raw)
     privileged["gripper"] = np.asarray(raw["robot0_eef_pos"], dtype=np.float64)
     privileged["gripper_quat"] = np.asarray(raw["robot0_eef_quat"], dtype=np.float64)  # x, y, z, w
     left, right = env.sim.data._data.xpos[fingers]  # the fingers open along this line
     privileged["finger_axis"] = right - left
-    return Observation(image, proprio, privileged)
+    return Observation(image, proprio, privileged, depth)
 
 
 class RobosuiteEnv:
@@ -178,6 +180,7 @@ class RobosuiteEnv:
         self.RANDOMISES = self.scene.randomises
         camera = {} if render is None else {
             "camera_names": render.camera, "camera_heights": render.image_size, "camera_widths": render.image_size,
+            "camera_depths": render.depth,
         }
         self.env = robosuite.make(
             env_name,

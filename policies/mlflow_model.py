@@ -15,7 +15,7 @@ MODEL_CODE = __file__
 
 class PolicyModel(mlflow.pyfunc.PythonModel):
     """Input: a DataFrame with `image` (a frame's bytes as the warehouse stores them: schemas.frames),
-    `proprio` (list of floats), `instruction` (str), `family` (robosuite, metaworld, navigation).
+    `depth` (its depth map's bytes; RGB-D models only), `proprio` (list of floats), `instruction` (str), `family` (robosuite, metaworld, navigation).
     Output: a DataFrame with `action` (list of floats: continuous components, or [index]) and
     `uncertainty` (entropy or log det Sigma)."""
 
@@ -29,12 +29,15 @@ class PolicyModel(mlflow.pyfunc.PythonModel):
 
 
 def predict_frame(policy, frame: pd.DataFrame) -> pd.DataFrame:
-    from schemas.frames import decode_frame
+    from envs.observation import Observation
+    from schemas.frames import decode_depth, decode_frame
 
+    depths = frame["depth"] if "depth" in frame else [None] * len(frame)
     decisions = [
-        policy.act(decode_frame(image), np.asarray(proprio, dtype=np.float32), instruction, family)
-        for image, proprio, instruction, family in zip(frame["image"], frame["proprio"], frame["instruction"],
-                                                       frame["family"])
+        policy.act(Observation(decode_frame(image), np.asarray(proprio, dtype=np.float32), {},
+                               None if depth is None else decode_depth(depth)), instruction, family)
+        for image, depth, proprio, instruction, family in zip(frame["image"], depths, frame["proprio"],
+                                                              frame["instruction"], frame["family"])
     ]
     return pd.DataFrame({"action": [d.action.astype(np.float64).tolist() for d in decisions],
                          "uncertainty": [d.uncertainty for d in decisions]})

@@ -19,6 +19,9 @@ from torch import nn
 from schemas.config import ModelConfig
 
 LOG_STD_RANGE = (-5.0, 2.0)
+# An RGB-D model's fourth channel is inverse depth, min(1, NEAR / depth): it keeps resolution where
+# the work is (tabletop cameras see 0.5-2 m: 1 to 0.25) and needs no far limit (rooms; 0: nothing hit).
+INVERSE_DEPTH_NEAR_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,7 @@ class ModelDims:
     action_dim: int  # continuous components
     discrete_actions: int  # size of the discrete action set
     language_dim: int
+    channels: int = 3  # 4: RGB-D, for campaigns that record depth (render.depth)
 
 
 @dataclass
@@ -43,15 +47,25 @@ def _transformer(dim: int, depth: int, heads: int) -> nn.TransformerEncoder:
     return nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
 
 
-class ViTEncoder(nn.Module):
-    """Patch embedding + learned positions + transformer: (B, 3, H, W) in [0, 1] -> (B, patches, dim)."""
+def pixels(image: torch.Tensor, depth: torch.Tensor | None = None) -> torch.Tensor:
+    """The vision input (B, C, H, W) in [0, 1]: uint8 frames (B, H, W, 3), and for an RGB-D model
+    their depth maps (B, H, W) in metres as a fourth channel of inverse depth."""
+    rgb = image.permute(0, 3, 1, 2).float().div_(255.0)
+    if depth is None:
+        return rgb
+    inverse = torch.where(depth > 0, INVERSE_DEPTH_NEAR_M / depth.float().clamp_min(1e-6), 0.0).clamp_max(1.0)
+    return torch.cat([rgb, inverse.unsqueeze(1)], dim=1)
 
-    def __init__(self, image_size: int, patch_size: int, dim: int, depth: int, heads: int):
+
+class ViTEncoder(nn.Module):
+    """Patch embedding + learned positions + transformer: (B, C, H, W) in [0, 1] -> (B, patches, dim)."""
+
+    def __init__(self, image_size: int, patch_size: int, dim: int, depth: int, heads: int, channels: int = 3):
         super().__init__()
         if image_size % patch_size:
             raise ValueError(f"train.model.patch_size: {patch_size} does not divide render.image_size {image_size}")
         patches = (image_size // patch_size) ** 2
-        self.patchify = nn.Conv2d(3, dim, kernel_size=patch_size, stride=patch_size)
+        self.patchify = nn.Conv2d(channels, dim, kernel_size=patch_size, stride=patch_size)
         self.position = nn.Parameter(torch.randn(1, patches, dim) * 0.02)
         self.blocks = _transformer(dim, depth, heads)
 
@@ -102,12 +116,12 @@ KEYPOINT_STAGE = 2
 class ResNet18Encoder(nn.Module):
     """ResNet-18 (He et al. 2016: stem, four stages of two basic blocks) at a chosen width, from
     scratch; its last feature map becomes tokens, plus one token of `keypoints` spatial-softmax
-    keypoints where asked: (B, 3, H, W) in [0, 1] -> (B, tokens, dim)."""
+    keypoints where asked: (B, C, H, W) in [0, 1] -> (B, tokens, dim)."""
 
-    def __init__(self, image_size: int, width: int, dim: int, keypoints: int = 0):
+    def __init__(self, image_size: int, width: int, dim: int, keypoints: int = 0, in_channels: int = 3):
         super().__init__()
         layers: list[nn.Module] = [
-            nn.Conv2d(3, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
+            nn.Conv2d(in_channels, width, 7, 2, 3, bias=False), nn.BatchNorm2d(width), nn.ReLU(), nn.MaxPool2d(3, 2, 1),
         ]
         channels = width
         for stage, stride in enumerate((1, 2, 2, 2)):
@@ -117,7 +131,7 @@ class ResNet18Encoder(nn.Module):
         self.features = nn.Sequential(*layers, nn.Conv2d(channels, dim, 1))
         self.tap = 4 + 2 * KEYPOINT_STAGE  # layers up to the keypoints' feature map: stem, two blocks a stage
         with torch.no_grad():
-            probe = torch.zeros(1, 3, image_size, image_size)
+            probe = torch.zeros(1, in_channels, image_size, image_size)
             tapped = self.features[: self.tap](probe)
             cells = self.features[self.tap:](tapped).flatten(2).shape[-1]
         self.position = nn.Parameter(torch.randn(1, cells, dim) * 0.02)
@@ -146,10 +160,10 @@ class HybridViTEncoder(nn.Module):
         return self.blocks(self.stem(image))
 
 
-def vision_encoder(config: ModelConfig, image_size: int) -> nn.Module:
+def vision_encoder(config: ModelConfig, image_size: int, channels: int = 3) -> nn.Module:
     if config.vision == "vit":
-        return ViTEncoder(image_size, config.patch_size, config.dim, config.vision_depth, config.heads)
-    trunk = ResNet18Encoder(image_size, config.resnet_width, config.dim, config.keypoints)
+        return ViTEncoder(image_size, config.patch_size, config.dim, config.vision_depth, config.heads, channels)
+    trunk = ResNet18Encoder(image_size, config.resnet_width, config.dim, config.keypoints, channels)
     if config.vision == "hybrid":
         return HybridViTEncoder(trunk, config.dim, config.vision_depth, config.heads)
     return trunk
@@ -160,7 +174,7 @@ class VLAModel(nn.Module):
         super().__init__()
         self.config, self.dims = config, dims
         d = config.dim
-        self.vision = vision_encoder(config, dims.image_size)
+        self.vision = vision_encoder(config, dims.image_size, dims.channels)
         if config.language_trainable:
             from policies.language import TextEncoder
 
@@ -190,7 +204,10 @@ class VLAModel(nn.Module):
         return cached
 
     def forward(self, image: torch.Tensor, language: torch.Tensor, proprio: torch.Tensor) -> ModelOutput:
-        """image (B, 3, H, W) in [0, 1]; language (B, language_dim); proprio normalised."""
+        """image (B, C, H, W) in [0, 1] (`pixels`); language (B, language_dim); proprio normalised."""
+        if image.shape[1] != self.dims.channels:
+            kind = "RGB-D (a campaign with render.depth)" if self.dims.channels == 4 else "RGB"
+            raise ValueError(f"this model reads {kind} frames, got {image.shape[1]} channels")
         batch = image.shape[0]
         tokens = torch.cat(
             [

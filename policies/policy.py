@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from envs.observation import DISCRETE_FAMILIES
-from policies.model import ModelDims, VLAModel, uncertainty
+from envs.observation import DISCRETE_FAMILIES, Observation
+from policies.model import ModelDims, VLAModel, pixels, uncertainty
 from schemas.config import ModelConfig
 
 
@@ -92,12 +92,14 @@ class Policy:
         return self._embeddings[instruction]
 
     @torch.no_grad()
-    def act(self, image: np.ndarray, proprio: np.ndarray, instruction: str, family: str) -> Decision:
-        """For one (H, W, 3) uint8 frame: the Gaussian's mean (clipped to the action bounds) or the
-        most likely discrete action."""
-        # a copy: frames decoded from the warehouse are read-only buffers, which torch warns about sharing
-        pixels = torch.tensor(image).permute(2, 0, 1).unsqueeze(0).float() / 255.0
-        output = self.model(pixels, self._embedding(instruction), torch.from_numpy(self.proprio.encode(proprio)).unsqueeze(0))
+    def act(self, obs: Observation, instruction: str, family: str) -> Decision:
+        """For one observation (its frame, depth map if the model reads RGB-D, and proprio): the
+        Gaussian's mean (clipped to the action bounds) or the most likely discrete action."""
+        # copies: frames decoded from the warehouse are read-only buffers, which torch warns about sharing
+        depth = None if self.model.dims.channels == 3 or obs.depth is None else torch.tensor(obs.depth)[None]
+        image = pixels(torch.tensor(obs.image)[None], depth)
+        proprio = torch.from_numpy(self.proprio.encode(obs.proprio)).unsqueeze(0)
+        output = self.model(image, self._embedding(instruction), proprio)
         discrete = family in DISCRETE_FAMILIES
         if discrete:
             action = np.array([output.logits[0].argmax().item()], dtype=np.float32)

@@ -83,6 +83,7 @@ class RenderConfig(_Strict):
     shadows: bool = False
     reflections: bool = False
     multisamples: int = Field(default=0, ge=0, le=16)
+    depth: bool = Field(default=False, description="also record a depth map with every frame; the policy then sees RGB-D")
 
 
 Scale = tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]

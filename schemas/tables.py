@@ -45,6 +45,7 @@ RENDER = pa.struct(
         ("shadows", pa.bool_()),
         ("reflections", pa.bool_()),
         ("multisamples", pa.int32()),
+        ("depth", pa.bool_()),
     ]
 )
 
@@ -72,8 +73,8 @@ EPISODES = pa.schema(
     ]
 )
 
-# One row per transition (o_t, l, a_t, o_{t+1}). o_{t+1} is the next row's `image`; the last
-# step of an episode carries it in `next_image`. The `triplets` view joins them. The MuJoCo
+# One row per transition (o_t, l, a_t, o_{t+1}). o_{t+1} is the next row's `image` (and `depth`);
+# the last step of an episode carries it in `next_image` (`next_depth`). The `triplets` view joins them. The MuJoCo
 # state before the action (qpos, qvel, act, mocap, sim_time) is what replay and re-rendering
 # set back into the model.
 STEPS = pa.schema(
@@ -85,12 +86,14 @@ STEPS = pa.schema(
         ("step", pa.int32()),
         ("instruction", pa.string()),
         ("image", pa.binary()),  # raw RGB frame, image_size x image_size, upright (schemas.frames)
+        ("depth", pa.binary()),  # its depth map, uint16 millimetres (schemas.frames); null unless render.depth
         ("proprio", pa.list_(pa.float32())),
         ("action", pa.list_(pa.float32())),
         ("reward", pa.float32()),
         ("done", pa.bool_()),
         ("success", pa.bool_()),
         ("next_image", pa.binary()),
+        ("next_depth", pa.binary()),
         ("qpos", pa.list_(pa.float64())),
         ("qvel", pa.list_(pa.float64())),
         ("act", pa.list_(pa.float64())),  # actuator activations (empty for models without any)
@@ -252,8 +255,8 @@ ITERATION_TABLES = ("stage_runs", "shards", "quarantine", "iterations", "models"
 VIEWS = {
     "triplets": """
         SELECT s.campaign, s.iteration, s.episode_id, s.task_id, s.step, s.instruction,
-               s.image AS obs, s.action, s.reward, s.done, s.success,
-               COALESCE(n.image, s.next_image) AS next_obs
+               s.image AS obs, s.depth AS obs_depth, s.action, s.reward, s.done, s.success,
+               COALESCE(n.image, s.next_image) AS next_obs, COALESCE(n.depth, s.next_depth) AS next_obs_depth
         FROM steps s LEFT JOIN steps n ON n.episode_id = s.episode_id AND n.step = s.step + 1""",
     "kept_steps": """
         SELECT s.* FROM steps s

@@ -9,6 +9,9 @@
    timeouts, invalid answers); steps.expert_action (DAgger labels: the expert's noiseless action at each state).
 5: evaluations.uncertainty (the policy's mean per-step uncertainty on the task); deployments.promoted
    and deployments.decision (the alias moves only when the evaluation says the new model is better).
+
+6: steps.depth and steps.next_depth (depth maps, where the campaign's render.depth records them);
+   episodes.render.depth.
 """
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6

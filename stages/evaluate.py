@@ -105,19 +105,19 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     successes, returns, lengths, uncertainties = 0, [], [], []
 
     def act(obs):
-        decision = policy.act(obs.image, obs.proprio, unit.instruction, unit.task.family)
+        decision = policy.act(obs, unit.instruction, unit.task.family)
         uncertainties.append(decision.uncertainty)
         return decision.action
 
     for index, seed in enumerate(unit.seeds):
-        rows, final_image, success = rollout(
+        rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
         )
         successes += success
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
         if index == 0 and unit.gif_path:
-            frames = np.stack([r["image"] for r in rows] + [final_image])
+            frames = np.stack([r["image"] for r in rows] + [final.image])
             Path(unit.gif_path).parent.mkdir(parents=True, exist_ok=True)
             tmp = Path(unit.gif_path + ".tmp.gif")
             iio.imwrite(tmp, frames, duration=50, loop=0)

@@ -22,7 +22,7 @@ from pydantic import BaseModel
 
 from envs.observation import Observation
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
-from schemas.frames import encode_frame
+from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
@@ -166,8 +166,8 @@ Act = Callable[[Observation], np.ndarray]
 
 def rollout(
     env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None
-) -> tuple[list[dict], np.ndarray, bool]:
-    """Run one episode until success or the horizon. -> (step rows, final image, success).
+) -> tuple[list[dict], Observation, bool]:
+    """Run one episode until success or the horizon. -> (step rows, final observation, success).
     `label`, if given, is asked for its action at every state the explorer visits (DAgger)."""
     obs = env.reset(task, seed, randomisation)
     rows, success = [], False
@@ -179,7 +179,7 @@ def rollout(
         done = success or step == task.horizon - 1
         rows.append(
             {
-                "step": step, "image": obs.image, "proprio": obs.proprio.tolist(), "action": action.tolist(),
+                "step": step, "image": obs.image, "depth": obs.depth, "proprio": obs.proprio.tolist(), "action": action.tolist(),
                 "reward": reward, "done": done, "success": success,
                 "qpos": state.qpos.tolist(), "qvel": state.qvel.tolist(), "act": state.act.tolist(),
                 "mocap": state.mocap.tolist(), "sim_time": state.time, "expert_action": expert_action,
@@ -188,7 +188,7 @@ def rollout(
         obs = next_obs
         if done:
             break
-    return rows, obs.image, success
+    return rows, obs, success
 
 
 @dataclass(frozen=True)
@@ -212,7 +212,7 @@ def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
 
         vlm = VlmExplorer(unit.vlm, unit.task.family, plan.instruction)
         return Explorer(act=vlm.act, stats=vlm.stats)
-    return Explorer(act=lambda obs: policy.act(obs.image, obs.proprio, plan.instruction, unit.task.family).action)
+    return Explorer(act=lambda obs: policy.act(obs, plan.instruction, unit.task.family).action)
 
 
 def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
@@ -221,6 +221,10 @@ def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
     from envs.registry import make_expert
 
     return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if unit.expert_labels else None
+
+
+def _depth_bytes(depth: np.ndarray | None) -> bytes | None:
+    return None if depth is None else encode_depth(depth)
 
 
 def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
@@ -241,16 +245,16 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
         randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
         explorer = _explorer(unit, plan, policy)
         try:
-            rows, final_image, success = rollout(
+            rows, final, success = rollout(
                 env, unit.task, plan.seed, explorer.act, randomisation, _labeller(unit, plan)
             )
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
-            rows, final_image, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
+            rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         for row in rows:
-            row.update(common, episode_id=plan.episode_id, instruction=plan.instruction,
-                       image=encode_frame(row["image"]), next_image=None)
+            row.update(common, episode_id=plan.episode_id, instruction=plan.instruction, image=encode_frame(row["image"]),
+                       depth=_depth_bytes(row["depth"]), next_image=None, next_depth=None)
         if rows:
-            rows[-1]["next_image"] = encode_frame(final_image)
+            rows[-1].update(next_image=encode_frame(final.image), next_depth=_depth_bytes(final.depth))
         step_rows.extend(rows)
         episode_rows.append(
             {

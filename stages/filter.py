@@ -16,7 +16,7 @@ from pydantic import BaseModel
 
 from envs.registry import action_bounds
 from schemas.config import CampaignConfig, FilterConfig
-from schemas.frames import frame_side
+from schemas.frames import depth_side, frame_side
 from schemas.keys import unit_key
 from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
@@ -24,7 +24,7 @@ from warehouse.catalog import Catalog
 from warehouse.shard_writer import read_shard, write_shard
 
 STAGE, VERSION = "filter", 2
-STEP_COLUMNS = ["episode_id", "image", "proprio", "action", "reward"]
+STEP_COLUMNS = ["episode_id", "image", "depth", "proprio", "action", "reward"]
 log = logging.getLogger("sim2act.stages.filter")
 
 
@@ -41,11 +41,12 @@ class EpisodeFacts:
     digest: str
     invalid: str | None  # the first non-finite value, named
     out_of_bounds: str | None  # the first action component outside the family's range
-    bad_image: str | None  # the first frame that is not an RGB frame of the campaign's size
+    bad_image: str | None  # the first frame (or depth map) that is not one of the campaign's size
 
 
-def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: int) -> EpisodeFacts:
-    """Pure: facts about one episode's steps (rows with STEP_COLUMNS, in step order)."""
+def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: int, depth: bool = False) -> EpisodeFacts:
+    """Pure: facts about one episode's steps (rows with STEP_COLUMNS, in step order); `depth`: the
+    campaign records depth maps, so every step must carry one."""
     digest = hashlib.blake2b(digest_size=16)
     invalid = out_of_bounds = bad_image = None
     low, high = bounds
@@ -60,6 +61,9 @@ def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: in
             out_of_bounds = f"step {index}: action {[round(v, 3) for v in row['action']]} outside [{low:g}, {high:g}]"
         if bad_image is None and frame_side(row["image"]) != image_size:
             bad_image = f"step {index}: image of {len(row['image'])} bytes is not a {image_size}x{image_size} RGB frame"
+        if bad_image is None and depth and (row["depth"] is None or depth_side(row["depth"]) != image_size):
+            size = "no" if row["depth"] is None else f"{len(row['depth'])} bytes of"
+            bad_image = f"step {index}: {size} depth map, not a {image_size}x{image_size} one"
     return EpisodeFacts(digest.hexdigest(), invalid, out_of_bounds, bad_image)
 
 
@@ -90,7 +94,7 @@ def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
 
 def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
     catalog = Catalog(workspace.catalog)
-    reads = {"filter": config.filter, "image_size": config.render.image_size}
+    reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth}
     keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
     done = catalog.registered_keys(list(keys.values()))
     families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
@@ -110,7 +114,8 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
         decisions = []
         for episode in read_shard("episodes", episodes_path).to_pylist():
             bounds = action_bounds(families[episode["task_id"]])
-            facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size)
+            facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size,
+                                  config.render.depth)
             reason, detail = decide(episode, facts, config.filter, kept_digests)
             if reason == "kept":
                 kept_digests[facts.digest] = episode["episode_id"]

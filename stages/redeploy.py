@@ -59,13 +59,14 @@ def input_example(catalog: Catalog, campaign: str):
     """One stored step of the campaign, as the MLflow model takes it."""
     import pandas as pd
 
-    [(image, proprio, instruction, family)] = catalog.query(
-        "SELECT s.image, s.proprio, s.instruction, t.family FROM steps s "
+    [(image, depth, proprio, instruction, family)] = catalog.query(
+        "SELECT s.image, s.depth, s.proprio, s.instruction, t.family FROM steps s "
         "JOIN task_families t ON t.campaign = s.campaign AND t.task_id = s.task_id "
         "WHERE s.campaign = ? ORDER BY s.episode_id, s.step LIMIT 1", [campaign],
     )
-    return pd.DataFrame({"image": [image], "proprio": [[float(x) for x in proprio]], "instruction": [instruction],
-                         "family": [family]})
+    depths = {} if depth is None else {"depth": [depth]}  # a column only where the campaign records depth
+    return pd.DataFrame({"image": [image], **depths, "proprio": [[float(x) for x in proprio]],
+                         "instruction": [instruction], "family": [family]})
 
 
 def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, model_key: str, checkpoint: str,

@@ -19,7 +19,7 @@ from torch.utils.data import DataLoader
 
 from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from policies.language import ENCODERS
-from policies.model import ModelDims, VLAModel, vla_loss
+from policies.model import ModelDims, VLAModel, pixels, vla_loss
 from policies.policy import Normaliser, policy_state, save_atomically
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, unit_key
@@ -52,7 +52,7 @@ class TrainResult(BaseModel):
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
     reads = {"train": config.train.model_dump(exclude=EXECUTION_FIELDS), "seed": config.seed,
-             "image": config.render.image_size}
+             "image": config.render.image_size, "depth": config.render.depth}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 
 
@@ -62,7 +62,7 @@ def selection_digest(dataset: IndexResult, where: str | None) -> str:
 
 def model_dims(config: CampaignConfig) -> ModelDims:
     return ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, len(NAVIGATION_ACTIONS),
-                     ENCODERS[config.train.model.language_encoder].dim)
+                     ENCODERS[config.train.model.language_encoder].dim, channels=4 if config.render.depth else 3)
 
 
 def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +90,7 @@ def action_targets(actions: list[list[float]], expert_actions: list[list[float] 
 
 
 class TrainingCollate:
-    """Rows -> a ready batch, in the loader workers: frames decoded, the action targets chosen,
+    """Rows -> a ready batch, in the loader workers: frames (and depth maps) decoded, the action targets chosen,
     split by kind and normalised, proprio normalised, the frozen encoder's embeddings looked up."""
 
     def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None,
@@ -176,8 +176,8 @@ def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | Non
 
 def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device,
                shifts: torch.Generator | None = None):
-    image = batch["image"].to(device, non_blocking=True).permute(0, 3, 1, 2).float().div_(255.0)
-    image = random_shift(image, cfg.augment_shift, shifts)
+    depth = batch["depth"].to(device, non_blocking=True) if "depth" in batch else None
+    image = random_shift(pixels(batch["image"].to(device, non_blocking=True), depth), cfg.augment_shift, shifts)
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
         losses = vla_loss(

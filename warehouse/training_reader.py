@@ -24,10 +24,10 @@ import numpy as np
 import pyarrow.parquet as pq
 from torch.utils.data import IterableDataset, get_worker_info
 
-from schemas.frames import decode_frame
+from schemas.frames import decode_depth, decode_frame
 from warehouse.catalog import Catalog
 
-COLUMNS = ["instruction", "image", "proprio", "action", "expert_action"]
+COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action"]
 
 
 class SelectionError(ValueError):
@@ -105,9 +105,12 @@ def partition(ranges: list[RowRange], workers: int, piece_rows: int) -> list[lis
 
 
 def decode_rows(rows: list[dict]) -> dict[str, Any]:
-    """The plain batch: frames decoded and stacked, the other columns as read."""
+    """The plain batch: frames (and depth maps, where recorded) decoded and stacked, the other
+    columns as read."""
+    depths = {} if rows[0]["depth"] is None else {"depth": np.stack([decode_depth(r["depth"]) for r in rows])}
     return {
         "image": np.stack([decode_frame(r["image"]) for r in rows]),
+        **depths,
         "instruction": [r["instruction"] for r in rows],
         "proprio": np.asarray([r["proprio"] for r in rows], dtype=np.float32),
         "action": [r["action"] for r in rows],

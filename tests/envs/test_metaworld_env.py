@@ -17,7 +17,7 @@ from schemas.config import TasksConfig
 @pytest.fixture(scope="module")
 def pick_place():
     [task] = generate_tasks(TasksConfig(specs=["mw-pick-place"]), seed=0)
-    env = MetaWorldEnv("pick-place-v3", RenderConfig())
+    env = MetaWorldEnv("pick-place-v3", RenderConfig(depth=True))  # the RGB-only path: the explore unit test
     yield env, task
     env.close()
 
@@ -25,9 +25,9 @@ def pick_place():
 def test_the_scripted_policy_solves_pick_place_through_our_interface(pick_place):
     env, task = pick_place
     act = make_expert(task, noise=0.1, rng=np.random.default_rng(0))
-    rows, final_image, success = rollout(env, task, seed=4, act=act)
+    rows, final, success = rollout(env, task, seed=4, act=act)
     assert success and len(rows) < task.horizon
-    assert final_image.shape == (84, 84, 3) and final_image.dtype == np.uint8
+    assert final.image.shape == (84, 84, 3) and final.image.dtype == np.uint8
     assert len(rows[0]["action"]) == ACTION_DIM and len(rows[0]["proprio"]) == PROPRIO_DIM
     assert all(r["action"][3:6] == [0.0, 0.0, 0.0] for r in rows)  # MetaWorld has no wrist rotation
 
@@ -51,6 +51,16 @@ def test_frames_are_upright(pick_place):
     # the table (brown wood) fills the bottom of the corner camera's view, not the top
     brown = (image[..., 0] > image[..., 2] + 30) & (image[..., 1] > image[..., 2])
     assert brown[42:].mean() > brown[:42].mean()
+
+
+def test_depth_maps_line_up_with_the_frames(pick_place):
+    env, task = pick_place
+    obs = env.reset(task, seed=1)
+    image = obs.image.astype(int)
+    brown = (image[..., 0] > image[..., 2] + 30) & (image[..., 1] > image[..., 2])
+    rows = np.nonzero(brown.any(1))[0]
+    near, far = obs.depth[rows[-1]][brown[rows[-1]]], obs.depth[rows[0]][brown[rows[0]]]
+    assert obs.depth.shape == (84, 84) and 0.3 < near.mean() < far.mean() < 5.0  # the table recedes upwards
 
 
 def test_a_metaworld_explore_unit_writes_shards(tmp_path):

@@ -1,5 +1,6 @@
 """Our own MuJoCo multi-room scene: discrete actions, real contacts, egocentric rendering."""
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -21,9 +22,9 @@ def test_the_planner_solves_each_kind_of_navigation_task(task_id):
     env = NavigationEnv(task.env_name, RenderConfig())
     successes = 0
     for seed in range(3):
-        rows, image, success = rollout(env, task, seed, NavigationExpert(0.1, np.random.default_rng(seed)).act)
+        rows, final, success = rollout(env, task, seed, NavigationExpert(0.1, np.random.default_rng(seed)).act)
         successes += success
-        assert image.shape == (84, 84, 3) and all(len(r["action"]) == 1 for r in rows)
+        assert final.image.shape == (84, 84, 3) and all(len(r["action"]) == 1 for r in rows)
     env.close()
     assert successes == 3
 
@@ -53,6 +54,22 @@ def test_walls_stop_the_agent():
     for _ in range(30):
         env.step(np.array([ACTIONS.index("forward")]))
     assert 0.15 < env.data.qpos[0] < 0.3  # pressed against the wall (radius 0.2), not through it
+
+
+def test_depth_is_metres_along_the_camera_axis_and_leaves_the_frame_as_it_was():
+    task = _task("nav-room-red")
+    frames = {}
+    for depth in (False, True):
+        env = NavigationEnv(task.env_name, RenderConfig(depth=depth))
+        env.reset(task, seed=0)
+        env.data.qpos[:3] = [1.0, 1.0, np.pi]  # facing the west wall (x = 0), 1 m away
+        mujoco.mj_forward(env.model, env.data)
+        frames[depth] = env._observation()
+        env.close()
+    assert frames[False].depth is None and np.array_equal(frames[False].image, frames[True].image)
+    # the ego camera sits 0.15 m ahead of the body, its axis tilted down by atan(0.2)
+    expected = 0.85 / np.cos(np.arctan(0.2))
+    assert frames[True].depth.shape == (84, 84) and abs(frames[True].depth[42, 42] - expected) < 0.01
 
 
 def test_layouts_follow_the_seed_and_always_hold_the_task_colours():

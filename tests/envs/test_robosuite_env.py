@@ -51,6 +51,23 @@ def test_frames_are_84px_rgb_and_show_the_task_colour(lift_env):
     assert dominant("red", 0) > 5
 
 
+def test_depth_maps_line_up_with_the_frames_they_were_drawn_with(lift_env):
+    env = RobosuiteEnv("Lift", RenderConfig(depth=True))
+    obs = env.reset(_lift("red"), seed=3)
+    env.close()
+    assert lift_env.reset(_lift("red"), seed=3).depth is None
+    assert np.array_equal(obs.image, lift_env.reset(_lift("red"), seed=3).image)  # depth leaves the frame alone
+    image, depth = obs.image.astype(int), obs.depth
+    assert depth.shape == (84, 84) and depth.dtype == np.float32
+    # the cube stands up from the table: its pixels are nearer than the table's around it
+    cube = (image[..., 0] - image[..., 1:].max(-1)) > 60
+    rows, cols = np.nonzero(cube)
+    around = depth[rows.min() - 4: rows.max() + 5, cols.min() - 4: cols.max() + 5]
+    assert depth[cube].mean() < np.median(around) - 0.01
+    # the table recedes from the bottom of the frame (near the camera) upwards, 0.5-2 m away
+    assert 0.4 < depth[-1].mean() < depth[60].mean() < depth[40].mean() < 2.0
+
+
 def test_the_scripted_expert_lifts_the_cube(lift_env):
     task = _lift("green")
     expert = PickPlaceExpert(noise=0.1, rng=np.random.default_rng(0))

@@ -1,9 +1,11 @@
 import math
 
+import numpy as np
 import pytest
 
 from bench.synthetic import explore_unit
 from schemas.config import FilterConfig
+from schemas.frames import encode_depth
 from stages.filter import STEP_COLUMNS, decide, episode_facts
 
 BOUNDS = (-1.0, 1.0)
@@ -45,6 +47,16 @@ def test_an_image_of_the_wrong_size_is_rejected():
     facts = episode_facts(_steps(), BOUNDS, 64)
     assert decide(_episode(), facts, FilterConfig(), {}) == ("bad_image", facts.bad_image)
     assert "is not a 64x64 RGB frame" in facts.bad_image
+
+
+def test_a_depth_campaign_rejects_a_step_without_its_depth_map():
+    steps = [{**row, "depth": encode_depth(np.ones((84, 84), np.float32))} for row in _steps()]
+    assert episode_facts(steps, BOUNDS, 84, depth=True).bad_image is None
+    steps[2]["depth"] = None
+    assert episode_facts(steps, BOUNDS, 84, depth=True).bad_image == "step 2: no depth map, not a 84x84 one"
+    steps[2]["depth"] = encode_depth(np.ones((64, 64), np.float32))
+    assert "step 2: 8192 bytes of depth map" in episode_facts(steps, BOUNDS, 84, depth=True).bad_image
+    assert episode_facts(steps, BOUNDS, 84).bad_image is None  # an RGB campaign reads no depth
 
 
 def test_rejection_sampling_on_success_and_return():

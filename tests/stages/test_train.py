@@ -17,6 +17,7 @@ import torch
 import yaml
 from mlflow import MlflowClient
 
+from envs.observation import Observation
 from policies.policy import Normaliser, Policy
 from schemas.config import load_config
 from schemas.frames import encode_frame
@@ -137,12 +138,38 @@ def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, t
     result = run_train(workspace, config, 0, latest_index(workspace, config.name), tasks_key, embeddings)
     assert len(result.history) == 3 and "discrete_accuracy" in result.history[-1]
     policy = Policy.load(Path(result.checkpoint))  # no cached embeddings: encodes on first use
-    image = np.zeros((84, 84, 3), np.uint8)
-    nav = policy.act(image, np.zeros(9, np.float32), "go to the red room", "navigation")
-    arm = policy.act(image, np.zeros(9, np.float32), "lift the red cube", "robosuite")
+    obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {})
+    nav = policy.act(obs, "go to the red room", "navigation")
+    arm = policy.act(obs, "lift the red cube", "robosuite")
     assert nav.action.shape == (1,) and float(nav.action[0]).is_integer() and 0 <= nav.action[0] < 4
     assert arm.action.shape == (7,) and np.all(np.abs(arm.action) <= 1.0)
     assert 0.0 <= nav.uncertainty <= np.log(4) + 1e-6 and np.isfinite(arm.uncertainty)
+
+
+def test_a_campaign_that_records_depth_trains_and_runs_an_rgbd_policy(tmp_path):
+    config = load_config("smoke", overrides={
+        **CAMPAIGN, "name": "rgbd", "render": {"depth": True},
+        "tasks": {"specs": ["lift", "nav-room"], "colours": ["red"], "horizon": {"lift": 12, "nav-room": 8}},
+        "explore": {"episodes_per_task": 1, "workers": 1},
+        "train": {**CAMPAIGN["train"], "epochs": 1, "loader_workers": 0}})
+    workspace = Workspace.at(tmp_path / "rgbd").create()
+    Catalog(workspace.catalog).initialise()
+    tasks = run_generate_tasks(workspace, config)
+    embeddings = load_embeddings(workspace, tasks.unit_key, config.train.model.language_encoder)
+    explored = run_explore(workspace, config, 0, load_tasks(workspace, tasks.unit_key), None, embeddings)
+    filtered = run_filter(workspace, config, 0, explored.unit_keys)
+    dataset = run_index(workspace, config, 0, explored.unit_keys, filtered.unit_keys, None)
+    catalog = Catalog(workspace.catalog)
+    [(triplets, with_depth)] = catalog.query("SELECT count(*), count(obs_depth) + count(next_obs_depth) - count(*) FROM triplets")
+    assert triplets == 20 and with_depth == triplets  # every o_t and o_{t+1} has its depth map
+
+    result = run_train(workspace, config, 0, dataset, tasks.unit_key, embeddings)
+    policy = Policy.load(Path(result.checkpoint))
+    assert policy.model.dims.channels == 4
+    obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {}, np.ones((84, 84), np.float32))
+    assert policy.act(obs, "lift the red cube", "robosuite").action.shape == (7,)
+    with pytest.raises(ValueError, match=r"reads RGB-D \(a campaign with render.depth\) frames, got 3 channels"):
+        policy.act(Observation(obs.image, obs.proprio, {}), "lift the red cube", "robosuite")
 
 
 def test_a_bad_selection_is_refused_before_any_work(campaign, tmp_path):
@@ -173,7 +200,7 @@ def test_the_targets_are_the_expert_labels_where_recorded_else_the_executed_acti
     collate = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity,
                               None, "expert")
     frame = encode_frame(np.zeros((8, 8, 3), np.uint8))
-    rows = [{"instruction": "x", "image": frame, "proprio": [0.0] * 9, "action": a, "expert_action": e}
+    rows = [{"instruction": "x", "image": frame, "depth": None, "proprio": [0.0] * 9, "action": a, "expert_action": e}
             for a, e in zip(executed, labels)]
     batch = collate(rows)
     assert batch["action_index"].tolist() == [-1, -1, 1]  # a navigation label stays discrete
