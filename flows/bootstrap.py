@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import get_args
 
 from prefect import flow, task
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
@@ -17,14 +18,15 @@ from pydantic import BaseModel
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
-from schemas.tasks import UNSEEN_PARAPHRASE
+from schemas.tasks import UNSEEN_PARAPHRASE, Split
 from schemas.workspace import Workspace
-from stages.evaluate import EvaluateResult, TaskEvaluation, run_evaluate
+from stages.evaluate import EvaluateResult, group_success, run_evaluate
 from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
 from stages.generate_tasks import TasksResult, load_embeddings, load_tasks, run_generate_tasks
 from stages.index import IndexResult, run_index
 from stages.redeploy import RedeployResult, run_redeploy
+from stages.report import plot_success_by_iteration, success_by_iteration
 from stages.train import TrainResult, run_train
 from warehouse.catalog import Catalog
 
@@ -34,6 +36,7 @@ log = logging.getLogger("sim2act.flows")
 logging.getLogger("sim2act").setLevel(logging.INFO)
 # The catalog, not Prefect's result cache, decides what is done: one source of truth.
 stage_task = task(cache_policy=NO_CACHE, persist_result=False)
+SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE)
 
 
 class IterationOutcome(BaseModel):
@@ -47,10 +50,7 @@ class IterationOutcome(BaseModel):
 
 
 def _split_success(evaluation: EvaluateResult) -> dict[str, float]:
-    by_split: dict[str, list[float]] = {}
-    for t in evaluation.tasks:
-        by_split.setdefault(t.split, []).append(t.success_rate)
-    return {split: sum(rates) / len(rates) for split, rates in sorted(by_split.items())}
+    return {g.group: g.success_rate for g in group_success(evaluation.tasks) if g.group in SPLITS}
 
 
 @stage_task(name="generate_tasks")
@@ -120,7 +120,9 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -
         tracking.log_metrics(run_id, {"tasks.count": len(result.task_ids), "tasks.proposals_valid": result.proposals_valid,
                                       **{f"tasks.proposals_rejected.{k}": v for k, v in result.proposals_rejected.items()}})
     elif stage == "explore" and result.episodes:
-        tracking.log_metrics(run_id, {"explore.episodes": result.episodes, "explore.triplets": result.steps})
+        tracking.log_metrics(run_id, {"explore.episodes": result.episodes, "explore.triplets": result.steps,
+                                      **{f"explore.episodes.{p.task_id}": p.episodes for p in result.priorities},
+                                      **{f"explore.priority.{p.task_id}": p.score for p in result.priorities}})
     elif stage == "filter" and result.reasons:
         total = sum(result.reasons.values())
         tracking.log_metrics(
@@ -134,14 +136,7 @@ def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -
     elif stage == "train" and not result.skipped:  # its losses, lr and samples/s went to the run as it trained
         tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
     elif stage == "evaluate" and result.skipped_units < len(result.tasks):
-        tracking.log_metrics(run_id, {_success_metric(t): t.success_rate for t in result.tasks})
-        for t in result.tasks:
-            if t.media_path:
-                tracking.log_artifact(run_id, t.media_path, f"evaluation/{t.task_id}")
-
-
-def _success_metric(t: TaskEvaluation) -> str:
-    return f"success.{t.task_id}" + (".paraphrase" if t.split == UNSEEN_PARAPHRASE else "")
+        tracking.log_evaluation(run_id, result.tasks)
 
 
 @flow(name="bootstrap-iteration", flow_run_name="{config.name}-iteration-{iteration}")
@@ -208,6 +203,10 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
         )
         outcomes.append(outcome)
         previous, explorer = outcome.dataset, outcome.champion
+    plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
+                                     f"{config.name}: success per iteration (Wilson 95%)",
+                                     ws.media / f"{config.name}-success-by-iteration.png")
+    tracking.log_artifact(campaign_run_id, str(plot), "plots")
     tracking.finish(campaign_run_id)
     for outcome in outcomes:
         success = ", ".join(f"{split} {rate:.0%}" for split, rate in outcome.split_success.items())

@@ -110,6 +110,50 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    overrides = parse_settings(args.set)
+    if args.episodes is not None:
+        if args.episodes < 1:
+            raise ConfigError(f"--episodes: at least 1, got {args.episodes}")
+        overrides.setdefault("evaluate", {})["episodes_per_task"] = args.episodes
+    config = load_config(args.preset, args.config, overrides)
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(args.workspace)
+    Catalog(workspace.catalog).check_version()
+    configure_environment(workspace)
+    from flows.tracking import Tracking
+    from stages.evaluate import evaluate_model, group_success
+    from stages.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+
+    suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
+    model = resolve_model(workspace, config, args.model)
+    check_model_fits(config, model)
+    tracking = Tracking(workspace, config)
+    run_id = tracking.evaluation_run(model.model_key, suite, model.label)
+    print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}) on "
+          f"{len(cases)} case(s) of {suite}, {config.evaluate.episodes_per_task} episodes each; MLflow run {run_id}",
+          flush=True)
+    evaluations, skipped = evaluate_model(workspace, config, model.iteration, model.model_key, model.checkpoint,
+                                          cases, instruction_embeddings(workspace, config, cases), suite)
+    if skipped < len(evaluations):
+        tracking.log_evaluation(run_id, evaluations)
+    tracking.finish(run_id)
+
+    def interval(low: float, high: float) -> str:
+        return f"[{low:4.0%}, {high:4.0%}]"
+
+    print(f"\n{'task':<34} {'split':<18} {'success':>9} {'':>5}  Wilson 95%    length  instruction")
+    for t in evaluations:
+        print(f"{t.task_id:<34} {t.split:<18} {t.successes:>4}/{t.episodes:<4} {t.success_rate:>5.0%}  "
+              f"{interval(t.ci_low, t.ci_high)}  {t.mean_length:6.1f}  {t.instruction}")
+    print()
+    for g in group_success(evaluations):
+        print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
+              f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
+    return 0
+
+
 def cmd_tasks_list(args: argparse.Namespace) -> int:
     import pyarrow as pa
 
@@ -330,6 +374,15 @@ def build_parser() -> argparse.ArgumentParser:
                     ).add_argument("--iterations", type=int, help="number of bootstrap iterations")
     campaign_parser("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train
                     ).add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
+
+    evaluate = campaign_parser("eval", "evaluate any model on the campaign's tasks, one split, or a task file",
+                               cmd_eval)
+    evaluate.add_argument("--model", required=True, metavar="REF",
+                          help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...")
+    which = evaluate.add_mutually_exclusive_group()
+    which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
+    which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase"), help="only this split's cases")
+    evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
 
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)

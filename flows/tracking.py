@@ -11,7 +11,9 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunT
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
+from schemas.tasks import UNSEEN_PARAPHRASE
 from schemas.workspace import Workspace
+from stages.evaluate import TaskEvaluation, group_success
 
 EXPERIMENT = "sim2act"
 
@@ -63,6 +65,28 @@ class Tracking:
             "sim2act.kind": "iteration", "sim2act.iteration": str(iteration), MLFLOW_PARENT_RUN_ID: campaign_run_id,
         }
         return self._find_or_create(tags, f"{self.config.name}-iteration-{iteration}", {"iteration": str(iteration)})
+
+    def evaluation_run(self, model_key: str, suite: str, label: str) -> str:
+        """A run of its own for `sim2act eval` of one model on one task set (found again on a re-run)."""
+        tags = {"sim2act.campaign": self.config.name, "sim2act.kind": "evaluation", "sim2act.model_key": model_key,
+                "sim2act.suite": suite, "sim2act.episodes": str(self.config.evaluate.episodes_per_task)}
+        return self._find_or_create(tags, f"eval {label} on {suite}")
+
+    def log_evaluation(self, run_id: str, evaluations: list[TaskEvaluation]) -> None:
+        """Success per case and per group (split, family, split within family) with their Wilson
+        intervals, mean episode lengths, and the cases' videos."""
+        metrics = {}
+        for t in evaluations:
+            name = f"success.{t.task_id}" + (".paraphrase" if t.split == UNSEEN_PARAPHRASE else "")
+            metrics.update({name: t.success_rate, f"{name}.ci_low": t.ci_low, f"{name}.ci_high": t.ci_high,
+                            f"length.{t.task_id}": t.mean_length})
+        for g in group_success(evaluations):
+            metrics.update({f"success.{g.group}": g.success_rate, f"success.{g.group}.ci_low": g.ci_low,
+                            f"success.{g.group}.ci_high": g.ci_high, f"length.{g.group}": g.mean_length})
+        self.log_metrics(run_id, metrics)
+        for t in evaluations:
+            for video in filter(None, (t.success_video, t.failure_video)):
+                self.log_artifact(run_id, video, f"evaluation/{t.task_id}/{t.split}")
 
     def log_metrics(self, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
         import time

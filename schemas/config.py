@@ -128,6 +128,13 @@ class ExploreConfig(_Strict):
     policy_fraction: float = Field(
         default=0.5, ge=0.0, le=1.0, description="share of episodes the redeployed policy explores (iteration >= 1)"
     )
+    prioritise: bool = Field(
+        default=True, description="iteration >= 1: share the episode budget among the seen tasks by the champion's "
+        "evaluation, low success and high uncertainty first (stages/priority.py)"
+    )
+    priority_floor: float = Field(
+        default=0.25, ge=0.0, le=1.0, description="each task keeps at least this share of episodes_per_task"
+    )
     vlm: VlmExplorerConfig | None = Field(default=None, description="a multimodal chat endpoint that explores too")
     vlm_fraction: float = Field(
         default=0.5, ge=0.0, le=1.0, description="share of the episodes the policy leaves that the VLM explores"
@@ -227,7 +234,7 @@ class TrainConfig(_Strict):
 class EvaluateConfig(_Strict):
     episodes_per_task: PositiveInt = 3
     workers: PositiveInt = 2
-    gif: bool = True
+    videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
 
 
 class RedeployConfig(_Strict):

@@ -214,12 +214,17 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
     "evaluations": CatalogTable(
         pa.schema([
             ("unit_key", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
-            ("model_key", pa.string()), ("task_id", pa.string()), ("split", pa.string()),
+            # what asked: "campaign" (the flow's evaluate stage), or `sim2act eval`'s task set
+            ("suite", pa.string()),
+            ("model_key", pa.string()), ("task_id", pa.string()), ("family", pa.string()), ("split", pa.string()),
             ("instruction", pa.string()), ("episodes", pa.int32()), ("successes", pa.int32()),
-            ("success_rate", pa.float64()), ("mean_return", pa.float64()), ("mean_length", pa.float64()),
+            ("success_rate", pa.float64()),
+            ("ci_low", pa.float64()), ("ci_high", pa.float64()),  # Wilson 95% interval of success_rate
+            ("mean_return", pa.float64()), ("mean_length", pa.float64()),
+            ("episode_lengths", pa.list_(pa.int32())), ("episode_successes", pa.list_(pa.bool_())),  # seed order
             # the policy's mean per-step uncertainty: entropy (discrete) or log det Sigma (continuous)
             ("uncertainty", pa.float64()),
-            ("media_path", pa.string()),
+            ("success_video", pa.string()), ("failure_video", pa.string()),  # MP4s: first success, first failure
         ]),
         ("unit_key",),
     ),

@@ -21,6 +21,7 @@ COLOUR_RGBA: dict[str, tuple[float, float, float, float]] = {
 Split = Literal["seen", "unseen"]
 # Evaluations add a third: a seen task said with one of its held-out paraphrases.
 UNSEEN_PARAPHRASE = "unseen_paraphrase"
+CAMPAIGN_SUITE = "campaign"  # evaluations.suite of the flow's own evaluation (`sim2act eval` names others)
 Family = Literal["robosuite", "metaworld", "navigation"]
 FAMILIES: tuple[str, ...] = get_args(Family)
 

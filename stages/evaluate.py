@@ -1,10 +1,13 @@
 """evaluate: roll the trained policy out on every task, seen and unseen, said canonically; and
 on each seen task said with a held-out paraphrase (split `unseen_paraphrase`). Success per
-(task, instruction) goes to the warehouse `evaluations` table, with a GIF of the first episode."""
+(task, instruction) with its Wilson 95% interval, episode lengths and MP4s of a success and a
+failure go to the warehouse `evaluations` table; the new model is promoted only if it beats the
+champion on the same cases."""
 
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -12,13 +15,13 @@ from pydantic import BaseModel
 
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
-from schemas.tasks import UNSEEN_PARAPHRASE, TaskRecord
+from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
 from schemas.workspace import Workspace
 from stages.explore import rollout, worker_env
 from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 
-STAGE, VERSION = "evaluate", 2
+STAGE, VERSION = "evaluate", 3
 log = logging.getLogger("sim2act.stages.evaluate")
 
 
@@ -32,23 +35,74 @@ class EvalUnit(BaseModel):
     checkpoint: str
     seeds: list[int]
     embedding: list[float]  # of the instruction
-    gif_path: str | None
+    video_stem: str | None  # <stem>-success.mp4 / <stem>-failure.mp4: the first episode of each outcome
 
 
 class TaskEvaluation(BaseModel):
     task_id: str
+    family: str
     split: str
     instruction: str
     episodes: int
     successes: int
+    ci_low: float  # Wilson 95% interval of the success rate
+    ci_high: float
     mean_return: float
     mean_length: float
+    episode_lengths: list[int]  # in seed order
+    episode_successes: list[bool]
     uncertainty: float  # the policy's, per step, averaged over the episodes (policies.model.uncertainty)
-    media_path: str | None
+    success_video: str | None
+    failure_video: str | None
 
     @property
     def success_rate(self) -> float:
         return self.successes / self.episodes
+
+
+def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a success rate (95% at z = 1.96): unlike p +- z*se it stays
+    inside [0, 1] and is not zero-width at 0/n or n/n, which small evaluations hit often."""
+    if episodes == 0:
+        return 0.0, 1.0
+    p = successes / episodes
+    centre = (p + z * z / (2 * episodes)) / (1 + z * z / episodes)
+    half = z * math.sqrt(p * (1 - p) / episodes + z * z / (4 * episodes * episodes)) / (1 + z * z / episodes)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+class GroupSuccess(BaseModel):
+    """Success pooled over a group of evaluation cases (a split, a family, a split within a family)."""
+
+    group: str  # "seen", "unseen", "unseen_paraphrase", "robosuite", "robosuite/seen", ...
+    cases: int
+    episodes: int
+    successes: int
+    ci_low: float
+    ci_high: float
+    mean_length: float
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.episodes
+
+
+def group_success(evaluations: list[TaskEvaluation]) -> list[GroupSuccess]:
+    """Per split, per family, and per split within each family: episodes pooled (each case the
+    same episodes, so the pooled rate is the mean of the cases' rates), with a Wilson interval."""
+    groups: dict[str, list[TaskEvaluation]] = {}
+    for t in evaluations:
+        for group in (t.split, t.family, f"{t.family}/{t.split}"):
+            groups.setdefault(group, []).append(t)
+    summaries = []
+    for group, members in sorted(groups.items()):
+        episodes, successes = sum(t.episodes for t in members), sum(t.successes for t in members)
+        summaries.append(GroupSuccess(
+            group=group, cases=len(members), episodes=episodes, successes=successes,
+            ci_low=wilson_interval(successes, episodes)[0], ci_high=wilson_interval(successes, episodes)[1],
+            mean_length=sum(sum(t.episode_lengths) for t in members) / episodes,
+        ))
+    return summaries
 
 
 class Promotion(BaseModel):
@@ -92,40 +146,52 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
     return Promotion(promote=better, reason=reason, success=success, champion_success=before)
 
 
+def _write_video(frames: list[np.ndarray], path: Path) -> None:
+    from warehouse.video import video_writer
+
+    tmp = path.with_name(path.stem + ".tmp.mp4")
+    writer = video_writer(tmp, fps=20)
+    for frame in frames:
+        writer.append_data(frame)
+    writer.close()
+    tmp.replace(path)
+
+
 def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     """Worker: the policy's mean (or most likely) action, episodes until success or the horizon;
-    its uncertainty at every step."""
-    import imageio.v3 as iio
-
+    its uncertainty at every step; an MP4 of the first success and of the first failure."""
     from envs.randomisation import sample_randomisation
     from policies.policy import Policy
 
     policy = Policy.load(Path(unit.checkpoint), {unit.instruction: np.asarray(unit.embedding, dtype=np.float32)})
     env = worker_env(unit.task, unit.render)
-    successes, returns, lengths, uncertainties = 0, [], [], []
+    returns, lengths, outcomes, uncertainties = [], [], [], []
+    videos: dict[bool, str] = {}
 
     def act(obs):
         decision = policy.act(obs, unit.instruction, unit.task.family)
         uncertainties.append(decision.uncertainty)
         return decision.action
 
-    for index, seed in enumerate(unit.seeds):
+    for seed in unit.seeds:
         rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
         )
-        successes += success
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
-        if index == 0 and unit.gif_path:
-            frames = np.stack([r["image"] for r in rows] + [final.image])
-            Path(unit.gif_path).parent.mkdir(parents=True, exist_ok=True)
-            tmp = Path(unit.gif_path + ".tmp.gif")
-            iio.imwrite(tmp, frames, duration=50, loop=0)
-            tmp.replace(unit.gif_path)
+        outcomes.append(bool(success))
+        if unit.video_stem and bool(success) not in videos and final.image.size:
+            path = Path(f"{unit.video_stem}-{'success' if success else 'failure'}.mp4")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            _write_video([r["image"] for r in rows] + [final.image], path)
+            videos[bool(success)] = str(path)
+    successes = sum(outcomes)
+    low, high = wilson_interval(successes, len(outcomes))
     return TaskEvaluation(
-        task_id=unit.task.task_id, split=unit.split, instruction=unit.instruction, episodes=len(unit.seeds),
-        successes=successes, mean_return=float(np.mean(returns)), mean_length=float(np.mean(lengths)),
-        uncertainty=float(np.mean(uncertainties)), media_path=unit.gif_path,
+        task_id=unit.task.task_id, family=unit.task.family, split=unit.split, instruction=unit.instruction,
+        episodes=len(outcomes), successes=successes, ci_low=low, ci_high=high, mean_return=float(np.mean(returns)),
+        mean_length=float(np.mean(lengths)), episode_lengths=lengths, episode_successes=outcomes,
+        uncertainty=float(np.mean(uncertainties)), success_video=videos.get(True), failure_video=videos.get(False),
     )
 
 
@@ -138,6 +204,60 @@ def evaluation_cases(tasks: list[TaskRecord]) -> list[tuple[TaskRecord, str, str
     return cases
 
 
+def evaluate_model(
+    workspace: Workspace,
+    config: CampaignConfig,
+    iteration: int,
+    model_key: str,
+    checkpoint: str,
+    cases: list[tuple[TaskRecord, str, str]],
+    embeddings: dict[str, np.ndarray],
+    suite: str = CAMPAIGN_SUITE,
+) -> tuple[list[TaskEvaluation], int]:
+    """Roll the model out on each (task, split, instruction) case with the campaign's render,
+    randomisation and evaluate settings; each case is a unit registered in the catalog's
+    `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
+    Seeds derive from (campaign, task, episode): every model meets the same episodes."""
+    catalog = Catalog(workspace.catalog)
+    units = []
+    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers"}), "render": config.render,
+             "randomise": config.randomise}
+    for task, split, instruction in cases:
+        key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
+        seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)
+                 for e in range(config.evaluate.episodes_per_task)]
+        units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
+                              randomise=config.randomise, checkpoint=checkpoint, seeds=seeds,
+                              embedding=embeddings[instruction].tolist(),
+                              video_stem=str(workspace.media / key) if config.evaluate.videos else None))
+    done = catalog.registered_keys([u.unit_key for u in units])
+    todo = [u for u in units if u.unit_key not in done]
+    log.info("evaluate it%d: %d cases (%d already evaluated), %d episodes each",
+             iteration, len(units), len(done), config.evaluate.episodes_per_task)
+    progress = Progress(log, f"evaluate it{iteration}", len(todo), "cases", "episodes")
+    try:
+        for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):
+            row = {"unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "suite": suite,
+                   "model_key": model_key,
+                   **result.model_dump(), "success_rate": result.success_rate}
+            catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
+                                  summary=result.model_dump(exclude={"episode_lengths", "episode_successes"}),
+                                  wall_s=seconds, rows={"evaluations": [row]})
+            progress.advance(1, result.episodes)
+            log.info("evaluate it%d: %s (%s, %r) success %d/%d [%.0f%%, %.0f%%]", iteration, result.task_id,
+                     result.split, result.instruction, result.successes, result.episodes, 100 * result.ci_low,
+                     100 * result.ci_high)
+    finally:
+        progress.close()
+    fields = list(TaskEvaluation.model_fields)
+    by_key = {
+        row[0]: TaskEvaluation(**dict(zip(fields, row[1:])))
+        for row in catalog.query(f"SELECT unit_key, {', '.join(fields)} FROM evaluations WHERE list_contains(?, unit_key)",
+                                 [[u.unit_key for u in units]])
+    }
+    return [by_key[u.unit_key] for u in units], len(done)
+
+
 def run_evaluate(
     workspace: Workspace,
     config: CampaignConfig,
@@ -147,46 +267,10 @@ def run_evaluate(
     tasks: list[TaskRecord],
     embeddings: dict[str, np.ndarray],
 ) -> EvaluateResult:
+    """The flow's stage: every evaluation case of the campaign's tasks, then the promotion decision."""
+    evaluations, skipped = evaluate_model(workspace, config, iteration, model_key, checkpoint,
+                                          evaluation_cases(tasks), embeddings)
     catalog = Catalog(workspace.catalog)
-    units = []
-    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers"}), "render": config.render,
-             "randomise": config.randomise}
-    for task, split, instruction in evaluation_cases(tasks):
-        key = unit_key(STAGE, VERSION, reads, [model_key, task.model_dump_json(), instruction])
-        seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)
-                 for e in range(config.evaluate.episodes_per_task)]
-        gif = str(workspace.media / f"{key}.gif") if config.evaluate.gif else None
-        units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
-                              randomise=config.randomise, checkpoint=checkpoint, seeds=seeds,
-                              embedding=embeddings[instruction].tolist(), gif_path=gif))
-    done = catalog.registered_keys([u.unit_key for u in units])
-    todo = [u for u in units if u.unit_key not in done]
-    log.info("evaluate it%d: %d tasks (%d already evaluated), %d episodes each",
-             iteration, len(units), len(done), config.evaluate.episodes_per_task)
-    progress = Progress(log, f"evaluate it{iteration}", len(todo), "tasks", "episodes")
-    try:
-        for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):
-            row = {
-                "unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "model_key": model_key,
-                **result.model_dump(), "success_rate": result.success_rate,
-            }
-            catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                                  summary=result.model_dump(), wall_s=seconds, rows={"evaluations": [row]})
-            progress.advance(1, result.episodes)
-            log.info("evaluate it%d: %s (%s, %r) success %d/%d", iteration, result.task_id, result.split,
-                     result.instruction, result.successes, result.episodes)
-    finally:
-        progress.close()
-    rows = catalog.query(
-        "SELECT task_id, split, instruction, episodes, successes, mean_return, mean_length, uncertainty, media_path "
-        "FROM evaluations WHERE list_contains(?, unit_key) ORDER BY task_id, split",
-        [[u.unit_key for u in units]],
-    )
-    evaluations = [
-        TaskEvaluation(task_id=r[0], split=r[1], instruction=r[2], episodes=r[3], successes=r[4], mean_return=r[5],
-                       mean_length=r[6], uncertainty=r[7], media_path=r[8])
-        for r in rows
-    ]
     promotion = decide_promotion(catalog, config.name, model_key, evaluations)
     log.info("evaluate it%d: %s: %s", iteration, "promote" if promotion.promote else "keep the champion", promotion.reason)
-    return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=len(done), promotion=promotion)
+    return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=skipped, promotion=promotion)

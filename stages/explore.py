@@ -28,6 +28,7 @@ from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages.pool import Progress, run_in_pool
+from stages.priority import TaskPriority, plan_priorities
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ShardFile, write_shard
 
@@ -74,12 +75,14 @@ class ExploreResult(BaseModel):
     episodes: int
     steps: int
     skipped_units: int
+    priorities: list[TaskPriority]  # how the budget was shared (empty: equal shares, no champion to rank by)
 
 
-def _explorers(config: CampaignConfig, iteration: int, task: TaskRecord, policy: PolicyExplorer | None) -> list[str]:
-    """Who explores each of a task's episodes: the policy takes its share (iterations >= 1), the
-    VLM its share of the rest, the expert the remainder; drawn from the task's seed."""
-    explore, count = config.explore, config.explore.episodes_per_task
+def _explorers(config: CampaignConfig, iteration: int, task: TaskRecord, policy: PolicyExplorer | None,
+               count: int) -> list[str]:
+    """Who explores each of a task's `count` episodes: the policy takes its share (iterations >= 1),
+    the VLM its share of the rest, the expert the remainder; drawn from the task's seed."""
+    explore = config.explore
     rng = np.random.default_rng(derive_seed(config.name, config.seed, iteration, task.task_id, "explorers"))
     order = rng.permutation(count).tolist()
     explorers = [EXPERT] * count
@@ -99,8 +102,10 @@ def plan_explore(
     policy: PolicyExplorer | None,
     embeddings: dict[str, np.ndarray],
     workspace: Workspace,
+    episodes_of: dict[str, int] | None = None,
 ) -> list[ExploreUnit]:
-    """Pure: the shards this iteration explores. Unseen tasks are never explored."""
+    """Pure: the shards this iteration explores, `episodes_of[task_id]` episodes per seen task
+    (default: explore.episodes_per_task each). Unseen tasks are never explored."""
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
@@ -109,13 +114,14 @@ def plan_explore(
     }
     units = []
     for task in (t for t in tasks if t.split == "seen"):
-        explorer_of = _explorers(config, iteration, task, policy)
+        count = explore.episodes_per_task if episodes_of is None else episodes_of[task.task_id]
+        explorer_of = _explorers(config, iteration, task, policy, count)
         # the noise schedule runs over the expert's own episodes: each level gets its share
         expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
-        for shard, first in enumerate(range(0, explore.episodes_per_task, explore.episodes_per_shard)):
-            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard)])
+        for shard, first in enumerate(range(0, count, explore.episodes_per_shard)):
+            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count)])
             episodes = []
-            for index in range(first, min(first + explore.episodes_per_shard, explore.episodes_per_task)):
+            for index in range(first, min(first + explore.episodes_per_shard, count)):
                 seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)
                 instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
                 episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
@@ -305,7 +311,15 @@ def run_explore(
     """Plan the iteration's shards, run the unregistered ones through `execute` (default: local
     worker processes) and register each as it completes: a kill loses only shards in flight."""
     catalog = Catalog(workspace.catalog)
-    units = plan_explore(config, iteration, tasks, policy, embeddings, workspace)
+    priorities = []
+    if policy is not None and config.explore.prioritise:
+        priorities = plan_priorities(catalog, config.name, policy.model_key, tasks, config.explore.episodes_per_task,
+                                     config.explore.priority_floor)
+        log.info("explore it%d: episodes by the champion's evaluation (success, uncertainty -> score): %s", iteration,
+                 ", ".join(f"{p.task_id} {p.episodes}" + ("" if p.success is None else
+                           f" ({p.success:.0%}, {p.uncertainty:.2f} -> {p.score:.2f})") for p in priorities))
+    episodes_of = {p.task_id: p.episodes for p in priorities} if priorities else None
+    units = plan_explore(config, iteration, tasks, policy, embeddings, workspace, episodes_of)
     keys = [u.unit_key for u in units]
     done = catalog.registered_keys(keys)
     todo = [u for u in units if u.unit_key not in done]
@@ -329,4 +343,4 @@ def run_explore(
             progress.advance(summary["episodes"], summary["steps"])
     finally:
         progress.close()
-    return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(done))
+    return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(done), priorities=priorities)

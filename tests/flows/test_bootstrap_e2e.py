@@ -10,15 +10,19 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import time
 from pathlib import Path
 
+import imageio.v2 as iio
 import pytest
 from mlflow import MlflowClient
 
 from schemas.workspace import Workspace
+from stages.generate_tasks import load_tasks
+from stages.priority import plan_priorities
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 
@@ -88,6 +92,16 @@ def test_campaign_fills_the_warehouse(finished_campaign):
     # success per task per iteration is in the warehouse
     assert catalog.query("SELECT split, count(*), count(DISTINCT task_id), count(DISTINCT iteration) FROM evaluations "
                          "GROUP BY 1 ORDER BY 1") == [("seen", 6, 3, 2), ("unseen_paraphrase", 6, 3, 2)]
+    # each case: a Wilson interval around its rate, the episodes' lengths, an MP4 of each outcome it had
+    for successes, episodes, low, high, lengths, outcomes, success_video, failure_video in catalog.query(
+            "SELECT successes, episodes, ci_low, ci_high, episode_lengths, episode_successes, success_video, "
+            "failure_video FROM evaluations"):
+        assert low <= successes / episodes <= high and high - low > 0.3 and len(lengths) == len(outcomes) == episodes
+        assert sum(outcomes) == successes and all(0 < n <= 60 for n in lengths)
+        assert (success_video is not None) == (successes > 0) and (failure_video is not None) == (successes < episodes)
+        for video in filter(None, (success_video, failure_video)):
+            with iio.get_reader(video, format="FFMPEG") as reader:  # every step's frame and the last
+                assert reader.count_frames() == lengths[outcomes.index(video.endswith("-success.mp4"))] + 1
     # held-out paraphrases are evaluated, never explored (so never trained on)
     assert catalog.query(
         "SELECT count(*) FROM episodes e JOIN (SELECT unnest(unseen_instructions) AS said FROM tasks) u "
@@ -109,6 +123,12 @@ def test_iteration_one_explores_with_iteration_zero_model(finished_campaign):
     assert explorers[1] == ["expert", "policy:sim2act-smoke/1"]
     [(model_0,)] = catalog.query("SELECT model_key FROM deployments WHERE iteration = 0 AND version = 1")
     assert catalog.query("SELECT count(*) FROM models WHERE model_key = ? AND iteration = 0", [model_0]) == [(1,)]
+    # iteration 1 shared its 12 episodes by iteration 0's evaluation: the least sure, least successful tasks most
+    explored = dict(catalog.query("SELECT task_id, count(*) FROM episodes WHERE iteration = 1 GROUP BY 1"))
+    tasks = [t for t in load_tasks(Workspace.at(workspace), catalog.query("SELECT min(unit_key) FROM tasks")[0][0])]
+    planned = plan_priorities(catalog, "smoke", model_0, tasks, per_task=4, floor=0.25)
+    assert explored == {p.task_id: p.episodes for p in planned} and sum(explored.values()) == 12
+    assert all(p.success is not None and p.episodes >= 1 for p in planned)
 
 
 def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finished_campaign):
@@ -118,19 +138,27 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
     experiment = client.get_experiment_by_name("sim2act")
     [campaign] = client.search_runs([experiment.experiment_id], "tags.`sim2act.kind` = 'campaign'")
     children = client.search_runs([experiment.experiment_id], f"tags.`mlflow.parentRunId` = '{campaign.info.run_id}'")
+    # the success-vs-iteration plot, on the campaign run, points from the warehouse's evaluations
+    [plot] = client.list_artifacts(campaign.info.run_id, "plots")
+    assert plot.path == "plots/smoke-success-by-iteration.png" and plot.file_size > 5_000
     assert sorted(r.data.tags["sim2act.iteration"] for r in children) == ["0", "1"]
     for child in children:
         metrics = child.data.metrics
         assert metrics["explore.episodes"] == 12 and metrics["dataset.triplets"] > 0
         assert "filter.pass_rate" in metrics and "train.loss" in metrics
         lifts = {f"success.lift-{colour}" for colour in ("red", "green", "blue")}
-        assert {k for k in metrics if k.startswith("success.")} == lifts | {f"{name}.paraphrase" for name in lifts}
+        groups = {f"success.{g}" for g in ("seen", "unseen_paraphrase", "robosuite", "robosuite/seen",
+                                           "robosuite/unseen_paraphrase")}
+        success = {k for k in metrics if k.startswith("success.") and not k.endswith((".ci_low", ".ci_high"))}
+        assert success == lifts | {f"{name}.paraphrase" for name in lifts} | groups
+        assert all(metrics[f"{k}.ci_low"] <= metrics[k] <= metrics[f"{k}.ci_high"] for k in success)
+        assert metrics["success.seen.ci_high"] - metrics["success.seen.ci_low"] > 0.2  # 3 episodes: a wide interval
         # a point every train.log_every steps as it trains, and one at its last step
         steps = [m.step for m in client.get_metric_history(child.info.run_id, "train.loss")]
         assert len(steps) >= 4 and steps == sorted(set(steps)) and all(s % 20 == 0 for s in steps[:-1])
         assert {"train.lr", "train.samples_per_s", "train.data_wait"} <= set(metrics)
-        artifacts = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red")]
-        assert any(path.endswith(".gif") for path in artifacts)
+        videos = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red/seen")]
+        assert videos and all(path.endswith(("-success.mp4", "-failure.mp4")) for path in videos)
         # the training run's dataset input: the digest and the exact shard set it read
         [dataset_input] = client.get_run(child.info.run_id).inputs.dataset_inputs
         iteration = int(child.data.tags["sim2act.iteration"])
@@ -170,9 +198,12 @@ def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(fin
         progress = client.read_artifacts(artifact_filter=ArtifactFilter(
             type=ArtifactFilterType(any_=["progress"]), flow_run_id=ArtifactFilterFlowRunId(any_=explores)))
     assert {run.name for run in runs if run.state.is_completed()} == set(names)
-    # one task run per shard (3 tasks x 2 shards per iteration), and the progress artifact at 100%
+    # one task run per shard (2 episodes each: iteration 1 shares its episodes by priority), and the
+    # progress artifact at 100%
+    explored = Catalog(Workspace.at(finished_campaign[0]).catalog).query(
+        "SELECT task_id, count(*) FROM episodes GROUP BY iteration, task_id")
     assert sorted(t.name for t in shards) == sorted(
-        [f"lift-{c}-shard-{s}" for c in ("blue", "green", "red") for s in (0, 1)] * 2)
+        f"{task_id}-shard-{s}" for task_id, episodes in explored for s in range(-(-episodes // 2)))
     assert all(t.state.is_completed() for t in shards)
     assert [a.data for a in progress] == [100.0, 100.0]
 
@@ -197,3 +228,56 @@ def test_sigkill_during_explore_and_train_then_resume_gives_the_same_rows(finish
     assert re.search(r"explore it0: 6 shards \([1-5] already registered\)", output), output[-3000:]
     run_campaign(workspace, prefect_api)
     assert snapshot(workspace) == snapshot(reference)
+
+
+NEW_TASKS = """
+defaults: {family: robosuite, expert: pick_place}
+specs:
+  - name: lift-elsewhere
+    env: Lift
+    objects:
+      target: {colours: [red, yellow]}
+    templates:
+      - elevate the {target} block
+      - hoist up the {target} cube
+      - bring the {target} block upward
+    horizon: 20
+"""
+
+
+def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_campaign, tmp_path, prefect_api):
+    workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
+    shutil.copytree(finished_campaign[0], workspace)
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    before = catalog.query("SELECT count(*) FROM evaluations")
+
+    def evaluate(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([SIM2ACT, "eval", "--preset", "smoke", "--workspace", str(workspace), *args],
+                              env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+
+    # the flow already evaluated version 1 on these cases: the same units, nothing rolled out again
+    seen = evaluate("--model", "1", "--split", "seen")
+    assert seen.returncode == 0, seen.stderr[-3000:]
+    assert "3 case(s) of campaign" in seen.stdout and "lift-red" in seen.stdout and "robosuite/seen" in seen.stdout
+    assert catalog.query("SELECT count(*) FROM evaluations") == before
+
+    spec = tmp_path / "elsewhere.yaml"
+    spec.write_text(NEW_TASKS)
+    new = evaluate("--model", "champion", "--tasks", str(spec), "--episodes", "2")
+    assert new.returncode == 0, new.stderr[-3000:]
+    rows = catalog.query("SELECT task_id, split, episodes, instruction, model_key FROM evaluations "
+                         "WHERE suite = 'file:elsewhere.yaml' ORDER BY task_id")
+    champion = catalog.query("SELECT champion_model_key FROM deployments ORDER BY iteration DESC LIMIT 1")[0][0]
+    assert rows == [("lift-elsewhere-red", "unseen", 2, "elevate the red block", champion),
+                    ("lift-elsewhere-yellow", "unseen", 2, "elevate the yellow block", champion)]
+    assert re.search(r"^unseen\s+\d/4\s+\d+%\s+\[", new.stdout, re.MULTILINE), new.stdout
+    client = MlflowClient(tracking_uri=Workspace.at(workspace).tracking_uri)
+    [run] = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id],
+                               "tags.`sim2act.kind` = 'evaluation' and tags.`sim2act.suite` = 'file:elsewhere.yaml'")
+    assert {"success.unseen", "success.unseen.ci_low", "success.lift-elsewhere-red"} <= set(run.data.metrics)
+
+    for args, named in ((["--model", "v99"], "--model"), (["--model", "champion", "--tasks", "missing.yaml"], "--tasks"),
+                        (["--model", "1", "--set", "render.depth=true"], "render.depth")):
+        refused = evaluate(*args)
+        assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.splitlines()) == 1, refused.stderr
+    assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before

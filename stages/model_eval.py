@@ -1,0 +1,148 @@
+"""`sim2act eval`: any model on any tasks. The model by registry reference or model key; the tasks
+the campaign's (all, or one split), or a task spec file's, tasks the model may never have trained
+on. Rolled out with the campaign's render, randomisation and evaluation seeds (stages.evaluate),
+recorded in the warehouse `evaluations` under the task set's suite name."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from mlflow import MlflowClient
+from mlflow.exceptions import MlflowException
+
+from schemas.config import CampaignConfig, ConfigError
+from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
+from schemas.workspace import Workspace
+from stages.evaluate import evaluation_cases
+from stages.generate_tasks import generate_tasks, load_tasks, tasks_unit_key
+from stages.redeploy import MODEL_KEY_TAG, champion_explorer
+from warehouse.catalog import Catalog
+
+_NAME, _ALIAS, _VERSION = re.compile(r"^[A-Za-z0-9_.-]+$"), re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$"), re.compile(r"^v?(\d+)$")
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    model_key: str
+    checkpoint: str
+    iteration: int  # the iteration whose dataset it trained on
+    label: str  # as people named it: name/version, or the model key
+
+
+def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> ModelRef:
+    """A model key of the catalog's `models`, or a registry reference (`champion`, `@alias`, `3`,
+    `v3`, `name/3`, `name@alias`, with or without `models:/`; the name defaults to the campaign's
+    registered model). Unknown: ConfigError naming it."""
+    catalog = Catalog(workspace.catalog)
+    if ref.startswith("train-"):
+        found = catalog.query("SELECT checkpoint_path, iteration FROM models WHERE model_key = ?", [ref])
+        if not found:
+            raise ConfigError(f"--model: no model {ref!r} in {workspace.root}")
+        return ModelRef(ref, found[0][0], found[0][1], ref)
+    name, version_number, alias = parse_registry_ref(ref, config.registered_model_name)
+    client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
+    try:
+        version = (client.get_model_version(name, version_number) if version_number
+                   else client.get_model_version_by_alias(name, alias))
+    except MlflowException:
+        raise ConfigError(f"--model: the registry of {workspace.root} has no {ref!r} (model {name!r})") from None
+    model_key = version.tags[MODEL_KEY_TAG]
+    found = catalog.query("SELECT iteration FROM models WHERE model_key = ?", [model_key])
+    if not found:
+        raise ConfigError(f"--model: {name}/{version.version} was trained in another workspace than {workspace.root}")
+    explorer = champion_explorer(workspace, client, name, int(version.version))
+    return ModelRef(model_key, explorer.checkpoint, found[0][0], f"{name}/{version.version}")
+
+
+def parse_registry_ref(ref: str, default_name: str) -> tuple[str, str | None, str | None]:
+    """(name, version, alias), one of the last two None, from champion, @alias, 3, v3, name/3,
+    name@alias (each with or without models:/)."""
+    body = ref.removeprefix("models:/")
+    if "@" in body:
+        name, alias, version = *body.split("@", 1), None
+    elif "/" in body:
+        (name, token), alias = body.rsplit("/", 1), None
+        version = _VERSION.match(token)[1] if _VERSION.match(token) else ""
+    else:
+        name, version, alias = default_name, None, None
+        if _VERSION.match(body):
+            version = _VERSION.match(body)[1]
+        else:
+            alias = body
+    name = name or default_name
+    if not _NAME.match(name) or (version is None and not _ALIAS.match(alias or "")) or version == "":
+        raise ConfigError(f"--model: {ref!r} is neither a model key (train-...) nor a registry reference "
+                          "(champion, @alias, 3, v3, name/3, name@alias)")
+    return name, version, alias
+
+
+def check_model_fits(config: CampaignConfig, model: ModelRef) -> None:
+    """The campaign must render what the model reads (image size, RGB or RGB-D): refused before any rollout."""
+    dims = torch.load(model.checkpoint, map_location="cpu", weights_only=False)["dims"]
+    if dims["image_size"] != config.render.image_size:
+        raise ConfigError(f"render.image_size: {model.label} reads {dims['image_size']} px frames, "
+                          f"the config renders {config.render.image_size}")
+    if (dims.get("channels", 3) == 4) != config.render.depth:
+        raise ConfigError(f"render.depth: {model.label} reads {'RGB-D' if dims.get('channels', 3) == 4 else 'RGB'} "
+                          f"frames; set render.depth={str(dims.get('channels', 3) == 4).lower()}")
+
+
+def campaign_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskRecord]:
+    key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
+    if not Catalog(workspace.catalog).is_registered(key):
+        raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} "
+                          "(run `sim2act run` with it first, or give --tasks FILE)")
+    return load_tasks(workspace, key)
+
+
+def file_tasks(path: Path, config: CampaignConfig, seen_ids: set[str]) -> list[TaskRecord]:
+    """Every task a spec file declares, all colours bound; `seen` where the campaign explored the
+    same task id, `unseen` otherwise (whatever the file holds out)."""
+    from schemas.config import TasksConfig
+    from schemas.task_spec import parse_spec_file
+
+    if not path.is_file():
+        raise ConfigError(f"--tasks: no such file {path}")
+    names = [spec.name for spec in parse_spec_file(path.read_text(), str(path))]
+    tasks = generate_tasks(TasksConfig(specs=names, spec_files=[path], weak_experts="keep"), config.seed)
+    return [t.model_copy(update={"split": "seen" if t.task_id in seen_ids else "unseen"}) for t in tasks]
+
+
+def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | None,
+               split: str | None) -> tuple[str, list[tuple[TaskRecord, str, str]]]:
+    """(suite, cases): a file's tasks (seen: the task ids the campaign explored), or the
+    campaign's own evaluation cases, all or one split: the same units as the flow's, so a model
+    the flow evaluated is not rolled out again."""
+    if tasks_file is not None:
+        explored = {task_id for (task_id,) in Catalog(workspace.catalog).query(
+            "SELECT DISTINCT task_id FROM episodes WHERE campaign = ?", [config.name])}
+        return f"file:{tasks_file.name}", evaluation_cases(file_tasks(tasks_file, config, explored))
+    cases = evaluation_cases(campaign_tasks(workspace, config))
+    if split:
+        cases = [case for case in cases if case[1] == split]
+        if not cases:
+            raise ConfigError(f"--split: campaign {config.name!r} has no {split} evaluation case")
+    return CAMPAIGN_SUITE, cases
+
+
+def instruction_embeddings(workspace: Workspace, config: CampaignConfig,
+                           cases: list[tuple[TaskRecord, str, str]]) -> dict[str, np.ndarray]:
+    """The frozen encoder's embedding of every instruction the cases say: cached in the warehouse
+    where the campaign has it, else encoded now."""
+    from policies.language import encode
+
+    encoder = config.train.model.language_encoder
+    texts = sorted({instruction for _, _, instruction in cases})
+    table = Catalog(workspace.catalog).query_arrow(
+        "SELECT DISTINCT instruction, embedding FROM instructions WHERE encoder = ? AND list_contains(?, instruction)",
+        [encoder, texts])
+    cached = {text: np.asarray(vector, dtype=np.float32)
+              for text, vector in zip(table["instruction"].to_pylist(), table["embedding"].to_pylist())}
+    missing = [text for text in texts if text not in cached]
+    if missing:
+        cached.update(zip(missing, encode(encoder, missing)))
+    return cached

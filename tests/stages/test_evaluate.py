@@ -1,0 +1,54 @@
+"""Success rates with Wilson intervals, pooled per split and family; model references for `sim2act eval`."""
+
+import pytest
+
+from schemas.config import ConfigError
+from stages.evaluate import TaskEvaluation, group_success, wilson_interval
+from stages.model_eval import parse_registry_ref
+
+
+@pytest.mark.parametrize(("successes", "episodes", "low", "high"), [
+    (48, 60, 0.6822, 0.8817),  # the quality run's seen tasks
+    (8, 10, 0.4902, 0.9433),
+    (0, 10, 0.0, 0.2775),  # not [0, 0]: ten failures do not prove a zero rate
+    (10, 10, 0.7225, 1.0),
+])
+def test_wilson_intervals_match_the_published_values(successes, episodes, low, high):
+    assert wilson_interval(successes, episodes) == pytest.approx((low, high), abs=1e-4)
+
+
+def _case(task_id: str, family: str, split: str, outcomes: list[bool]) -> TaskEvaluation:
+    low, high = wilson_interval(sum(outcomes), len(outcomes))
+    return TaskEvaluation(task_id=task_id, family=family, split=split, instruction="x", episodes=len(outcomes),
+                          successes=sum(outcomes), ci_low=low, ci_high=high, mean_return=0.0,
+                          mean_length=10.0, episode_lengths=[10] * len(outcomes), episode_successes=outcomes,
+                          uncertainty=0.0, success_video=None, failure_video=None)
+
+
+def test_groups_pool_episodes_per_split_family_and_split_within_family():
+    cases = [_case("lift-red", "robosuite", "seen", [True] * 9 + [False]),
+             _case("lift-orange", "robosuite", "unseen", [True] * 2 + [False] * 8),
+             _case("nav-room-red", "navigation", "seen", [True] * 5 + [False] * 5)]
+    groups = {g.group: g for g in group_success(cases)}
+    assert set(groups) == {"seen", "unseen", "robosuite", "navigation", "robosuite/seen", "robosuite/unseen",
+                           "navigation/seen"}
+    assert (groups["seen"].successes, groups["seen"].episodes, groups["seen"].cases) == (14, 20, 2)
+    assert (groups["robosuite"].successes, groups["robosuite"].episodes) == (11, 20)
+    assert (groups["seen"].ci_low, groups["seen"].ci_high) == wilson_interval(14, 20)
+    # pooling narrows the interval: 20 episodes say more than 10
+    assert groups["seen"].ci_high - groups["seen"].ci_low < cases[2].ci_high - cases[2].ci_low
+
+
+@pytest.mark.parametrize(("ref", "parsed"), [
+    ("champion", ("sim2act-c", None, "champion")), ("@best", ("sim2act-c", None, "best")),
+    ("3", ("sim2act-c", "3", None)), ("v3", ("sim2act-c", "3", None)), ("other/2", ("other", "2", None)),
+    ("other@champion", ("other", None, "champion")), ("models:/other/2", ("other", "2", None)),
+])
+def test_registry_references_name_a_model_version_or_alias(ref, parsed):
+    assert parse_registry_ref(ref, "sim2act-c") == parsed
+
+
+@pytest.mark.parametrize("ref", ["other/latest", "@", "two words", "3@x y"])
+def test_a_bad_reference_is_refused_naming_the_flag(ref):
+    with pytest.raises(ConfigError, match="--model: .* is neither a model key"):
+        parse_registry_ref(ref, "sim2act-c")
