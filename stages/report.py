@@ -35,12 +35,12 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(figsize=(6, 4), dpi=100)
-    for group in groups:
+    for offset, group in enumerate(groups):
         points = [(iteration, g) for iteration, summaries in sorted(by_iteration.items())
                   for g in summaries if g.group == group]
         if not points:
             continue
-        x = [iteration for iteration, _ in points]
+        x = [iteration + 0.05 * offset for iteration, _ in points]  # side by side: equal rates stay visible
         y = [g.success_rate for _, g in points]
         errors = [[g.success_rate - g.ci_low for _, g in points], [g.ci_high - g.success_rate for _, g in points]]
         axes.errorbar(x, y, yerr=errors, marker="o", capsize=4, label=group)
