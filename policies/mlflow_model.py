@@ -15,7 +15,8 @@ MODEL_CODE = __file__
 
 class PolicyModel(mlflow.pyfunc.PythonModel):
     """Input: a DataFrame with `image` (a frame's bytes as the warehouse stores them: schemas.frames),
-    `depth` (its depth map's bytes; RGB-D models only), `proprio` (list of floats), `instruction` (str), `family` (robosuite, metaworld, navigation).
+    `depth` (its depth map's bytes; RGB-D models only), `proprio` (list of floats), `instruction`
+    (str), `family` (robosuite, metaworld, navigation).
     Output: a DataFrame with `action` (list of floats: continuous components, or [index]) and
     `uncertainty` (entropy or log det Sigma)."""
 

@@ -24,10 +24,14 @@ def encode_frame(image: np.ndarray) -> bytes:
     return np.ascontiguousarray(image).tobytes()
 
 
+def _square_side(data: bytes, bytes_per_pixel: int) -> int | None:
+    side = math.isqrt(len(data) // bytes_per_pixel)
+    return side if side > 0 and side * side * bytes_per_pixel == len(data) else None
+
+
 def frame_side(data: bytes) -> int | None:
     """The side of the square RGB frame these bytes hold, or None if they cannot be one."""
-    side = math.isqrt(len(data) // 3)
-    return side if side > 0 and side * side * 3 == len(data) else None
+    return _square_side(data, 3)
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:
@@ -39,8 +43,7 @@ def encode_depth(depth_m: np.ndarray) -> bytes:
 
 def depth_side(data: bytes) -> int | None:
     """The side of the square depth map these bytes hold, or None if they cannot be one."""
-    side = math.isqrt(len(data) // 2)
-    return side if side > 0 and side * side * 2 == len(data) else None
+    return _square_side(data, 2)
 
 
 def decode_depth(data: bytes) -> np.ndarray:

@@ -11,8 +11,9 @@
    and deployments.decision (the alias moves only when the evaluation says the new model is better).
 
 6: steps.depth and steps.next_depth (depth maps, where the campaign's render.depth records them);
-   episodes.render.depth; evaluations.suite (the flow's, or `sim2act eval`'s task set), family, ci_low, ci_high (Wilson 95%), episode_lengths,
-   episode_successes, success_video and failure_video (MP4s; were media_path, a GIF).
+   episodes.render.depth; evaluations.suite (the flow's, or `sim2act eval`'s task set), family,
+   ci_low, ci_high (Wilson 95%), episode_lengths, episode_successes, success_video and
+   failure_video (MP4s; were media_path, a GIF).
 """
 
 SCHEMA_VERSION = 6

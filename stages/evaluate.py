@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel
@@ -87,6 +88,14 @@ class GroupSuccess(BaseModel):
         return self.successes / self.episodes
 
 
+def read_evaluations(catalog: Catalog, lead: str, rest: str, params: list) -> list[tuple[Any, TaskEvaluation]]:
+    """(the `lead` column, the row as a TaskEvaluation) for each row of `SELECT lead, ... FROM
+    evaluations v <rest>`: rest joins, filters and orders, the table aliased v."""
+    fields = list(TaskEvaluation.model_fields)
+    rows = catalog.query(f"SELECT {lead}, {', '.join('v.' + f for f in fields)} FROM evaluations v {rest}", params)
+    return [(lead_value, TaskEvaluation(**dict(zip(fields, values)))) for lead_value, *values in rows]
+
+
 def group_success(evaluations: list[TaskEvaluation]) -> list[GroupSuccess]:
     """Per split, per family, and per split within each family: episodes pooled (each case the
     same episodes, so the pooled rate is the mean of the cases' rates), with a Wilson interval."""
@@ -97,9 +106,9 @@ def group_success(evaluations: list[TaskEvaluation]) -> list[GroupSuccess]:
     summaries = []
     for group, members in sorted(groups.items()):
         episodes, successes = sum(t.episodes for t in members), sum(t.successes for t in members)
+        low, high = wilson_interval(successes, episodes)
         summaries.append(GroupSuccess(
-            group=group, cases=len(members), episodes=episodes, successes=successes,
-            ci_low=wilson_interval(successes, episodes)[0], ci_high=wilson_interval(successes, episodes)[1],
+            group=group, cases=len(members), episodes=episodes, successes=successes, ci_low=low, ci_high=high,
             mean_length=sum(sum(t.episode_lengths) for t in members) / episodes,
         ))
     return summaries
@@ -249,12 +258,8 @@ def evaluate_model(
                      100 * result.ci_high)
     finally:
         progress.close()
-    fields = list(TaskEvaluation.model_fields)
-    by_key = {
-        row[0]: TaskEvaluation(**dict(zip(fields, row[1:])))
-        for row in catalog.query(f"SELECT unit_key, {', '.join(fields)} FROM evaluations WHERE list_contains(?, unit_key)",
-                                 [[u.unit_key for u in units]])
-    }
+    by_key = dict(read_evaluations(catalog, "v.unit_key", "WHERE list_contains(?, v.unit_key)",
+                                   [[u.unit_key for u in units]]))
     return [by_key[u.unit_key] for u in units], len(done)
 
 

@@ -14,12 +14,14 @@ import torch
 from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
 
+from policies.model import ModelDims
 from schemas.config import CampaignConfig, ConfigError
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.workspace import Workspace
 from stages.evaluate import evaluation_cases
 from stages.generate_tasks import generate_tasks, load_tasks, tasks_unit_key
 from stages.redeploy import MODEL_KEY_TAG, champion_explorer
+from stages.train import model_dims
 from warehouse.catalog import Catalog
 
 _NAME, _ALIAS, _VERSION = re.compile(r"^[A-Za-z0-9_.-]+$"), re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$"), re.compile(r"^v?(\d+)$")
@@ -82,13 +84,15 @@ def parse_registry_ref(ref: str, default_name: str) -> tuple[str, str | None, st
 
 def check_model_fits(config: CampaignConfig, model: ModelRef) -> None:
     """The campaign must render what the model reads (image size, RGB or RGB-D): refused before any rollout."""
-    dims = torch.load(model.checkpoint, map_location="cpu", weights_only=False)["dims"]
-    if dims["image_size"] != config.render.image_size:
-        raise ConfigError(f"render.image_size: {model.label} reads {dims['image_size']} px frames, "
-                          f"the config renders {config.render.image_size}")
-    if (dims.get("channels", 3) == 4) != config.render.depth:
-        raise ConfigError(f"render.depth: {model.label} reads {'RGB-D' if dims.get('channels', 3) == 4 else 'RGB'} "
-                          f"frames; set render.depth={str(dims.get('channels', 3) == 4).lower()}")
+    reads = ModelDims(**torch.load(model.checkpoint, map_location="cpu", weights_only=False)["dims"])
+    rendered = model_dims(config)
+    if reads.image_size != rendered.image_size:
+        raise ConfigError(f"render.image_size: {model.label} reads {reads.image_size} px frames, "
+                          f"the config renders {rendered.image_size}")
+    if reads.channels != rendered.channels:
+        depth = reads.channels == 4
+        raise ConfigError(f"render.depth: {model.label} reads {'RGB-D' if depth else 'RGB'} frames; "
+                          f"set render.depth={str(depth).lower()}")
 
 
 def campaign_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskRecord]:

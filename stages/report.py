@@ -7,22 +7,21 @@ from __future__ import annotations
 from pathlib import Path
 
 from schemas.tasks import CAMPAIGN_SUITE
-from stages.evaluate import GroupSuccess, TaskEvaluation, group_success
+from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
 
 
 def success_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[GroupSuccess]]:
     """Iteration -> success per split, family and split within family, of the model that
     iteration deployed, over the flow's evaluation cases."""
-    fields = list(TaskEvaluation.model_fields)
-    rows = catalog.query(
-        f"SELECT v.iteration, {', '.join('v.' + f for f in fields)} FROM evaluations v "
+    rows = read_evaluations(
+        catalog, "v.iteration",
         "JOIN deployments d ON d.campaign = v.campaign AND d.iteration = v.iteration AND d.model_key = v.model_key "
         "WHERE v.campaign = ? AND v.suite = ? ORDER BY v.iteration, v.task_id, v.split", [campaign, CAMPAIGN_SUITE],
     )
     by_iteration: dict[int, list[TaskEvaluation]] = {}
-    for iteration, *values in rows:
-        by_iteration.setdefault(iteration, []).append(TaskEvaluation(**dict(zip(fields, values))))
+    for iteration, evaluation in rows:
+        by_iteration.setdefault(iteration, []).append(evaluation)
     return {iteration: group_success(evaluations) for iteration, evaluations in by_iteration.items()}
 
 

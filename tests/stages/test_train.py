@@ -25,7 +25,7 @@ from schemas.workspace import Workspace
 from stages.explore import run_explore
 from stages.filter import run_filter
 from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
-from stages.index import run_index
+from stages.index import IndexResult, run_index
 from stages.train import TrainingCollate, action_targets, random_shift, run_train
 from tests.conftest import SIM2ACT
 from warehouse.catalog import Catalog
@@ -46,15 +46,20 @@ def campaign(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("train")
     config_file = root / "campaign.yaml"
     config_file.write_text(yaml.safe_dump(CAMPAIGN))
-    config = load_config("smoke", config_file)
-    workspace = Workspace.at(root / "workspace").create()
+    workspace = Workspace.at(root / "workspace")
+    _iteration_zero_dataset(workspace, load_config("smoke", config_file))
+    return config_file, workspace.root
+
+
+def _iteration_zero_dataset(workspace: Workspace, config) -> tuple[str, dict, IndexResult]:
+    """Generate, explore, filter and index iteration 0 in a new workspace: (tasks key, embeddings, dataset)."""
+    workspace.create()
     Catalog(workspace.catalog).initialise()
     tasks = run_generate_tasks(workspace, config)
     embeddings = load_embeddings(workspace, tasks.unit_key, config.train.model.language_encoder)
     explored = run_explore(workspace, config, 0, load_tasks(workspace, tasks.unit_key), None, embeddings)
     filtered = run_filter(workspace, config, 0, explored.unit_keys)
-    run_index(workspace, config, 0, explored.unit_keys, filtered.unit_keys, None)
-    return config_file, workspace.root
+    return tasks.unit_key, embeddings, run_index(workspace, config, 0, explored.unit_keys, filtered.unit_keys, None)
 
 
 def _copy(campaign, tmp_path: Path, name: str) -> Path:
@@ -152,18 +157,13 @@ def test_a_campaign_that_records_depth_trains_and_runs_an_rgbd_policy(tmp_path):
         "tasks": {"specs": ["lift", "nav-room"], "colours": ["red"], "horizon": {"lift": 12, "nav-room": 8}},
         "explore": {"episodes_per_task": 1, "workers": 1},
         "train": {**CAMPAIGN["train"], "epochs": 1, "loader_workers": 0}})
-    workspace = Workspace.at(tmp_path / "rgbd").create()
-    Catalog(workspace.catalog).initialise()
-    tasks = run_generate_tasks(workspace, config)
-    embeddings = load_embeddings(workspace, tasks.unit_key, config.train.model.language_encoder)
-    explored = run_explore(workspace, config, 0, load_tasks(workspace, tasks.unit_key), None, embeddings)
-    filtered = run_filter(workspace, config, 0, explored.unit_keys)
-    dataset = run_index(workspace, config, 0, explored.unit_keys, filtered.unit_keys, None)
+    workspace = Workspace.at(tmp_path / "rgbd")
+    tasks_key, embeddings, dataset = _iteration_zero_dataset(workspace, config)
     catalog = Catalog(workspace.catalog)
     [(triplets, with_depth)] = catalog.query("SELECT count(*), count(obs_depth) + count(next_obs_depth) - count(*) FROM triplets")
     assert triplets == 20 and with_depth == triplets  # every o_t and o_{t+1} has its depth map
 
-    result = run_train(workspace, config, 0, dataset, tasks.unit_key, embeddings)
+    result = run_train(workspace, config, 0, dataset, tasks_key, embeddings)
     policy = Policy.load(Path(result.checkpoint))
     assert policy.model.dims.channels == 4
     obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {}, np.ones((84, 84), np.float32))
