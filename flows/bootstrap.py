@@ -20,6 +20,7 @@ from flows.tracking import Tracking
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE, Split
 from schemas.workspace import Workspace
+from stages.baselines import BaselinesResult, run_baselines
 from stages.evaluate import EvaluateResult, group_success, run_evaluate
 from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
@@ -41,6 +42,7 @@ SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE)
 
 class IterationOutcome(BaseModel):
     iteration: int
+    tasks_key: str
     dataset: IndexResult
     model_key: str
     champion: PolicyExplorer
@@ -103,6 +105,19 @@ def evaluate_task(
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
     return run_evaluate(ws, config, iteration, model.model_key, model.checkpoint, load_tasks(ws, tasks_key), embeddings)
+
+
+@stage_task(name="baselines")
+def baselines_task(workspace: str, config: CampaignConfig, iteration: int, tasks_key: str) -> BaselinesResult:
+    ws = Workspace.at(workspace)
+    embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
+    return run_baselines(ws, config, iteration, load_tasks(ws, tasks_key), embeddings)
+
+
+def _baseline_metrics(result: BaselinesResult) -> dict[str, float]:
+    """baseline.<agent>[.<family>].success.<split>, for the campaign run beside its own success.<split>."""
+    return {f"baseline.{b.agent}{'.' + b.family if b.family else ''}.success.{g.group}": g.success_rate
+            for b in result.baselines for g in group_success(b.evaluations) if g.group in SPLITS}
 
 
 @stage_task(name="redeploy")
@@ -174,7 +189,7 @@ def iteration_flow(
         not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,
     ])
     return IterationOutcome(
-        iteration=iteration, dataset=index, model_key=model.model_key, champion=deployment.champion, success=success,
+        iteration=iteration, tasks_key=tasks.unit_key, dataset=index, model_key=model.model_key, champion=deployment.champion, success=success,
         split_success=_split_success(evaluation),
         stages_run=stages_run,
     )
@@ -203,6 +218,9 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
         )
         outcomes.append(outcome)
         previous, explorer = outcome.dataset, outcome.champion
+    if config.baselines.agents:
+        baselines = baselines_task(str(ws.root), config, outcomes[-1].iteration, outcomes[-1].tasks_key)
+        tracking.log_metrics(campaign_run_id, _baseline_metrics(baselines))
     plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
                                      f"{config.name}: success per iteration (Wilson 95%)",
                                      ws.media / f"{config.name}-success-by-iteration.png")

@@ -9,6 +9,7 @@ import argparse
 import itertools
 import json
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -123,7 +124,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     Catalog(workspace.catalog).check_version()
     configure_environment(workspace)
     from flows.tracking import Tracking
-    from stages.evaluate import evaluate_model, group_success
+    from stages.evaluate import Agent, evaluate_model, group_success
     from stages.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
 
     suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
@@ -134,8 +135,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}) on "
           f"{len(cases)} case(s) of {suite}, {config.evaluate.episodes_per_task} episodes each; MLflow run {run_id}",
           flush=True)
-    evaluations, skipped = evaluate_model(workspace, config, model.iteration, model.model_key, model.checkpoint,
-                                          cases, instruction_embeddings(workspace, config, cases), suite)
+    evaluations, skipped = evaluate_model(workspace, config, model.iteration, model.model_key,
+                                          Agent(kind="sim2act", path=model.checkpoint), cases,
+                                          instruction_embeddings(workspace, config, cases), suite)
     if skipped < len(evaluations):
         tracking.log_evaluation(run_id, evaluations)
     tracking.finish(run_id)
@@ -151,6 +153,27 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for g in group_success(evaluations):
         print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
               f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    config = load_config(args.preset, args.config, parse_settings(args.set))
+    from stages.results import results_markdown
+    from warehouse.catalog import Catalog
+
+    catalog = Catalog(Workspace.at(args.workspace).catalog)
+    catalog.check_version()
+    command = shlex.join(["sim2act", "report", "--preset", args.preset, *(["--config", str(args.config)] if args.config else []),
+                          *[part for setting in args.set for part in ("--set", setting)], "--workspace", str(args.workspace)])
+    try:
+        text = results_markdown(catalog, config.name, command)
+    except ValueError as exc:
+        raise ConfigError(f"report: {exc}") from None
+    if args.out is None:
+        print(text, end="")
+        return 0
+    write_text_atomically(args.out, text)
+    print(f"sim2act: wrote {args.out}")
     return 0
 
 
@@ -383,6 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
     which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase"), help="only this split's cases")
     evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
+
+    campaign_parser("report", "the results table: success per iteration beside the baselines, dataset, compute",
+                    cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")
 
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
-PRESETS = ("smoke", "default")
+PRESETS = ("smoke", "default", "headline")
 
 PositiveInt = Annotated[int, Field(gt=0)]
 
@@ -244,6 +244,18 @@ class RedeployConfig(_Strict):
     alias: str = Field(default="champion", pattern=r"^[A-Za-z][A-Za-z0-9_-]*$")
 
 
+class BaselinesConfig(_Strict):
+    """What the campaign is measured against, after its last iteration (stages.baselines)."""
+
+    agents: list[Literal["expert", "ppo", "sac"]] = Field(
+        default=[], description="expert: the noiseless scripted experts (the ceiling); ppo, sac: RL from scratch "
+                                "(stable-baselines3) on the seen tasks, one agent per family")
+    env_steps: PositiveInt | None = Field(
+        default=None, description="each RL agent's training budget; default: the environment steps the campaign's "
+                                  "exploration took on its family")
+    workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
+
+
 class CampaignConfig(_Strict):
     """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
 
@@ -258,6 +270,14 @@ class CampaignConfig(_Strict):
     train: TrainConfig = TrainConfig()
     evaluate: EvaluateConfig = EvaluateConfig()
     redeploy: RedeployConfig = RedeployConfig()
+    baselines: BaselinesConfig = BaselinesConfig()
+
+    @model_validator(mode="after")
+    def _baselines_see_enough(self) -> CampaignConfig:
+        if {"ppo", "sac"} & set(self.baselines.agents) and self.render.image_size < 36:
+            raise ValueError("baselines.agents: the RL baselines' image encoder (SB3's NatureCNN) needs "
+                             f"render.image_size >= 36, got {self.render.image_size}")
+        return self
 
     @property
     def registered_model_name(self) -> str:
@@ -299,12 +319,12 @@ def describe_validation_error(exc: ValidationError) -> str:
     """One line per config: 'field.path: what is wrong' for the first error (and a count of the rest)."""
     errors = exc.errors()
     first = errors[0]
-    field = ".".join(str(part) for part in first["loc"]) or "config"
+    field = ".".join(str(part) for part in first["loc"])
     message = "unknown key" if first["type"] == "extra_forbidden" else first["msg"].removeprefix("Value error, ")
     if first["type"] not in ("extra_forbidden", "missing", "value_error") and not isinstance(first.get("input"), dict):
         message += f" (got {first.get('input')!r})"
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-    return f"{field}: {message}{more}"
+    return f"{field}: {message}{more}" if field else f"{message}{more}"  # the whole config's checks name their fields
 
 
 def parse_settings(settings: list[str]) -> dict[str, Any]:

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel
 
+from envs.observation import Observation
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
@@ -26,6 +28,14 @@ STAGE, VERSION = "evaluate", 3
 log = logging.getLogger("sim2act.stages.evaluate")
 
 
+class Agent(BaseModel):
+    """Who is evaluated: a Sim2Act checkpoint, the task's scripted expert (noiseless: the ceiling),
+    or an RL baseline saved by stable-baselines3 (stages.baselines)."""
+
+    kind: Literal["sim2act", "expert", "ppo", "sac"]
+    path: str | None = None  # the checkpoint or the saved agent; none for the expert
+
+
 class EvalUnit(BaseModel):
     unit_key: str
     task: TaskRecord
@@ -33,7 +43,7 @@ class EvalUnit(BaseModel):
     instruction: str
     render: RenderConfig
     randomise: RandomiseConfig
-    checkpoint: str
+    agent: Agent
     seeds: list[int]
     embedding: list[float]  # of the instruction
     video_stem: str | None  # <stem>-success.mp4 / <stem>-failure.mp4: the first episode of each outcome
@@ -52,7 +62,7 @@ class TaskEvaluation(BaseModel):
     mean_length: float
     episode_lengths: list[int]  # in seed order
     episode_successes: list[bool]
-    uncertainty: float  # the policy's, per step, averaged over the episodes (policies.model.uncertainty)
+    uncertainty: float  # the Sim2Act policy's, per step, averaged over the episodes (policies.model.uncertainty); 0 for other agents
     success_video: str | None
     failure_video: str | None
 
@@ -166,23 +176,54 @@ def _write_video(frames: list[np.ndarray], path: Path) -> None:
     tmp.replace(path)
 
 
+Decide = Callable[[Observation], tuple[np.ndarray, float]]  # -> (action, uncertainty)
+
+
+def _episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
+    """episode seed -> how the unit's agent acts in that episode."""
+    embedding = np.asarray(unit.embedding, dtype=np.float32)
+    if unit.agent.kind == "sim2act":
+        from policies.policy import Policy
+
+        policy = Policy.load(Path(unit.agent.path), {unit.instruction: embedding})
+
+        def decide(obs: Observation) -> tuple[np.ndarray, float]:
+            decision = policy.act(obs, unit.instruction, unit.task.family)
+            return decision.action, decision.uncertainty
+
+        return lambda seed: decide
+    if unit.agent.kind == "expert":
+        from envs.registry import make_expert
+
+        def expert_for(seed: int) -> Decide:
+            expert = make_expert(unit.task, 0.0, np.random.default_rng(seed))
+            return lambda obs: (expert(obs), 0.0)
+
+        return expert_for
+    from policies.rl_agent import RLAgent
+
+    agent = RLAgent.load(unit.agent.kind, Path(unit.agent.path), unit.task.family)
+    return lambda seed: lambda obs: (agent.act(obs, embedding), 0.0)
+
+
 def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
-    """Worker: the policy's mean (or most likely) action, episodes until success or the horizon;
+    """Worker: the agent's mean (or most likely) action, episodes until success or the horizon;
     its uncertainty at every step; an MP4 of the first success and of the first failure."""
     from envs.randomisation import sample_randomisation
-    from policies.policy import Policy
 
-    policy = Policy.load(Path(unit.checkpoint), {unit.instruction: np.asarray(unit.embedding, dtype=np.float32)})
+    actor = _episode_actor(unit)
     env = worker_env(unit.task, unit.render)
     returns, lengths, outcomes, uncertainties = [], [], [], []
     videos: dict[bool, str] = {}
 
-    def act(obs):
-        decision = policy.act(obs, unit.instruction, unit.task.family)
-        uncertainties.append(decision.uncertainty)
-        return decision.action
-
     for seed in unit.seeds:
+        decide = actor(seed)
+
+        def act(obs: Observation) -> np.ndarray:
+            action, uncertainty = decide(obs)
+            uncertainties.append(uncertainty)
+            return action
+
         rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
         )
@@ -218,12 +259,12 @@ def evaluate_model(
     config: CampaignConfig,
     iteration: int,
     model_key: str,
-    checkpoint: str,
+    agent: Agent,
     cases: list[tuple[TaskRecord, str, str]],
     embeddings: dict[str, np.ndarray],
     suite: str = CAMPAIGN_SUITE,
 ) -> tuple[list[TaskEvaluation], int]:
-    """Roll the model out on each (task, split, instruction) case with the campaign's render,
+    """Roll the agent out on each (task, split, instruction) case with the campaign's render,
     randomisation and evaluate settings; each case is a unit registered in the catalog's
     `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
     Seeds derive from (campaign, task, episode): every model meets the same episodes."""
@@ -236,7 +277,7 @@ def evaluate_model(
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)
                  for e in range(config.evaluate.episodes_per_task)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
-                              randomise=config.randomise, checkpoint=checkpoint, seeds=seeds,
+                              randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None))
     done = catalog.registered_keys([u.unit_key for u in units])
@@ -250,7 +291,8 @@ def evaluate_model(
                    "model_key": model_key,
                    **result.model_dump(), "success_rate": result.success_rate}
             catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                                  summary=result.model_dump(exclude={"episode_lengths", "episode_successes"}),
+                                  summary={"model_key": model_key,
+                                           **result.model_dump(exclude={"episode_lengths", "episode_successes"})},
                                   wall_s=seconds, rows={"evaluations": [row]})
             progress.advance(1, result.episodes)
             log.info("evaluate it%d: %s (%s, %r) success %d/%d [%.0f%%, %.0f%%]", iteration, result.task_id,
@@ -273,8 +315,8 @@ def run_evaluate(
     embeddings: dict[str, np.ndarray],
 ) -> EvaluateResult:
     """The flow's stage: every evaluation case of the campaign's tasks, then the promotion decision."""
-    evaluations, skipped = evaluate_model(workspace, config, iteration, model_key, checkpoint,
-                                          evaluation_cases(tasks), embeddings)
+    evaluations, skipped = evaluate_model(workspace, config, iteration, model_key,
+                                          Agent(kind="sim2act", path=checkpoint), evaluation_cases(tasks), embeddings)
     catalog = Catalog(workspace.catalog)
     promotion = decide_promotion(catalog, config.name, model_key, evaluations)
     log.info("evaluate it%d: %s: %s", iteration, "promote" if promotion.promote else "keep the champion", promotion.reason)

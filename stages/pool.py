@@ -85,6 +85,8 @@ def _init_worker() -> None:
     # every worker 1.2 s at start, and expert-only exploring never needs it.
     for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[variable] = "1"
+    if "torch" in sys.modules:  # already imported (a script's __main__ that imports it, re-run by spawn): too late for the environment
+        sys.modules["torch"].set_num_threads(1)
 
 
 def _serve(connection: Connection) -> None:

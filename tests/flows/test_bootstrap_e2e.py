@@ -20,8 +20,10 @@ import imageio.v2 as iio
 import pytest
 from mlflow import MlflowClient
 
+from schemas.config import load_config
 from schemas.workspace import Workspace
-from stages.generate_tasks import load_tasks
+from stages.baselines import exploration_steps, rl_units
+from stages.generate_tasks import load_embeddings, load_tasks
 from stages.priority import plan_priorities
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
@@ -281,3 +283,70 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
         refused = evaluate(*args)
         assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.splitlines()) == 1, refused.stderr
     assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before
+
+
+def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_campaign, tmp_path, prefect_api):
+    workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
+    shutil.copytree(finished_campaign[0], workspace)
+    ws, catalog = Workspace.at(workspace), Catalog(Workspace.at(workspace).catalog)
+    with_baselines = [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace),
+                      "--set", "baselines.agents=[expert,ppo,sac]", "--set", "baselines.env_steps=300"]
+    run = subprocess.run(with_baselines, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+
+    # by default RL from scratch gets the environment steps the campaign's exploration took, per family
+    [(explored,)] = catalog.query("SELECT sum(num_steps) FROM episodes WHERE campaign = 'smoke'")
+    config = load_config("smoke", None, {"baselines": {"agents": ["ppo", "sac"]}})
+    [(tasks_key,)] = catalog.query("SELECT unit_key FROM stage_runs WHERE stage = 'generate_tasks'")
+    tasks = load_tasks(ws, tasks_key)
+    planned = rl_units(ws, config, tasks, load_embeddings(ws, tasks_key, config.train.model.language_encoder),
+                       exploration_steps(catalog, "smoke"))
+    assert [(u.algorithm, u.family, u.env_steps) for u in planned] == [("ppo", "robosuite", explored),
+                                                                      ("sac", "robosuite", explored)]
+    assert all(u.tasks == [t for t in tasks if t.split == "seen"] for u in planned)
+    # (here 300 steps, to keep the test short)
+    trained = {json.loads(s)["algorithm"]: (key, json.loads(s)) for key, s in catalog.query(
+        "SELECT unit_key, summary FROM stage_runs WHERE stage = 'baselines'")}
+    assert set(trained) == {"ppo", "sac"}
+    for key, summary in trained.values():
+        assert summary["env_steps"] == 300 and summary["family"] == "robosuite"
+        assert 300 <= summary["steps_taken"] <= 302
+        assert summary["episodes"] >= 300 // 60  # episodes of at most the horizon, 60 steps
+        assert (ws.models / key / "agent.zip").stat().st_size > 100_000
+    # every baseline meets the campaign's own evaluation cases, with the same seeds
+    cases = catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
+                          "WHERE model_key = (SELECT model_key FROM deployments WHERE iteration = 1) ORDER BY ALL")
+    for model_key in ("expert", *(key for key, _ in trained.values())):
+        assert catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
+                             "WHERE model_key = ? ORDER BY ALL", [model_key]) == cases
+    [(expert_rate,)] = catalog.query("SELECT sum(successes) / sum(episodes) FROM evaluations WHERE model_key = 'expert'")
+    assert expert_rate >= 0.5  # the ceiling: the noiseless expert lifts (100% in docs/experts.md)
+    client = MlflowClient(tracking_uri=ws.tracking_uri)
+    [campaign] = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id],
+                                    "tags.`sim2act.kind` = 'campaign'")
+    assert {"baseline.expert.success.seen", "baseline.ppo.robosuite.success.seen",
+            "baseline.sac.robosuite.success.unseen_paraphrase"} <= set(campaign.data.metrics)
+
+    counts = catalog.query("SELECT stage, count(*) FROM stage_runs GROUP BY ALL ORDER BY ALL")
+    again = subprocess.run(with_baselines, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and catalog.query("SELECT stage, count(*) FROM stage_runs GROUP BY ALL ORDER BY ALL") == counts
+
+    out = tmp_path / "results.md"
+    report = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--workspace", str(workspace), "--out", str(out)],
+                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
+    assert report.returncode == 0, report.stderr[-3000:]
+    table = out.read_text()
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
+    assert {"Sim2Act iteration 0 (BC on iteration-0 data)", "Sim2Act iteration 1", "scripted expert, noiseless (ceiling)",
+            "PPO from scratch (robosuite)", "SAC from scratch (robosuite)"} <= set(rows)
+    assert "| 300 |" in rows["PPO from scratch (robosuite)"] and f"| {explored:,} |" in rows["Sim2Act iteration 1"]
+    [(successes, episodes)] = catalog.query("SELECT sum(successes), sum(episodes) FROM evaluations "
+                                            "WHERE model_key = 'expert' AND split = 'seen'")
+    assert f"| {successes}/{episodes} = " in rows["scripted expert, noiseless (ceiling)"]
+    for iteration, triplets in catalog.query("SELECT iteration, triplets FROM iterations ORDER BY 1"):
+        assert re.search(rf"^\| {iteration} \|.* \| {triplets:,} \|$", table, re.MULTILINE), table
+    assert "sim2act report --preset smoke" in table and "| train | 0 |" in table
+
+    other = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--set", "name=other", "--workspace", str(workspace)],
+                           env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and other.stderr.strip().endswith("campaign 'other' has no evaluated iteration in this warehouse")

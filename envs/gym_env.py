@@ -1,0 +1,78 @@
+"""A family's tasks as one instruction-conditioned gymnasium environment, for the RL baselines
+(stable-baselines3): each episode draws a task and one of its training instructions, the agent
+sees the frame, the proprio and the instruction's embedding, and is rewarded by the task's own
+reward. The same adapters, render and randomisation as the campaign's rollouts."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+from envs.observation import ACTION_DIM, DISCRETE_FAMILIES, NAVIGATION_ACTIONS, PROPRIO_DIM, Observation
+from schemas.config import RandomiseConfig, RenderConfig
+from schemas.tasks import TaskRecord
+
+
+def agent_observation(obs: Observation, embedding: np.ndarray) -> dict[str, np.ndarray]:
+    """What an RL agent reads at a step: the same for training and for evaluation."""
+    return {"image": obs.image, "proprio": obs.proprio.astype(np.float32), "instruction": embedding.astype(np.float32)}
+
+
+def observation_space(image_size: int, embedding_dim: int) -> gym.spaces.Dict:
+    return gym.spaces.Dict({
+        "image": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+        "proprio": gym.spaces.Box(-np.inf, np.inf, (PROPRIO_DIM,), np.float32),
+        "instruction": gym.spaces.Box(-np.inf, np.inf, (embedding_dim,), np.float32),
+    })
+
+
+def action_space(family: str) -> gym.Space:
+    if family in DISCRETE_FAMILIES:
+        return gym.spaces.Discrete(len(NAVIGATION_ACTIONS))
+    return gym.spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+
+class InstructedTasksEnv(gym.Env):
+    """Episodes over `tasks` (one family), each said with one of its training instructions."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], render: RenderConfig,
+                 randomise: RandomiseConfig):
+        families = {task.family for task in tasks}
+        if len(families) != 1:
+            raise ValueError(f"one family per environment, got {sorted(families)}")
+        from stages.explore import worker_env
+
+        self.tasks, self.embeddings, self.randomise = tasks, embeddings, randomise
+        self.family = families.pop()
+        self.envs = {task.env_name: worker_env(task, render) for task in tasks}  # one adapter per env name
+        self.env = self.envs[tasks[0].env_name]
+        self.observation_space = observation_space(render.image_size, len(next(iter(embeddings.values()))))
+        self.action_space = action_space(self.family)
+        self._task, self._embedding, self._steps = tasks[0], None, 0
+        self.episodes_finished, self.successes = 0, 0  # over the environment's life: what training achieved
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        from envs.randomisation import sample_randomisation
+
+        super().reset(seed=seed)
+        self._task = self.tasks[int(self.np_random.integers(len(self.tasks)))]
+        instruction = self._task.instructions[int(self.np_random.integers(len(self._task.instructions)))]
+        self._embedding = self.embeddings[instruction]
+        self.env = self.envs[self._task.env_name]
+        episode_seed = int(self.np_random.integers(2**31))
+        obs = self.env.reset(self._task, episode_seed,
+                             sample_randomisation(self.randomise, episode_seed, self.env.RANDOMISES))
+        self._steps = 0
+        return agent_observation(obs, self._embedding), {"task_id": self._task.task_id, "instruction": instruction}
+
+    def step(self, action):
+        action = np.asarray([action] if self.family in DISCRETE_FAMILIES else action, dtype=np.float32)
+        obs, reward, success = self.env.step(action)
+        self._steps += 1
+        truncated = not success and self._steps >= self._task.horizon
+        if success or truncated:
+            self.episodes_finished += 1
+            self.successes += bool(success)
+        return agent_observation(obs, self._embedding), float(reward), bool(success), truncated, {"success": success}

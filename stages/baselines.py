@@ -1,0 +1,153 @@
+"""baselines: what a campaign is measured against, on its own evaluation cases and seeds.
+
+- `expert`: the tasks' scripted experts without noise — the ceiling.
+- `ppo`, `sac`: RL from scratch (stable-baselines3), one instruction-conditioned agent per
+  family trained on the campaign's seen tasks with as many environment steps as the campaign's
+  exploration took on that family (all iterations, kept and rejected episodes alike).
+BC on iteration 0's data alone is iteration 0's own model: its evaluation is already stored.
+Each trained agent is a unit (models/<key>/agent.zip); evaluations go to the warehouse
+`evaluations` under the agent's model key, so `sim2act report` puts them beside the campaign."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from pydantic import BaseModel
+
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
+from schemas.keys import unit_key
+from schemas.tasks import TaskRecord
+from schemas.workspace import Workspace
+from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
+from stages.pool import run_in_pool
+from warehouse.catalog import Catalog
+
+STAGE, VERSION = "baselines", 1
+EXPERT = "expert"
+log = logging.getLogger("sim2act.stages.baselines")
+
+
+class RLUnit(BaseModel):
+    unit_key: str
+    algorithm: str
+    family: str
+    tasks: list[TaskRecord]  # the family's seen tasks
+    embeddings: dict[str, list[float]]  # their training instructions'
+    render: RenderConfig
+    randomise: RandomiseConfig
+    env_steps: int
+    seed: int
+    path: str  # where the trained agent is saved
+
+
+class RLTrained(BaseModel):
+    algorithm: str
+    family: str
+    env_steps: int  # the budget
+    steps_taken: int  # what training stepped: PPO's whole rollouts may pass the budget by a step or two
+    episodes: int  # finished while training
+    successes: int
+    path: str
+
+
+class Baseline(BaseModel):
+    agent: str  # expert, ppo or sac
+    model_key: str  # its rows in `evaluations`
+    family: str | None  # an RL agent serves one family
+    env_steps: int  # its training budget; 0 for the expert
+    evaluations: list[TaskEvaluation]
+
+
+class BaselinesResult(BaseModel):
+    baselines: list[Baseline]
+    skipped_units: int  # agents already trained, cases already evaluated
+
+
+def exploration_steps(catalog: Catalog, campaign: str) -> dict[str, int]:
+    """family -> environment steps the campaign's exploration took on it (every iteration)."""
+    rows = catalog.query(
+        "SELECT t.family, sum(e.num_steps) FROM episodes e "
+        "JOIN (SELECT DISTINCT campaign, task_id, family FROM tasks) t USING (campaign, task_id) "
+        "WHERE e.campaign = ? GROUP BY t.family ORDER BY t.family", [campaign])
+    return {family: int(steps) for family, steps in rows}
+
+
+def train_rl_agent(unit: RLUnit) -> RLTrained:
+    """Worker: train one agent from scratch for its budget of environment steps and save it."""
+    from pathlib import Path
+
+    import torch
+
+    from envs.gym_env import InstructedTasksEnv
+    from policies.rl_agent import new_agent
+
+    torch.set_num_threads(1)  # one core per worker, as every other pool
+    env = InstructedTasksEnv(unit.tasks, {k: np.asarray(v, dtype=np.float32) for k, v in unit.embeddings.items()},
+                             unit.render, unit.randomise)
+    agent = new_agent(unit.algorithm, env, unit.env_steps, unit.seed)
+    agent.learn(total_timesteps=unit.env_steps)
+    path = Path(unit.path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.zip")
+    agent.save(tmp)
+    tmp.replace(path)  # a killed training leaves no agent behind
+    return RLTrained(algorithm=unit.algorithm, family=unit.family, env_steps=unit.env_steps,
+                     steps_taken=agent.num_timesteps, episodes=env.episodes_finished, successes=env.successes,
+                     path=str(path))
+
+
+def rl_units(workspace: Workspace, config: CampaignConfig, tasks: list[TaskRecord],
+             embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
+    """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
+    from policies.rl_agent import RL_ALGORITHMS, supports
+
+    units = []
+    for algorithm in [a for a in config.baselines.agents if a in RL_ALGORITHMS]:
+        for family in sorted({t.family for t in tasks}):
+            seen = [t for t in tasks if t.family == family and t.split == "seen"]
+            steps = config.baselines.env_steps or budgets.get(family, 0)
+            if not seen or not steps:
+                continue
+            if not supports(algorithm, family):
+                log.info("baselines: %s does not act in %s's discrete action space; skipped", algorithm, family)
+                continue
+            said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
+            key = unit_key(STAGE, VERSION, {"render": config.render, "randomise": config.randomise, "seed": config.seed},
+                           [algorithm, family, str(steps), *[t.model_dump_json() for t in seen]])
+            units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
+                                render=config.render, randomise=config.randomise, env_steps=steps, seed=config.seed,
+                                path=str(workspace.models / key / "agent.zip")))
+    return units
+
+
+def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks: list[TaskRecord],
+                  embeddings: dict[str, np.ndarray]) -> BaselinesResult:
+    """Train the RL agents not trained yet, then evaluate every configured baseline on the
+    campaign's evaluation cases (an RL agent on its family's), rows under `iteration`."""
+    catalog = Catalog(workspace.catalog)
+    units = rl_units(workspace, config, tasks, embeddings, exploration_steps(catalog, config.name))
+    done = catalog.registered_keys([u.unit_key for u in units])
+    todo = [u for u in units if u.unit_key not in done]
+    log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(done))
+    for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
+                                              lambda u: f"{u.algorithm} on {u.family}"):
+        catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
+                              summary=trained.model_dump(), wall_s=seconds)
+        log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
+                 unit.algorithm, unit.family, unit.env_steps, seconds, trained.successes, trained.episodes)
+    cases = evaluation_cases(tasks)
+    baselines, skipped = [], len(done)
+    if EXPERT in config.baselines.agents:
+        evaluations, reused = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
+        baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
+        skipped += reused
+    for unit in units:
+        family_cases = [case for case in cases if case[0].family == unit.family]
+        evaluations, reused = evaluate_model(workspace, config, iteration, unit.unit_key,
+                                             Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings)
+        baselines.append(Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
+                                  env_steps=unit.env_steps, evaluations=evaluations))
+        skipped += reused
+    return BaselinesResult(baselines=baselines, skipped_units=skipped)
+

@@ -1,0 +1,112 @@
+"""The results table (`sim2act report`): a campaign's success per iteration beside its
+baselines on the same evaluation cases and seeds, its dataset per iteration, and the compute
+each number took — Markdown, from the warehouse alone."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+
+from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
+from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
+from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from stages.report import success_by_iteration
+from warehouse.catalog import Catalog
+
+SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
+AGENT_NAMES = {EXPERT: "scripted expert, noiseless (ceiling)", "ppo": "PPO from scratch", "sac": "SAC from scratch"}
+
+
+def _cell(group: GroupSuccess | None) -> str:
+    if group is None:
+        return "–"
+    return (f"{group.successes}/{group.episodes} = {group.success_rate:.0%} "
+            f"({group.ci_low:.0%}–{group.ci_high:.0%})")
+
+
+def _splits(groups: list[GroupSuccess]) -> list[str]:
+    by_name = {g.group: g for g in groups}
+    return [_cell(by_name.get(split)) for split in SPLIT_COLUMNS]
+
+
+def _table(header: list[str], rows: list[list[object]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+
+
+def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str | None, int], list[TaskEvaluation]]:
+    """(agent, family, training env steps) -> its evaluations on the campaign's cases."""
+    trained = {key: json.loads(summary) for key, summary in catalog.query(
+        "SELECT unit_key, summary FROM stage_runs WHERE stage = ? AND campaign = ?", [BASELINES_STAGE, campaign])}
+    rows = read_evaluations(catalog, "v.model_key",
+                            "WHERE v.campaign = ? AND v.suite = ? AND list_contains(?, v.model_key) "
+                            "ORDER BY v.model_key, v.task_id, v.split", [campaign, CAMPAIGN_SUITE, [EXPERT, *trained]])
+    grouped: dict[tuple[str, str | None, int], list[TaskEvaluation]] = {}
+    for model_key, evaluation in rows:
+        agent = trained.get(model_key, {"algorithm": EXPERT, "family": None, "env_steps": 0})
+        grouped.setdefault((agent["algorithm"], agent["family"], agent["env_steps"]), []).append(evaluation)
+    return grouped
+
+
+def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
+    by_iteration = success_by_iteration(catalog, campaign)
+    if not by_iteration:
+        raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse")
+    explored = catalog.query(
+        "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
+        "FROM episodes WHERE campaign = ? GROUP BY iteration ORDER BY iteration", [campaign])
+    cumulative, steps_through = 0, {}
+    for iteration, steps, *_ in explored:
+        cumulative += int(steps)
+        steps_through[iteration] = cumulative
+
+    lines = [f"# Results: campaign `{campaign}`", "",
+             f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "
+             f"`{catalog.warehouse}`. Success on the campaign's evaluation cases (every model and "
+             "baseline meets the same episodes: seeds derive from campaign, task and episode), pooled "
+             "per split, the Wilson 95% interval in parentheses.", "",
+             "## Success per iteration and against the baselines", ""]
+    rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
+             f"{steps_through.get(iteration, 0):,}", *_splits(groups)]
+            for iteration, groups in sorted(by_iteration.items())]
+    for (agent, family, steps), evaluations in baseline_evaluations(catalog, campaign).items():
+        name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
+        rows.append([name, f"{steps:,}" if steps else "–", *_splits(group_success(evaluations))])
+    lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
+
+    families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
+    if len(families) > 1:
+        lines += ["", "### Per family (Sim2Act)", ""]
+        header = ["iteration", *[f"{family}/{split}" for family in families for split in ("seen", "unseen")]]
+        lines += _table(header, [[iteration, *[_cell({g.group: g for g in groups}.get(column)) for column in header[1:]]]
+                                 for iteration, groups in sorted(by_iteration.items())])
+
+    lines += ["", "## Dataset per iteration", ""]
+    dataset = dict(((i, (e, k, t)) for i, e, k, t in catalog.query(
+        "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])))
+    explorers = {}
+    for iteration, explorer, episodes in catalog.query(
+            "SELECT iteration, explorer, count(*) FROM episodes WHERE campaign = ? GROUP BY ALL ORDER BY ALL", [campaign]):
+        explorers.setdefault(iteration, []).append(f"{explorer}: {episodes}")
+    lines += _table(
+        ["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
+         "dataset: episodes kept / in selection", "dataset triplets"],
+        [[iteration, count, f"{steps:,}", tasks, instructions, "; ".join(explorers.get(iteration, [])),
+          f"{dataset.get(iteration, (0, 0, 0))[1]} / {dataset.get(iteration, (0, 0, 0))[0]}",
+          f"{dataset.get(iteration, (0, 0, 0))[2]:,}"]
+         for iteration, steps, count, tasks, instructions in explored])
+
+    lines += ["", "## Compute", "",
+              f"Wall seconds per stage, summed over its units, as the stages recorded them. The report ran on "
+              f"{platform.machine()} with {os.cpu_count()} CPU(s) ({platform.platform(terse=True)}); the campaign ran "
+              "where its workspace was made.", ""]
+    lines += _table(["stage", "iteration", "units", "wall s"],
+                    [[stage, iteration, units, f"{seconds:,.0f}"] for stage, iteration, units, seconds in catalog.query(
+                        "SELECT CASE WHEN s.stage = 'evaluate' AND d.model_key IS NULL AND (s.summary->>'model_key') "
+                        "IS NOT NULL THEN 'evaluate (baselines)' ELSE s.stage END, s.iteration, count(*), sum(s.wall_s) "
+                        "FROM stage_runs s LEFT JOIN deployments d ON d.campaign = s.campaign "
+                        "AND d.model_key = (s.summary->>'model_key') WHERE s.campaign = ? "
+                        "GROUP BY ALL ORDER BY s.iteration, min(s.finished_at)", [campaign])])
+    return "\n".join(lines) + "\n"
