@@ -108,10 +108,11 @@ def evaluate_task(
 
 
 @stage_task(name="baselines")
-def baselines_task(workspace: str, config: CampaignConfig, iteration: int, tasks_key: str) -> BaselinesResult:
+def baselines_task(workspace: str, config: CampaignConfig, iteration: int, tasks_key: str,
+                   explore_units: list[str]) -> BaselinesResult:
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
-    return run_baselines(ws, config, iteration, load_tasks(ws, tasks_key), embeddings)
+    return run_baselines(ws, config, iteration, tasks_key, load_tasks(ws, tasks_key), embeddings, explore_units)
 
 
 def _baseline_metrics(result: BaselinesResult) -> dict[str, float]:
@@ -219,7 +220,8 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
         outcomes.append(outcome)
         previous, explorer = outcome.dataset, outcome.champion
     if config.baselines.agents:
-        baselines = baselines_task(str(ws.root), config, outcomes[-1].iteration, outcomes[-1].tasks_key)
+        last = outcomes[-1]  # its dataset aggregates every iteration's explore units
+        baselines = baselines_task(str(ws.root), config, last.iteration, last.tasks_key, last.dataset.explore_units)
         tracking.log_metrics(campaign_run_id, _baseline_metrics(baselines))
     plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
                                      f"{config.name}: success per iteration (Wilson 95%)",

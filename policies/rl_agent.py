@@ -20,10 +20,10 @@ def supports(algorithm: str, family: str) -> bool:
 
 
 def new_agent(algorithm: str, env, env_steps: int, seed: int):
-    """An untrained agent. SB3's defaults but the buffer sizes: PPO collects rollouts of at most
-    512 steps (its default 2,048 would be a whole small budget), sized so that whole rollouts
-    overshoot the budget by less than one step per rollout; SAC's replay holds the budget and
-    starts learning after a tenth of it (at most 1,000 steps)."""
+    """An untrained agent, SB3's defaults but for the sizes a small budget needs: PPO collects
+    rollouts of at most 512 steps (its default 2,048 would be a whole small budget), sized so that
+    whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
+    holds the budget, learning starts after a tenth of it (at most 1,000 steps), batches of 64."""
     from stable_baselines3 import PPO, SAC
 
     common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu"}

@@ -250,9 +250,9 @@ class BaselinesConfig(_Strict):
     agents: list[Literal["expert", "ppo", "sac"]] = Field(
         default=[], description="expert: the noiseless scripted experts (the ceiling); ppo, sac: RL from scratch "
                                 "(stable-baselines3) on the seen tasks, one agent per family")
-    env_steps: PositiveInt | None = Field(
-        default=None, description="each RL agent's training budget; default: the environment steps the campaign's "
-                                  "exploration took on its family")
+    env_steps: int | None = Field(
+        default=None, ge=64, description="each RL agent's training budget; default: the environment steps the "
+                                         "campaign's exploration took on its family")
     workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
 
 

@@ -3,7 +3,8 @@
 - `expert`: the tasks' scripted experts without noise — the ceiling.
 - `ppo`, `sac`: RL from scratch (stable-baselines3), one instruction-conditioned agent per
   family trained on the campaign's seen tasks with as many environment steps as the campaign's
-  exploration took on that family (all iterations, kept and rejected episodes alike).
+  exploration took on that family (its explore units, every iteration, kept and rejected
+  episodes alike).
 BC on iteration 0's data alone is iteration 0's own model: its evaluation is already stored.
 Each trained agent is a unit (models/<key>/agent.zip); evaluations go to the warehouse
 `evaluations` under the agent's model key, so `sim2act report` puts them beside the campaign."""
@@ -45,7 +46,7 @@ class RLTrained(BaseModel):
     algorithm: str
     family: str
     env_steps: int  # the budget
-    steps_taken: int  # what training stepped: PPO's whole rollouts may pass the budget by a step or two
+    steps_taken: int  # what training stepped: PPO's whole rollouts pass the budget by less than one step each
     episodes: int  # finished while training
     successes: int
     path: str
@@ -61,15 +62,14 @@ class Baseline(BaseModel):
 
 class BaselinesResult(BaseModel):
     baselines: list[Baseline]
-    skipped_units: int  # agents already trained, cases already evaluated
 
 
-def exploration_steps(catalog: Catalog, campaign: str) -> dict[str, int]:
-    """family -> environment steps the campaign's exploration took on it (every iteration)."""
+def exploration_steps(catalog: Catalog, explore_units: list[str]) -> dict[str, int]:
+    """family -> environment steps these explore units took (a campaign's: every iteration's)."""
     rows = catalog.query(
-        "SELECT t.family, sum(e.num_steps) FROM episodes e "
-        "JOIN (SELECT DISTINCT campaign, task_id, family FROM tasks) t USING (campaign, task_id) "
-        "WHERE e.campaign = ? GROUP BY t.family ORDER BY t.family", [campaign])
+        "SELECT f.family, sum(e.num_steps) FROM episodes e "
+        "JOIN task_families f ON f.campaign = e.campaign AND f.task_id = e.task_id "
+        "WHERE list_contains(?, e.shard_key) GROUP BY f.family ORDER BY f.family", [explore_units])  # shard_key: its explore unit
     return {family: int(steps) for family, steps in rows}
 
 
@@ -77,12 +77,9 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     """Worker: train one agent from scratch for its budget of environment steps and save it."""
     from pathlib import Path
 
-    import torch
-
     from envs.gym_env import InstructedTasksEnv
     from policies.rl_agent import new_agent
 
-    torch.set_num_threads(1)  # one core per worker, as every other pool
     env = InstructedTasksEnv(unit.tasks, {k: np.asarray(v, dtype=np.float32) for k, v in unit.embeddings.items()},
                              unit.render, unit.randomise)
     agent = new_agent(unit.algorithm, env, unit.env_steps, unit.seed)
@@ -97,7 +94,7 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
                      path=str(path))
 
 
-def rl_units(workspace: Workspace, config: CampaignConfig, tasks: list[TaskRecord],
+def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],
              embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
     """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
     from policies.rl_agent import RL_ALGORITHMS, supports
@@ -114,19 +111,20 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks: list[TaskRecor
                 continue
             said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
             key = unit_key(STAGE, VERSION, {"render": config.render, "randomise": config.randomise, "seed": config.seed},
-                           [algorithm, family, str(steps), *[t.model_dump_json() for t in seen]])
+                           [tasks_key, algorithm, family, str(steps)])  # the tasks key: campaign, tasks, encoder
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, seed=config.seed,
                                 path=str(workspace.models / key / "agent.zip")))
     return units
 
 
-def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks: list[TaskRecord],
-                  embeddings: dict[str, np.ndarray]) -> BaselinesResult:
-    """Train the RL agents not trained yet, then evaluate every configured baseline on the
-    campaign's evaluation cases (an RL agent on its family's), rows under `iteration`."""
+def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks_key: str,
+                  tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], explore_units: list[str]) -> BaselinesResult:
+    """Train the RL agents not trained yet, with the steps `explore_units` (the campaign's, every
+    iteration) took per family, then evaluate every configured baseline on the campaign's
+    evaluation cases (an RL agent on its family's), rows under `iteration`."""
     catalog = Catalog(workspace.catalog)
-    units = rl_units(workspace, config, tasks, embeddings, exploration_steps(catalog, config.name))
+    units = rl_units(workspace, config, tasks_key, tasks, embeddings, exploration_steps(catalog, explore_units))
     done = catalog.registered_keys([u.unit_key for u in units])
     todo = [u for u in units if u.unit_key not in done]
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(done))
@@ -135,19 +133,16 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
         catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
                               summary=trained.model_dump(), wall_s=seconds)
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
-                 unit.algorithm, unit.family, unit.env_steps, seconds, trained.successes, trained.episodes)
+                 unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
     cases = evaluation_cases(tasks)
-    baselines, skipped = [], len(done)
+    baselines = []
     if EXPERT in config.baselines.agents:
-        evaluations, reused = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
+        evaluations, _ = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
         baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
-        skipped += reused
     for unit in units:
         family_cases = [case for case in cases if case[0].family == unit.family]
-        evaluations, reused = evaluate_model(workspace, config, iteration, unit.unit_key,
-                                             Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings)
+        evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,
+                                        Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings)
         baselines.append(Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
                                   env_steps=unit.env_steps, evaluations=evaluations))
-        skipped += reused
-    return BaselinesResult(baselines=baselines, skipped_units=skipped)
-
+    return BaselinesResult(baselines=baselines)

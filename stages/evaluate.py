@@ -24,7 +24,7 @@ from stages.explore import rollout, worker_env
 from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 
-STAGE, VERSION = "evaluate", 3
+STAGE, VERSION = "evaluate", 4
 log = logging.getLogger("sim2act.stages.evaluate")
 
 
@@ -271,7 +271,7 @@ def evaluate_model(
     catalog = Catalog(workspace.catalog)
     units = []
     reads = {"evaluate": config.evaluate.model_dump(exclude={"workers"}), "render": config.render,
-             "randomise": config.randomise}
+             "randomise": config.randomise, "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
     for task, split, instruction in cases:
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)

@@ -37,26 +37,31 @@ def _table(header: list[str], rows: list[list[object]]) -> list[str]:
 
 
 def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str | None, int], list[TaskEvaluation]]:
-    """(agent, family, training env steps) -> its evaluations on the campaign's cases."""
+    """(agent, family, environment steps its training took) -> its evaluations on the campaign's
+    cases; the expert first, then by agent and family."""
     trained = {key: json.loads(summary) for key, summary in catalog.query(
         "SELECT unit_key, summary FROM stage_runs WHERE stage = ? AND campaign = ?", [BASELINES_STAGE, campaign])}
     rows = read_evaluations(catalog, "v.model_key",
                             "WHERE v.campaign = ? AND v.suite = ? AND list_contains(?, v.model_key) "
-                            "ORDER BY v.model_key, v.task_id, v.split", [campaign, CAMPAIGN_SUITE, [EXPERT, *trained]])
+                            "ORDER BY v.task_id, v.split", [campaign, CAMPAIGN_SUITE, [EXPERT, *trained]])
     grouped: dict[tuple[str, str | None, int], list[TaskEvaluation]] = {}
     for model_key, evaluation in rows:
-        agent = trained.get(model_key, {"algorithm": EXPERT, "family": None, "env_steps": 0})
-        grouped.setdefault((agent["algorithm"], agent["family"], agent["env_steps"]), []).append(evaluation)
-    return grouped
+        agent = trained.get(model_key, {"algorithm": EXPERT, "family": None, "steps_taken": 0})
+        grouped.setdefault((agent["algorithm"], agent["family"], agent["steps_taken"]), []).append(evaluation)
+    order = list(AGENT_NAMES)
+    return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
 
 
 def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
     by_iteration = success_by_iteration(catalog, campaign)
     if not by_iteration:
         raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse")
+    [(explore_units,)] = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
+        "SELECT explore_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1", [campaign])
     explored = catalog.query(
         "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
-        "FROM episodes WHERE campaign = ? GROUP BY iteration ORDER BY iteration", [campaign])
+        "FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) GROUP BY iteration ORDER BY iteration",
+        [campaign, explore_units])
     cumulative, steps_through = 0, {}
     for iteration, steps, *_ in explored:
         cumulative += int(steps)
@@ -88,7 +93,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])))
     explorers = {}
     for iteration, explorer, episodes in catalog.query(
-            "SELECT iteration, explorer, count(*) FROM episodes WHERE campaign = ? GROUP BY ALL ORDER BY ALL", [campaign]):
+            "SELECT iteration, explorer, count(*) FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) "
+            "GROUP BY ALL ORDER BY ALL", [campaign, explore_units]):
         explorers.setdefault(iteration, []).append(f"{explorer}: {episodes}")
     lines += _table(
         ["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
@@ -104,9 +110,11 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
               "where its workspace was made.", ""]
     lines += _table(["stage", "iteration", "units", "wall s"],
                     [[stage, iteration, units, f"{seconds:,.0f}"] for stage, iteration, units, seconds in catalog.query(
-                        "SELECT CASE WHEN s.stage = 'evaluate' AND d.model_key IS NULL AND (s.summary->>'model_key') "
-                        "IS NOT NULL THEN 'evaluate (baselines)' ELSE s.stage END, s.iteration, count(*), sum(s.wall_s) "
-                        "FROM stage_runs s LEFT JOIN deployments d ON d.campaign = s.campaign "
-                        "AND d.model_key = (s.summary->>'model_key') WHERE s.campaign = ? "
-                        "GROUP BY ALL ORDER BY s.iteration, min(s.finished_at)", [campaign])])
+                        "SELECT CASE WHEN v.model_key = ? OR b.unit_key IS NOT NULL THEN 'evaluate (baselines)' "
+                        "ELSE s.stage END, s.iteration, count(*), sum(s.wall_s) FROM stage_runs s "
+                        "LEFT JOIN evaluations v ON v.unit_key = s.unit_key "
+                        "LEFT JOIN stage_runs b ON b.stage = ? AND b.unit_key = v.model_key "
+                        "WHERE s.campaign = ? AND (v.unit_key IS NULL OR v.suite = ?) "
+                        "GROUP BY ALL ORDER BY s.iteration, min(s.finished_at)",
+                        [EXPERT, BASELINES_STAGE, campaign, CAMPAIGN_SUITE])])
     return "\n".join(lines) + "\n"

@@ -299,8 +299,9 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     config = load_config("smoke", None, {"baselines": {"agents": ["ppo", "sac"]}})
     [(tasks_key,)] = catalog.query("SELECT unit_key FROM stage_runs WHERE stage = 'generate_tasks'")
     tasks = load_tasks(ws, tasks_key)
-    planned = rl_units(ws, config, tasks, load_embeddings(ws, tasks_key, config.train.model.language_encoder),
-                       exploration_steps(catalog, "smoke"))
+    [(explore_units,)] = catalog.query("SELECT explore_units FROM iterations WHERE iteration = 1")
+    planned = rl_units(ws, config, tasks_key, tasks, load_embeddings(ws, tasks_key, config.train.model.language_encoder),
+                       exploration_steps(catalog, explore_units))
     assert [(u.algorithm, u.family, u.env_steps) for u in planned] == [("ppo", "robosuite", explored),
                                                                       ("sac", "robosuite", explored)]
     assert all(u.tasks == [t for t in tasks if t.split == "seen"] for u in planned)
@@ -318,7 +319,7 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
                           "WHERE model_key = (SELECT model_key FROM deployments WHERE iteration = 1) ORDER BY ALL")
     for model_key in ("expert", *(key for key, _ in trained.values())):
         assert catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
-                             "WHERE model_key = ? ORDER BY ALL", [model_key]) == cases
+                             "WHERE model_key = ? AND campaign = 'smoke' ORDER BY ALL", [model_key]) == cases
     [(expert_rate,)] = catalog.query("SELECT sum(successes) / sum(episodes) FROM evaluations WHERE model_key = 'expert'")
     assert expert_rate >= 0.5  # the ceiling: the noiseless expert lifts (100% in docs/experts.md)
     client = MlflowClient(tracking_uri=ws.tracking_uri)
