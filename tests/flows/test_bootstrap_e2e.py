@@ -323,8 +323,9 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     [(expert_rate,)] = catalog.query("SELECT sum(successes) / sum(episodes) FROM evaluations WHERE model_key = 'expert'")
     assert expert_rate >= 0.5  # the ceiling: the noiseless expert lifts (100% in docs/experts.md)
     client = MlflowClient(tracking_uri=ws.tracking_uri)
-    [campaign] = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id],
-                                    "tags.`sim2act.kind` = 'campaign'")
+    [campaign] = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id],  # this run's
+                                    "tags.`sim2act.kind` = 'campaign'", order_by=["attributes.start_time DESC"],
+                                    max_results=1)
     assert {"baseline.expert.success.seen", "baseline.ppo.robosuite.success.seen",
             "baseline.sac.robosuite.success.unseen_paraphrase"} <= set(campaign.data.metrics)
 
