@@ -18,6 +18,11 @@ def agent_observation(obs: Observation, embedding: np.ndarray) -> dict[str, np.n
     return {"image": obs.image, "proprio": obs.proprio.astype(np.float32), "instruction": embedding.astype(np.float32)}
 
 
+def adapter_action(action, family: str) -> np.ndarray:
+    """An agent's action as the adapters take it: float32, navigation's index as [index]."""
+    return np.asarray([action] if family in DISCRETE_FAMILIES else action, dtype=np.float32).reshape(-1)
+
+
 def observation_space(image_size: int, embedding_dim: int) -> gym.spaces.Dict:
     return gym.spaces.Dict({
         "image": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
@@ -47,7 +52,6 @@ class InstructedTasksEnv(gym.Env):
         self.tasks, self.embeddings, self.randomise = tasks, embeddings, randomise
         self.family = families.pop()
         self.envs = {task.env_name: worker_env(task, render) for task in tasks}  # one adapter per env name
-        self.env = self.envs[tasks[0].env_name]
         self.observation_space = observation_space(render.image_size, len(next(iter(embeddings.values()))))
         self.action_space = action_space(self.family)
         self._task, self._embedding, self._steps = tasks[0], None, 0
@@ -60,16 +64,14 @@ class InstructedTasksEnv(gym.Env):
         self._task = self.tasks[int(self.np_random.integers(len(self.tasks)))]
         instruction = self._task.instructions[int(self.np_random.integers(len(self._task.instructions)))]
         self._embedding = self.embeddings[instruction]
-        self.env = self.envs[self._task.env_name]
+        env = self.envs[self._task.env_name]
         episode_seed = int(self.np_random.integers(2**31))
-        obs = self.env.reset(self._task, episode_seed,
-                             sample_randomisation(self.randomise, episode_seed, self.env.RANDOMISES))
+        obs = env.reset(self._task, episode_seed, sample_randomisation(self.randomise, episode_seed, env.RANDOMISES))
         self._steps = 0
         return agent_observation(obs, self._embedding), {"task_id": self._task.task_id, "instruction": instruction}
 
     def step(self, action):
-        action = np.asarray([action] if self.family in DISCRETE_FAMILIES else action, dtype=np.float32)
-        obs, reward, success = self.env.step(action)
+        obs, reward, success = self.envs[self._task.env_name].step(adapter_action(action, self.family))
         self._steps += 1
         truncated = not success and self._steps >= self._task.horizon
         if success or truncated:

@@ -190,9 +190,8 @@ def iteration_flow(
         not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,
     ])
     return IterationOutcome(
-        iteration=iteration, tasks_key=tasks.unit_key, dataset=index, model_key=model.model_key, champion=deployment.champion, success=success,
-        split_success=_split_success(evaluation),
-        stages_run=stages_run,
+        iteration=iteration, tasks_key=tasks.unit_key, dataset=index, model_key=model.model_key,
+        champion=deployment.champion, success=success, split_success=_split_success(evaluation), stages_run=stages_run,
     )
 
 

@@ -9,7 +9,6 @@ import argparse
 import itertools
 import json
 import os
-import shlex
 import sys
 from pathlib import Path
 
@@ -163,10 +162,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     catalog = Catalog(Workspace.at(args.workspace).catalog)
     catalog.check_version()
-    command = shlex.join(["sim2act", "report", "--preset", args.preset, *(["--config", str(args.config)] if args.config else []),
-                          *[part for setting in args.set for part in ("--set", setting)], "--workspace", str(args.workspace)])
     try:
-        text = results_markdown(catalog, config.name, command)
+        text = results_markdown(catalog, config.name, args.command_line)
     except ValueError as exc:
         raise ConfigError(f"report: {exc}") from None
     if args.out is None:

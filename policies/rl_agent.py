@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.gym_env import agent_observation
+from envs.gym_env import adapter_action, agent_observation
 from envs.observation import DISCRETE_FAMILIES, Observation
 
 RL_ALGORITHMS = ("ppo", "sac")
@@ -48,4 +48,4 @@ class RLAgent:
 
     def act(self, obs: Observation, embedding: np.ndarray) -> np.ndarray:
         action, _ = self.model.predict(agent_observation(obs, embedding), deterministic=True)
-        return np.asarray([action] if self.family in DISCRETE_FAMILIES else action, dtype=np.float32).reshape(-1)
+        return adapter_action(action, self.family)

@@ -5,6 +5,7 @@ each number took — Markdown, from the warehouse alone."""
 from __future__ import annotations
 
 import datetime
+import itertools
 import json
 import os
 import platform
@@ -26,9 +27,9 @@ def _cell(group: GroupSuccess | None) -> str:
             f"({group.ci_low:.0%}–{group.ci_high:.0%})")
 
 
-def _splits(groups: list[GroupSuccess]) -> list[str]:
+def _cells(groups: list[GroupSuccess], columns: list[str] | tuple[str, ...] = SPLIT_COLUMNS) -> list[str]:
     by_name = {g.group: g for g in groups}
-    return [_cell(by_name.get(split)) for split in SPLIT_COLUMNS]
+    return [_cell(by_name.get(column)) for column in columns]
 
 
 def _table(header: list[str], rows: list[list[object]]) -> list[str]:
@@ -62,10 +63,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
         "FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) GROUP BY iteration ORDER BY iteration",
         [campaign, explore_units])
-    cumulative, steps_through = 0, {}
-    for iteration, steps, *_ in explored:
-        cumulative += int(steps)
-        steps_through[iteration] = cumulative
+    steps_through = dict(zip([row[0] for row in explored], itertools.accumulate(int(row[1]) for row in explored)))
 
     lines = [f"# Results: campaign `{campaign}`", "",
              f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "
@@ -74,35 +72,35 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
              "per split, the Wilson 95% interval in parentheses.", "",
              "## Success per iteration and against the baselines", ""]
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
-             f"{steps_through.get(iteration, 0):,}", *_splits(groups)]
+             f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
     for (agent, family, steps), evaluations in baseline_evaluations(catalog, campaign).items():
         name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
-        rows.append([name, f"{steps:,}" if steps else "–", *_splits(group_success(evaluations))])
+        rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
 
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
         lines += ["", "### Per family (Sim2Act)", ""]
         header = ["iteration", *[f"{family}/{split}" for family in families for split in ("seen", "unseen")]]
-        lines += _table(header, [[iteration, *[_cell({g.group: g for g in groups}.get(column)) for column in header[1:]]]
+        lines += _table(header, [[iteration, *_cells(groups, header[1:])]
                                  for iteration, groups in sorted(by_iteration.items())])
 
     lines += ["", "## Dataset per iteration", ""]
-    dataset = dict(((i, (e, k, t)) for i, e, k, t in catalog.query(
-        "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])))
+    dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(
+        "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])}
     explorers = {}
     for iteration, explorer, episodes in catalog.query(
             "SELECT iteration, explorer, count(*) FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) "
             "GROUP BY ALL ORDER BY ALL", [campaign, explore_units]):
         explorers.setdefault(iteration, []).append(f"{explorer}: {episodes}")
-    lines += _table(
-        ["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
-         "dataset: episodes kept / in selection", "dataset triplets"],
-        [[iteration, count, f"{steps:,}", tasks, instructions, "; ".join(explorers.get(iteration, [])),
-          f"{dataset.get(iteration, (0, 0, 0))[1]} / {dataset.get(iteration, (0, 0, 0))[0]}",
-          f"{dataset.get(iteration, (0, 0, 0))[2]:,}"]
-         for iteration, steps, count, tasks, instructions in explored])
+    rows = []
+    for iteration, steps, count, tasks, instructions in explored:
+        selected, kept, triplets = dataset.get(iteration, (0, 0, 0))
+        rows.append([iteration, count, f"{steps:,}", tasks, instructions, "; ".join(explorers.get(iteration, [])),
+                     f"{kept} / {selected}", f"{triplets:,}"])
+    lines += _table(["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
+                     "dataset: episodes kept / in selection", "dataset triplets"], rows)
 
     lines += ["", "## Compute", "",
               f"Wall seconds per stage, summed over its units, as the stages recorded them. The report ran on "
