@@ -37,6 +37,7 @@ from pydantic import BaseModel
 from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
 from envs.observation import PROPRIO_DIM, Observation
+from policies.policy import checkpoint_members
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.workspace import Workspace
 from stages.index import IndexResult
@@ -158,7 +159,7 @@ def _window_figures(samples_per_s: list[float], data_wait: list[float] | None) -
 
 
 def _parameters(checkpoint: Path) -> float:
-    state = torch.load(checkpoint, map_location="cpu", weights_only=False)["state_dict"]
+    state = checkpoint_members(torch.load(checkpoint, map_location="cpu", weights_only=False))[0]
     return sum(v.numel() for v in state.values()) / 1e6
 
 

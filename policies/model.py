@@ -10,6 +10,7 @@ action (navigation). One model trains on both.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import torch
@@ -237,12 +238,17 @@ class VLAModel(nn.Module):
         return asdict(self.dims)
 
 
-def uncertainty(output: ModelOutput, discrete: bool) -> torch.Tensor:
-    """Per sample: the policy's entropy over discrete actions (nats), or log det Sigma of its
-    Gaussian for continuous ones (normalised units). Higher: less sure."""
+def uncertainty(outputs: Sequence[ModelOutput], discrete: bool) -> torch.Tensor:
+    """Per sample, of the members' mixture (one member: the model alone): the entropy of their mean
+    probabilities over discrete actions (nats), or log det of the mixture's diagonal covariance,
+    the members' mean Sigma plus the spread of their mu (the law of total variance: ensemble
+    disagreement), for continuous ones (normalised units). Higher: less sure."""
     if discrete:
-        return torch.distributions.Categorical(logits=output.logits.float()).entropy()
-    return 2.0 * output.log_std.float().sum(-1)
+        probabilities = torch.stack([o.logits.float().softmax(-1) for o in outputs]).mean(0)
+        return -(probabilities * probabilities.clamp_min(1e-12).log()).sum(-1)
+    mu = torch.stack([o.mu.float() for o in outputs])
+    variance = torch.stack([(2.0 * o.log_std.float()).exp() for o in outputs]).mean(0) + mu.var(0, unbiased=False)
+    return variance.log().sum(-1)
 
 
 def info_nce(z_ol: torch.Tensor, z_a: torch.Tensor, temperature: float) -> torch.Tensor:

@@ -33,15 +33,21 @@ class Normaliser:
         return values * self.std + self.mean
 
 
-def policy_state(model: VLAModel, action: Normaliser, proprio: Normaliser) -> dict:
-    """What a policy checkpoint holds: enough to rebuild the model without the config or warehouse."""
+def policy_state(members: list[VLAModel], action: Normaliser, proprio: Normaliser) -> dict:
+    """What a policy checkpoint holds: enough to rebuild the model, or the ensemble of models trained
+    alike on the same data (train.ensemble), without the config or warehouse."""
     return {
-        "model_config": model.config.model_dump(),
-        "dims": model.dims_dict(),
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "model_config": members[0].config.model_dump(),
+        "dims": members[0].dims_dict(),
+        "members": [{k: v.detach().cpu() for k, v in model.state_dict().items()} for model in members],
         "action": (action.mean, action.std),
         "proprio": (proprio.mean, proprio.std),
     }
+
+
+def checkpoint_members(state: dict) -> list[dict]:
+    """The members' weights; a checkpoint written before ensembles holds one model's as `state_dict`."""
+    return state["members"] if "members" in state else [state["state_dict"]]
 
 
 def save_atomically(path: Path, state: dict) -> None:
@@ -59,50 +65,68 @@ class Decision:
 
 
 class Policy:
+    """One model, or an ensemble whose members' means are averaged (their disagreement is part of
+    the uncertainty: policies.model.uncertainty)."""
+
     def __init__(
-        self, model: VLAModel, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None = None
+        self, members: list[VLAModel], action: Normaliser, proprio: Normaliser,
+        embeddings: dict[str, np.ndarray] | None = None,
     ):
-        self.model = model.eval()
+        self.members = [model.eval() for model in members]
         self.action, self.proprio = action, proprio
         self._embeddings: dict[str, torch.Tensor] = {
             text: torch.as_tensor(vector).unsqueeze(0) for text, vector in (embeddings or {}).items()
         }
+        self._fine_tuned: dict[tuple[int, str], torch.Tensor] = {}  # (member, instruction): its own encoder's
 
     @classmethod
     def load(cls, path: Path, embeddings: dict[str, np.ndarray] | None = None) -> Policy:
         """`embeddings`: the frozen encoder's, per instruction, as the warehouse caches them; an
         instruction without one is encoded on first use."""
         state = torch.load(path, map_location="cpu", weights_only=False)
-        model = VLAModel(ModelConfig(**state["model_config"]), ModelDims(**state["dims"]))
-        model.load_state_dict(state["state_dict"])
-        return cls(model, Normaliser(*state["action"]), Normaliser(*state["proprio"]), embeddings)
+        config, dims = ModelConfig(**state["model_config"]), ModelDims(**state["dims"])
+        members = []
+        for weights in checkpoint_members(state):
+            model = VLAModel(config, dims)
+            model.load_state_dict(weights)
+            members.append(model)
+        return cls(members, Normaliser(*state["action"]), Normaliser(*state["proprio"]), embeddings)
 
     @property
-    def language_encoder(self) -> str:
-        return self.model.config.language_encoder
+    def config(self) -> ModelConfig:
+        return self.members[0].config
 
-    def _embedding(self, instruction: str) -> torch.Tensor:
+    @property
+    def dims(self) -> ModelDims:
+        return self.members[0].dims
+
+    def _language(self, member: int, instruction: str) -> torch.Tensor:
+        model = self.members[member]
+        if model.text is not None:
+            if (member, instruction) not in self._fine_tuned:
+                self._fine_tuned[member, instruction] = model.text([instruction])
+            return self._fine_tuned[member, instruction]
         if instruction not in self._embeddings:
-            if self.model.text is not None:
-                self._embeddings[instruction] = self.model.text([instruction])
-            else:
-                from policies.language import encode
+            from policies.language import encode
 
-                self._embeddings[instruction] = torch.from_numpy(encode(self.language_encoder, [instruction]))
+            self._embeddings[instruction] = torch.from_numpy(encode(self.config.language_encoder, [instruction]))
         return self._embeddings[instruction]
 
     @torch.no_grad()
     def act(self, obs: Observation, instruction: str, family: str) -> Decision:
         """For one observation (its frame, depth map if the model reads RGB-D, and proprio): the
-        Gaussian's mean (clipped to the action bounds) or the most likely discrete action."""
+        members' mean Gaussian mean (clipped to the action bounds), or the discrete action their
+        mean probabilities make most likely."""
         # copies: frames decoded from the warehouse are read-only buffers, which torch warns about sharing
-        depth = None if self.model.dims.channels == 3 or obs.depth is None else torch.tensor(obs.depth)[None]
+        depth = None if self.dims.channels == 3 or obs.depth is None else torch.tensor(obs.depth)[None]
         image = pixels(torch.tensor(obs.image)[None], depth)
         proprio = torch.from_numpy(self.proprio.encode(obs.proprio)).unsqueeze(0)
-        output = self.model(image, self._embedding(instruction), proprio)
+        outputs = [model(image, self._language(i, instruction), proprio) for i, model in enumerate(self.members)]
         discrete = family in DISCRETE_FAMILIES
         if discrete:
-            action = np.array([output.logits[0].argmax().item()], dtype=np.float32)
+            probabilities = torch.stack([o.logits[0].softmax(-1) for o in outputs]).mean(0)
+            action = np.array([probabilities.argmax().item()], dtype=np.float32)
         else:
-            action = np.clip(self.action.decode(output.mu[0].numpy()), -1.0, 1.0).astype(np.float32)
-        return Decision(action, float(uncertainty(output, discrete)[0]))
+            mu = torch.stack([o.mu[0] for o in outputs]).mean(0)
+            action = np.clip(self.action.decode(mu.numpy()), -1.0, 1.0).astype(np.float32)
+        return Decision(action, float(uncertainty(outputs, discrete)[0]))

@@ -223,6 +223,10 @@ class TrainConfig(_Strict):
     loader_workers: int = Field(
         default=1, ge=0, le=32, description="processes reading and decoding batches (0: the training process)"
     )
+    ensemble: int = Field(
+        default=1, ge=1, le=16, description="models trained alike, each from its own seed, whose mean actions the "
+        "policy takes (their disagreement joins its uncertainty); each costs a training"
+    )
     checkpoint_every: PositiveInt = Field(default=200, description="steps between resumable checkpoints")
     log_every: PositiveInt = Field(default=20, description="steps between MLflow metric points")
     device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="auto: cuda when there is one")

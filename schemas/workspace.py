@@ -37,9 +37,10 @@ class Workspace:
     def checkpoint(self, model_key: str) -> Path:
         return self.models / model_key / "policy.pt"
 
-    def train_state(self, model_key: str) -> Path:
-        """An unfinished training's last resumable checkpoint (removed once the model is registered)."""
-        return self.models / model_key / "train-state.pt"
+    def train_state(self, model_key: str, member: int = 0) -> Path:
+        """An unfinished training's last resumable checkpoint of an ensemble member (removed once the
+        model is registered)."""
+        return self.models / model_key / f"train-state-{member}.pt"
 
     @property
     def media(self) -> Path:

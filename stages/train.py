@@ -9,6 +9,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -193,6 +194,111 @@ def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device
     return losses
 
 
+@dataclass
+class _Run:
+    """What every member of a training shares: its data, device, schedule length and reporting."""
+
+    workspace: Workspace
+    config: CampaignConfig
+    iteration: int
+    key: str
+    batches: StepBatches  # each member reads them in its own shuffled order
+    device: torch.device
+    on_metrics: OnMetrics | None
+    progress: Progress
+
+
+@dataclass
+class _Member:
+    model: VLAModel
+    history: list[dict[str, float]]
+    resumed_at_step: int
+
+
+def _train_member(run: _Run, member: int) -> _Member:
+    """One model, seeded by its member index, from its last checkpoint if a kill interrupted it. A
+    finished member keeps its final state until the training registers: a kill during the next
+    member does not lose it."""
+    cfg, key = run.config.train, run.key
+    state_path = run.workspace.train_state(key, member)
+    torch.manual_seed(derive_seed(run.config.name, run.config.seed, "train", key, member))
+    model = VLAModel(cfg.model, model_dims(run.config)).to(run.device)
+    optimiser = optimiser_for(model, cfg)
+    batches = run.batches
+    batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
+    total_steps = cfg.epochs * batches.batches_per_epoch
+    offset = member * total_steps  # of this member's steps in the training's (MLflow steps, progress)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
+    step, history, epoch_means = 0, [], _Means()
+    shifts = torch.Generator().manual_seed(derive_seed(run.config.seed, key, "augment", member))
+    if state_path.exists():
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimiser"])
+        schedule.load_state_dict(state["schedule"])
+        torch.set_rng_state(state["rng"])
+        shifts.set_state(state["shifts"])
+        step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
+        log.info("train it%d: resuming %s member %d at step %d/%d", run.iteration, key, member, step, total_steps)
+    resumed_at = step
+    run.progress.done = offset + step
+    log.info("train it%d: %s%.2fM parameters", run.iteration, f"member {member + 1}/{cfg.ensemble}: " if cfg.ensemble > 1
+             else "", sum(p.numel() for p in model.parameters()) / 1e6)
+    if step == total_steps:
+        return _Member(model, history, resumed_at)
+
+    def save_state() -> None:
+        save_atomically(state_path, {
+            "model": model.state_dict(), "optimiser": optimiser.state_dict(),
+            "schedule": schedule.state_dict(), "rng": torch.get_rng_state(),
+            "shifts": shifts.get_state(), "step": step,
+            "history": history, "epoch_means": epoch_means.state(),
+        })
+
+    batches.start_batch = step
+    loader = DataLoader(
+        batches, batch_size=None, num_workers=cfg.loader_workers, pin_memory=run.device.type == "cuda",
+        # spawned: a process forked after a Prefect flow ran in this one fails at exit (code 1)
+        multiprocessing_context="spawn" if cfg.loader_workers else None,
+        prefetch_factor=4 if cfg.loader_workers else None,
+    )
+    window, window_started, waited = _Means(), time.monotonic(), 0.0
+    epoch_started, epoch_samples = time.monotonic(), 0
+    model.train()
+    wait_started = time.monotonic()
+    for batch in loader:
+        waited += time.monotonic() - wait_started
+        if int(batch["batch"]) != step:
+            raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
+        losses = train_step(model, optimiser, schedule, batch, cfg, run.device, shifts)
+        step += 1
+        size = len(batch["instruction"])
+        window.add(losses.terms, losses.counts)
+        epoch_means.add(losses.terms, losses.counts)
+        epoch_samples += size
+        run.progress.advance(1, size, log=step % cfg.log_every == 0)
+        if step % cfg.log_every == 0 or step == total_steps:
+            elapsed = time.monotonic() - window_started
+            metrics = {**window.means(), "lr": schedule.get_last_lr()[0],
+                       "samples_per_s": window.sums["loss"][1] / elapsed,
+                       "data_wait": waited / elapsed}
+            if run.on_metrics is not None:
+                run.on_metrics(offset + step, metrics)
+            window, window_started, waited = _Means(), time.monotonic(), 0.0
+        if step % batches.batches_per_epoch == 0:
+            record = {**epoch_means.means(), "lr": schedule.get_last_lr()[0],
+                      "samples_per_s": epoch_samples / (time.monotonic() - epoch_started)}
+            history.append(record)
+            log.info("train it%d: %sepoch %d/%d %s", run.iteration,
+                     f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else "", len(history), cfg.epochs,
+                     ", ".join(f"{k} {v:.3g}" for k, v in record.items()))
+            epoch_means, epoch_started, epoch_samples = _Means(), time.monotonic(), 0
+        if step < total_steps and step % cfg.checkpoint_every == 0 or step == total_steps and member + 1 < cfg.ensemble:
+            save_state()
+        wait_started = time.monotonic()
+    return _Member(model, history, resumed_at)
+
+
 def run_train(
     workspace: Workspace,
     config: CampaignConfig,
@@ -205,7 +311,7 @@ def run_train(
     catalog = Catalog(workspace.catalog)
     cfg = config.train
     key = train_unit_key(config, dataset, tasks_key)
-    checkpoint, state_path = workspace.checkpoint(key), workspace.train_state(key)
+    checkpoint = workspace.checkpoint(key)
     digest = selection_digest(dataset, cfg.where)
     existing = catalog.query("SELECT train_samples, dataset_shards FROM models WHERE model_key = ?", [key])
     if existing:
@@ -218,101 +324,45 @@ def run_train(
     device = training_device(cfg.device)
     threads_before = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
-    torch.manual_seed(derive_seed(config.name, config.seed, "train", key))
     rows = dataset.selection.rows(catalog, cfg.where)
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
     action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
-    model = VLAModel(cfg.model, model_dims(config)).to(device)
-    optimiser = optimiser_for(model, cfg)
+    frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
-        rows, cfg.batch_size, cfg.shuffle_buffer, derive_seed(config.seed, key, "shuffle"), cfg.epochs,
-        cfg.loader_workers,
-        TrainingCollate(action_norm, proprio_norm, embeddings if model.text is None else None, cfg.targets),
+        rows, cfg.batch_size, cfg.shuffle_buffer, 0, cfg.epochs, cfg.loader_workers,
+        TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets),
     )
-    total_steps = cfg.epochs * batches.batches_per_epoch
-    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
-    step, history, epoch_means = 0, [], _Means()
-    shifts = torch.Generator().manual_seed(derive_seed(config.seed, key, "augment"))
-    if state_path.exists():
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
-        model.load_state_dict(state["model"])
-        optimiser.load_state_dict(state["optimiser"])
-        schedule.load_state_dict(state["schedule"])
-        torch.set_rng_state(state["rng"])
-        shifts.set_state(state["shifts"])
-        step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
-        log.info("train it%d: resuming %s at step %d/%d", iteration, key, step, total_steps)
-    resumed_at = step
-    batches.start_batch = step
+    samples, steps_per_member = batches.rows_per_epoch, cfg.epochs * batches.batches_per_epoch
     log.info(
-        "train it%d: %d triplets (%s), %d epochs x %d steps, %.2fM parameters on %s, dataset %s",
-        iteration, batches.rows_per_epoch, cfg.where or "all kept", cfg.epochs, batches.batches_per_epoch,
-        sum(p.numel() for p in model.parameters()) / 1e6, device, digest[:12],
+        "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s, dataset %s", iteration, samples,
+        cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", cfg.epochs,
+        steps_per_member // cfg.epochs, device, digest[:12],
     )
-    loader = DataLoader(
-        batches, batch_size=None, num_workers=cfg.loader_workers, pin_memory=device.type == "cuda",
-        # spawned: a process forked after a Prefect flow ran in this one fails at exit (code 1)
-        multiprocessing_context="spawn" if cfg.loader_workers else None,
-        prefetch_factor=4 if cfg.loader_workers else None,
-    )
-    progress = Progress(log, f"train it{iteration}", total_steps, "steps", "samples")
-    progress.done = step
-    window, window_started, waited = _Means(), time.monotonic(), 0.0
-    epoch_started, epoch_samples = time.monotonic(), 0
-    model.train()
+    progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
+    run = _Run(workspace, config, iteration, key, batches, device, on_metrics, progress)
     try:
-        wait_started = time.monotonic()
-        for batch in loader:
-            waited += time.monotonic() - wait_started
-            if int(batch["batch"]) != step:
-                raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
-            losses = train_step(model, optimiser, schedule, batch, cfg, device, shifts)
-            step += 1
-            size = len(batch["instruction"])
-            window.add(losses.terms, losses.counts)
-            epoch_means.add(losses.terms, losses.counts)
-            epoch_samples += size
-            progress.advance(1, size, log=step % cfg.log_every == 0)
-            if step % cfg.log_every == 0 or step == total_steps:
-                elapsed = time.monotonic() - window_started
-                metrics = {**window.means(), "lr": schedule.get_last_lr()[0],
-                           "samples_per_s": window.sums["loss"][1] / elapsed,
-                           "data_wait": waited / elapsed}
-                if on_metrics is not None:
-                    on_metrics(step, metrics)
-                window, window_started, waited = _Means(), time.monotonic(), 0.0
-            if step % batches.batches_per_epoch == 0:
-                record = {**epoch_means.means(), "lr": schedule.get_last_lr()[0],
-                          "samples_per_s": epoch_samples / (time.monotonic() - epoch_started)}
-                history.append(record)
-                log.info("train it%d: epoch %d/%d %s", iteration, len(history), cfg.epochs,
-                         ", ".join(f"{k} {v:.3g}" for k, v in record.items()))
-                epoch_means, epoch_started, epoch_samples = _Means(), time.monotonic(), 0
-            if step % cfg.checkpoint_every == 0 and step < total_steps:
-                save_atomically(state_path, {
-                    "model": model.state_dict(), "optimiser": optimiser.state_dict(),
-                    "schedule": schedule.state_dict(), "rng": torch.get_rng_state(),
-                    "shifts": shifts.get_state(), "step": step,
-                    "history": history, "epoch_means": epoch_means.state(),
-                })
-            wait_started = time.monotonic()
+        members = [_train_member(run, member) for member in range(cfg.ensemble)]
     finally:
         progress.close()
         torch.set_num_threads(threads_before)
-    save_atomically(checkpoint, policy_state(model, action_norm, proprio_norm))
+    history = [record for member in members for record in member.history]
+    resumed_at = max((i * steps_per_member + m.resumed_at_step for i, m in enumerate(members) if m.resumed_at_step), default=0)
+    save_atomically(checkpoint, policy_state([m.model for m in members], action_norm, proprio_norm))
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-        summary={"final_loss": history[-1]["loss"], "epochs": cfg.epochs, "steps": total_steps,
-                 "resumed_at_step": resumed_at, "where": cfg.where}, wall_s=time.monotonic() - started,
+        summary={"final_loss": history[-1]["loss"], "epochs": cfg.epochs, "steps": cfg.ensemble * steps_per_member,
+                 "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where},
+        wall_s=time.monotonic() - started,
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,
             "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": digest,
-            "dataset_shards": shards_read, "train_samples": batches.rows_per_epoch,
+            "dataset_shards": shards_read, "train_samples": samples,
             "final_loss": history[-1]["loss"], "unit_key": key,
         }]},
     )
-    state_path.unlink(missing_ok=True)
-    return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=digest, samples=batches.rows_per_epoch,
+    for member in range(cfg.ensemble):
+        workspace.train_state(key, member).unlink(missing_ok=True)
+    return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=digest, samples=samples,
                        dataset_shards=shards_read, history=history, resumed_at_step=resumed_at, skipped=False)

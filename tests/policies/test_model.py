@@ -108,10 +108,26 @@ def test_training_fits_a_small_mixed_batch():
 
 def test_uncertainty_is_entropy_or_log_det_sigma():
     uniform = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -1.0), torch.zeros(1, 4))
-    assert uncertainty(uniform, discrete=True).item() == pytest.approx(math.log(4))
-    assert uncertainty(uniform, discrete=False).item() == pytest.approx(2 * 7 * -1.0)
+    assert uncertainty([uniform], discrete=True).item() == pytest.approx(math.log(4))
+    assert uncertainty([uniform], discrete=False).item() == pytest.approx(2 * 7 * -1.0)
     sure = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -3.0), torch.tensor([[20.0, 0, 0, 0]]))
-    assert uncertainty(sure, True) < uncertainty(uniform, True) and uncertainty(sure, False) < uncertainty(uniform, False)
+    assert uncertainty([sure], True) < uncertainty([uniform], True)
+    assert uncertainty([sure], False) < uncertainty([uniform], False)
+
+
+def test_an_ensembles_uncertainty_counts_its_members_disagreement():
+    def member(mu: float, top: int) -> ModelOutput:
+        logits = torch.zeros(1, 4)
+        logits[0, top] = 20.0
+        return ModelOutput(torch.zeros(1, 8), torch.full((1, 7), mu), torch.full((1, 7), -3.0), logits)
+
+    agreeing, disagreeing = [member(0.5, 0), member(0.5, 0)], [member(0.0, 0), member(1.0, 1)]
+    # equal means: the mixture is each member's own Gaussian; sure members that disagree: about
+    # log 2 nats, and each component's variance exp(-6) + 0.5^2
+    assert uncertainty(agreeing, False).item() == pytest.approx(2 * 7 * -3.0, abs=1e-4)
+    assert uncertainty(disagreeing, False).item() == pytest.approx(7 * math.log(math.exp(-6.0) + 0.25), abs=1e-4)
+    assert uncertainty(agreeing, True).item() == pytest.approx(0.0, abs=1e-4)
+    assert uncertainty(disagreeing, True).item() == pytest.approx(math.log(2), abs=1e-4)
 
 
 def test_fine_tuned_language_encoder_starts_from_the_pretrained_weights_and_learns():

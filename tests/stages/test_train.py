@@ -18,7 +18,7 @@ import yaml
 from mlflow import MlflowClient
 
 from envs.observation import Observation
-from policies.policy import Normaliser, Policy
+from policies.policy import Normaliser, Policy, checkpoint_members
 from schemas.config import load_config
 from schemas.frames import encode_frame
 from schemas.workspace import Workspace
@@ -74,39 +74,43 @@ def _train(config_file: Path, workspace: Path, *extra: str, **popen) -> subproce
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **popen)
 
 
-def _weights(workspace: Path) -> dict[str, torch.Tensor]:
+def _weights(workspace: Path) -> list[dict[str, torch.Tensor]]:
     [checkpoint] = (workspace / "models").glob("*/policy.pt")
-    return torch.load(checkpoint, weights_only=False)["state_dict"]
+    return checkpoint_members(torch.load(checkpoint, weights_only=False))
 
 
-def test_a_sigkilled_training_resumes_to_the_same_weights(campaign, tmp_path):
-    config_file = campaign[0]
+def test_a_sigkilled_ensemble_training_resumes_to_the_same_weights(campaign, tmp_path):
+    """Killed in its second member: the first member's finished state survives, the second resumes
+    from its last checkpoint, and both end as a straight run's."""
+    config_file, ensemble = campaign[0], ("--set", "train.ensemble=2")
     straight, killed = _copy(campaign, tmp_path, "straight"), _copy(campaign, tmp_path, "killed")
-    run = _train(config_file, straight)
+    run = _train(config_file, straight, *ensemble)
     output = run.communicate(timeout=600)[0]
     assert run.returncode == 0, output
 
-    victim = _train(config_file, killed, start_new_session=True)
+    victim = _train(config_file, killed, *ensemble, start_new_session=True)
     deadline = time.monotonic() + 300
     states = []
     while not states and victim.poll() is None and time.monotonic() < deadline:
-        states = list((killed / "models").glob("*/train-state.pt"))
+        states = list((killed / "models").glob("*/train-state-1.pt"))
         time.sleep(0.05)
     assert states, victim.communicate()[0]
     time.sleep(0.3)  # a few more steps past the checkpoint, lost with the kill
     os.killpg(victim.pid, signal.SIGKILL)  # the trainer and its loader worker
     victim.wait()
     assert victim.returncode == -signal.SIGKILL
-    killed_at = torch.load(states[0], weights_only=False)["step"]
+    first, second = (torch.load(states[0].with_name(f"train-state-{m}.pt"), weights_only=False)["step"] for m in (0, 1))
+    killed_at = first + second  # the first member finished: its steps, then the second's
 
-    resumed = _train(config_file, killed)
+    resumed = _train(config_file, killed, *ensemble)
     output = resumed.communicate(timeout=600)[0]
     assert resumed.returncode == 0 and f"resumed at step {killed_at}" in output, output
     a, b = _weights(straight), _weights(killed)
-    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
-    assert not list((killed / "models").glob("*/train-state.pt"))  # removed once the model is registered
+    assert len(a) == len(b) == 2 and any(not torch.equal(a[0][k], a[1][k]) for k in a[0])  # two different models
+    assert all(x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x) for x, y in zip(a, b))
+    assert not list((killed / "models").glob("*/train-state-*.pt"))  # removed once the model is registered
 
-    again = _train(config_file, killed)
+    again = _train(config_file, killed, *ensemble)
     assert "already trained" in again.communicate(timeout=300)[0] and again.returncode == 0
 
 
@@ -165,7 +169,7 @@ def test_a_campaign_that_records_depth_trains_and_runs_an_rgbd_policy(tmp_path):
 
     result = run_train(workspace, config, 0, dataset, tasks_key, embeddings)
     policy = Policy.load(Path(result.checkpoint))
-    assert policy.model.dims.channels == 4
+    assert policy.dims.channels == 4
     obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {}, np.ones((84, 84), np.float32))
     assert policy.act(obs, "lift the red cube", "robosuite").action.shape == (7,)
     with pytest.raises(ValueError, match=r"reads RGB-D \(a campaign with render.depth\) frames, got 3 channels"):
