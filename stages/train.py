@@ -220,6 +220,7 @@ def _train_member(run: _Run, member: int) -> _Member:
     finished member keeps its final state until the training registers: a kill during the next
     member does not lose it."""
     cfg, key = run.config.train, run.key
+    which = f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else ""  # log lines of a single model as before
     state_path = run.workspace.train_state(key, member)
     torch.manual_seed(derive_seed(run.config.name, run.config.seed, "train", key, member))
     model = VLAModel(cfg.model, model_dims(run.config)).to(run.device)
@@ -239,11 +240,10 @@ def _train_member(run: _Run, member: int) -> _Member:
         torch.set_rng_state(state["rng"])
         shifts.set_state(state["shifts"])
         step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
-        log.info("train it%d: resuming %s member %d at step %d/%d", run.iteration, key, member, step, total_steps)
+        log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
     resumed_at = step
     run.progress.done = offset + step
-    log.info("train it%d: %s%.2fM parameters", run.iteration, f"member {member + 1}/{cfg.ensemble}: " if cfg.ensemble > 1
-             else "", sum(p.numel() for p in model.parameters()) / 1e6)
+    log.info("train it%d: %s%.2fM parameters", run.iteration, which, sum(p.numel() for p in model.parameters()) / 1e6)
     if step == total_steps:
         return _Member(model, history, resumed_at)
 
@@ -289,8 +289,7 @@ def _train_member(run: _Run, member: int) -> _Member:
             record = {**epoch_means.means(), "lr": schedule.get_last_lr()[0],
                       "samples_per_s": epoch_samples / (time.monotonic() - epoch_started)}
             history.append(record)
-            log.info("train it%d: %sepoch %d/%d %s", run.iteration,
-                     f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else "", len(history), cfg.epochs,
+            log.info("train it%d: %sepoch %d/%d %s", run.iteration, which, len(history), cfg.epochs,
                      ", ".join(f"{k} {v:.3g}" for k, v in record.items()))
             epoch_means, epoch_started, epoch_samples = _Means(), time.monotonic(), 0
         if step < total_steps and step % cfg.checkpoint_every == 0 or step == total_steps and member + 1 < cfg.ensemble:
@@ -331,14 +330,14 @@ def run_train(
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
-        rows, cfg.batch_size, cfg.shuffle_buffer, 0, cfg.epochs, cfg.loader_workers,
+        rows, cfg.batch_size, cfg.shuffle_buffer, 0, cfg.epochs, cfg.loader_workers,  # seeded per member
         TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets),
     )
     samples, steps_per_member = batches.rows_per_epoch, cfg.epochs * batches.batches_per_epoch
     log.info(
         "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s, dataset %s", iteration, samples,
         cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", cfg.epochs,
-        steps_per_member // cfg.epochs, device, digest[:12],
+        batches.batches_per_epoch, device, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
     run = _Run(workspace, config, iteration, key, batches, device, on_metrics, progress)
