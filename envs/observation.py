@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-ACTION_DIM = 7
+ACTION_COMPONENTS = ("dx", "dy", "dz", "rx", "ry", "rz", "grip")  # the continuous action, in order
+ACTION_DIM = len(ACTION_COMPONENTS)
 PROPRIO_DIM = 9
 # Families that act by the index of an action from a discrete set, stored as [index] (navigation).
 DISCRETE_FAMILIES = frozenset({"navigation"})

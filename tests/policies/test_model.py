@@ -91,6 +91,21 @@ def test_bc_is_cross_entropy_for_discrete_samples_and_gaussian_for_continuous():
     assert torch.allclose(losses.total.detach(), expected, atol=1e-5)
 
 
+def test_action_error_is_reported_per_component_over_continuous_samples():
+    torch.manual_seed(0)
+    model = VLAModel(SMALL, DIMS).eval()
+    image, language, proprio, _, index = _batch(16, discrete=6)
+    with torch.no_grad():
+        action = model(image, language, proprio).mu.clone()
+    action[:, 1] += 2.0  # the lateral component alone is off, by 2 normalised units
+    action[10:] = 0.0
+    losses = vla_loss(model, image, language, proprio, action, index, contrastive_weight=0.0, temperature=0.1)
+    t, c = losses.terms, losses.counts
+    assert torch.isclose(t["action_mse_dy"], torch.tensor(4.0), atol=1e-4) and c["action_mse_dy"] == 10
+    assert all(t[f"action_mse_{name}"] < 1e-8 for name in ("dx", "dz", "rx", "ry", "rz", "grip"))
+    assert torch.isclose(t["action_mse"], t["action_mse_dy"] / 7)
+
+
 def test_training_fits_a_small_mixed_batch():
     torch.manual_seed(0)
     model = VLAModel(SMALL, DIMS)
