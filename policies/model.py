@@ -284,7 +284,8 @@ def vla_loss(
     mu, log_std = out.mu.float(), out.log_std.float()
     # mu learns from the squared error and Sigma from the NLL around a detached mu: trained jointly,
     # the NLL shrinks Sigma on easy dimensions faster than it fits mu, and mu barely moves.
-    mse = ((mu - action) ** 2).mean(-1)
+    squared = (mu - action) ** 2
+    mse = squared.mean(-1)
     nll = (0.5 * ((action - mu.detach()) / log_std.exp()) ** 2 + log_std).sum(-1)
     cross_entropy = F.cross_entropy(out.logits.float(), action_index.clamp(min=0), reduction="none")
     bc = torch.where(discrete, cross_entropy, mse + nll).mean()
@@ -298,7 +299,7 @@ def vla_loss(
         counts.update(action_mse=n - n_discrete, bc_nll=n - n_discrete)
         # Per component, in normalised units (about 1 - R^2 over the selection): a training that never learns
         # one component (the lateral dy of a small cube, in half the seeds) hides in the mean of seven.
-        for name, error in zip(ACTION_COMPONENTS, ((mu - action) ** 2)[continuous].mean(0)):
+        for name, error in zip(ACTION_COMPONENTS, squared[continuous].mean(0)):
             terms[f"action_mse_{name}"], counts[f"action_mse_{name}"] = error, n - n_discrete
     if n_discrete:
         hit = (out.logits.argmax(-1) == action_index)[discrete].float()
