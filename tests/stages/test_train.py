@@ -123,7 +123,7 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
     [iteration_run] = client.search_runs(
         [client.get_experiment_by_name("sim2act").experiment_id], "tags.`sim2act.kind` = 'iteration'")
     metrics = iteration_run.data.metrics
-    for name in ("train.loss", "train.infonce", "train.bc", "train.action_mse", "train.discrete_ce",
+    for name in ("train.loss", "train.infonce", "train.bc", "train.action_mse", "train.action_mse_dy", "train.discrete_ce",
                  "train.discrete_accuracy", "train.lr", "train.samples_per_s", "train.data_wait"):
         assert name in metrics, name
     history = client.get_metric_history(iteration_run.info.run_id, "train.loss")
