@@ -239,13 +239,19 @@ class VLAModel(nn.Module):
         return asdict(self.dims)
 
 
+def mean_probabilities(outputs: Sequence[ModelOutput]) -> torch.Tensor:
+    """The members' mean probabilities over discrete actions: what an ensemble picks from, and whose
+    entropy is its uncertainty."""
+    return torch.stack([o.logits.float().softmax(-1) for o in outputs]).mean(0)
+
+
 def uncertainty(outputs: Sequence[ModelOutput], discrete: bool) -> torch.Tensor:
     """Per sample, of the members' mixture (one member: the model alone): the entropy of their mean
     probabilities over discrete actions (nats), or log det of the mixture's diagonal covariance,
     the members' mean Sigma plus the spread of their mu (the law of total variance: ensemble
     disagreement), for continuous ones (normalised units). Higher: less sure."""
     if discrete:
-        probabilities = torch.stack([o.logits.float().softmax(-1) for o in outputs]).mean(0)
+        probabilities = mean_probabilities(outputs)
         return -(probabilities * probabilities.clamp_min(1e-12).log()).sum(-1)
     mu = torch.stack([o.mu.float() for o in outputs])
     variance = torch.stack([(2.0 * o.log_std.float()).exp() for o in outputs]).mean(0) + mu.var(0, unbiased=False)

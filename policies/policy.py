@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from envs.observation import DISCRETE_FAMILIES, Observation
-from policies.model import ModelDims, VLAModel, pixels, uncertainty
+from policies.model import ModelDims, VLAModel, mean_probabilities, pixels, uncertainty
 from schemas.config import ModelConfig
 
 
@@ -124,8 +124,7 @@ class Policy:
         outputs = [model(image, self._language(i, instruction), proprio) for i, model in enumerate(self.members)]
         discrete = family in DISCRETE_FAMILIES
         if discrete:
-            probabilities = torch.stack([o.logits[0].softmax(-1) for o in outputs]).mean(0)
-            action = np.array([probabilities.argmax().item()], dtype=np.float32)
+            action = np.array([mean_probabilities(outputs)[0].argmax().item()], dtype=np.float32)
         else:
             mu = torch.stack([o.mu[0] for o in outputs]).mean(0)
             action = np.clip(self.action.decode(mu.numpy()), -1.0, 1.0).astype(np.float32)
