@@ -34,6 +34,7 @@ class ModelDims:
     discrete_actions: int  # size of the discrete action set
     language_dim: int
     channels: int = 3  # 4: RGB-D, for campaigns that record depth (render.depth)
+    state_dim: int = 0  # the simulator state the auxiliary head predicts (train.state_weight); 0: no head
 
 
 @dataclass
@@ -42,6 +43,7 @@ class ModelOutput:
     mu: torch.Tensor  # (B, action_dim) Gaussian mean, normalised units
     log_std: torch.Tensor  # (B, action_dim) diagonal: Sigma = diag(exp(2 log_std))
     logits: torch.Tensor  # (B, discrete_actions)
+    state: torch.Tensor | None = None  # (B, state_dim) the simulator state, normalised; models with the head
 
 
 def _transformer(dim: int, depth: int, heads: int) -> nn.TransformerEncoder:
@@ -192,6 +194,7 @@ class VLAModel(nn.Module):
         self.mu = nn.Linear(d, dims.action_dim)
         self.log_std = nn.Linear(d, dims.action_dim)
         self.logits = nn.Linear(d, dims.discrete_actions)
+        self.state = nn.Linear(d, dims.state_dim) if dims.state_dim else None  # a training aid, unread when acting
         self.action_encoder = nn.Sequential(nn.Linear(dims.action_dim, d), nn.GELU(), nn.Linear(d, d))
         self.discrete_action_encoder = nn.Embedding(dims.discrete_actions, d)
         self.joint_projection = nn.Linear(d, d)
@@ -226,6 +229,7 @@ class VLAModel(nn.Module):
             mu=self.mu(joint),
             log_std=self.log_std(joint).clamp(*LOG_STD_RANGE),
             logits=self.logits(joint),
+            state=None if self.state is None else self.state(joint),
         )
 
     def encode_action(self, action: torch.Tensor, action_index: torch.Tensor) -> torch.Tensor:
@@ -281,9 +285,13 @@ def vla_loss(
     action_index: torch.Tensor,
     contrastive_weight: float,
     temperature: float,
+    state: tuple[torch.Tensor, torch.Tensor] | None = None,
+    state_weight: float = 0.0,
 ) -> Losses:
     """lambda * InfoNCE(z_ol, z_a) + (1 - lambda) * BC, BC per sample: for continuous actions the
-    squared error of mu plus the Gaussian NLL, for discrete ones the cross-entropy."""
+    squared error of mu plus the Gaussian NLL, for discrete ones the cross-entropy. With `state`
+    (normalised simulator states (B, state_dim) and the mask of the components each sample has),
+    plus state_weight * the state head's squared error over those components."""
     out = model(image, language, proprio)
     contrastive = info_nce(out.z_ol, model.encode_action(action, action_index), temperature)
     discrete = action_index >= 0
@@ -307,8 +315,15 @@ def vla_loss(
         # one component (the lateral dy of a small cube, in half the seeds) hides in the mean of seven.
         for name, error in zip(ACTION_COMPONENTS, squared[continuous].mean(0)):
             terms[f"action_mse_{name}"], counts[f"action_mse_{name}"] = error, n - n_discrete
+    if state is not None and out.state is not None:
+        target, present = state
+        # scenes differ in state length: a sample's missing components are padding, left out
+        state_mse = (((out.state.float() - target) ** 2) * present).sum() / present.sum().clamp_min(1)
+        total = total + state_weight * state_mse
+        terms["state_mse"], counts["state_mse"] = state_mse, n
     if n_discrete:
         hit = (out.logits.argmax(-1) == action_index)[discrete].float()
         terms.update(discrete_ce=cross_entropy[discrete].mean(), discrete_accuracy=hit.mean())
         counts.update(discrete_ce=n_discrete, discrete_accuracy=n_discrete)
+    terms["loss"] = total  # with the state term where there is one
     return Losses(total, {k: v.detach() for k, v in terms.items()}, counts)

@@ -21,10 +21,11 @@ class Normaliser:
 
     @classmethod
     def fit(cls, values: np.ndarray, width: int) -> Normaliser:
-        """Per-component statistics; the identity when there are no values (e.g. no continuous actions)."""
+        """Per-component statistics over the values each component has (NaN: none); the identity when
+        there are no values (e.g. no continuous actions)."""
         if len(values) == 0:
             return cls(np.zeros(width, np.float32), np.ones(width, np.float32))
-        return cls(values.mean(0).astype(np.float32), np.maximum(values.std(0), 1e-3).astype(np.float32))
+        return cls(np.nanmean(values, 0).astype(np.float32), np.maximum(np.nanstd(values, 0), 1e-3).astype(np.float32))
 
     def encode(self, values: np.ndarray) -> np.ndarray:
         return ((values - self.mean) / self.std).astype(np.float32)

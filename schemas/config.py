@@ -209,6 +209,12 @@ class TrainConfig(_Strict):
         default=4, ge=0, le=16,
         description="shift each training frame by up to this many pixels each way (edges repeated); 0: off",
     )
+    state_weight: float = Field(
+        default=0.0, ge=0.0,
+        description="weight of an auxiliary loss: a head on z_ol predicts the simulator state before the action (the "
+        "steps' qpos, normalised per component), supervision available in simulation at training time only and read "
+        "nowhere when acting; it asks the encoder where the objects are; 0: off",
+    )
     targets: Literal["expert", "executed"] = Field(
         default="expert",
         description="what the policy learns to output: the expert's noiseless action at each state where the "

@@ -35,6 +35,9 @@ WARMUP_FRACTION = 0.05
 # How a run computes, not what it learns: left out of the unit key (a GPU re-run of a CPU-trained
 # config finds the CPU model).
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
+# Fields added after the stage's version enter the key only when set off these defaults: models
+# trained before a field existed keep their keys (a campaign resumed across the change retrains nothing).
+ADDED_DEFAULTS = {"state_weight": 0.0}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -52,7 +55,9 @@ class TrainResult(BaseModel):
 
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
-    reads = {"train": config.train.model_dump(exclude=EXECUTION_FIELDS), "seed": config.seed,
+    train = config.train.model_dump(exclude=EXECUTION_FIELDS)
+    train = {k: v for k, v in train.items() if k not in ADDED_DEFAULTS or v != ADDED_DEFAULTS[k]}
+    reads = {"train": train, "seed": config.seed,
              "image": config.render.image_size, "depth": config.render.depth}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 
@@ -61,9 +66,10 @@ def selection_digest(dataset: IndexResult, where: str | None) -> str:
     return dataset.dataset_digest if where is None else digest_of([dataset.dataset_digest, where])
 
 
-def model_dims(config: CampaignConfig) -> ModelDims:
+def model_dims(config: CampaignConfig, state_dim: int = 0) -> ModelDims:
     return ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, len(NAVIGATION_ACTIONS),
-                     ENCODERS[config.train.model.language_encoder].dim, channels=4 if config.render.depth else 3)
+                     ENCODERS[config.train.model.language_encoder].dim, channels=4 if config.render.depth else 3,
+                     state_dim=state_dim)
 
 
 def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
@@ -90,13 +96,23 @@ def action_targets(actions: list[list[float]], expert_actions: list[list[float] 
     return [action if label is None else label for action, label in zip(actions, expert_actions)]
 
 
+def padded_states(qpos: list[list[float]], width: int) -> np.ndarray:
+    """Stored simulator states, one length per scene -> (n, width), NaN past each state's end."""
+    states = np.full((len(qpos), width), np.nan, np.float64)
+    for i, state in enumerate(qpos):
+        states[i, : len(state)] = state
+    return states
+
+
 class TrainingCollate:
     """Rows -> a ready batch, in the loader workers: frames (and depth maps) decoded, the action targets chosen,
-    split by kind and normalised, proprio normalised, the frozen encoder's embeddings looked up."""
+    split by kind and normalised, proprio normalised, the frozen encoder's embeddings looked up; with a
+    `state` normaliser, the simulator states normalised as `state` and which components each has as `state_mask`."""
 
     def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None,
-                 targets: str):
+                 targets: str, state: Normaliser | None = None):
         self.action, self.proprio, self.embeddings, self.targets = action, proprio, embeddings, targets
+        self.state = state
 
     def __call__(self, rows: list[dict]) -> dict:
         batch = decode_rows(rows)
@@ -104,6 +120,11 @@ class TrainingCollate:
         batch["action"] = np.where((index < 0)[:, None], self.action.encode(continuous), 0.0).astype(np.float32)
         batch["action_index"] = index
         batch["proprio"] = self.proprio.encode(batch["proprio"])
+        qpos = batch.pop("qpos")
+        if self.state is not None:
+            states = self.state.encode(padded_states(qpos, len(self.state.mean)))
+            batch["state_mask"] = np.isfinite(states).astype(np.float32)
+            batch["state"] = np.nan_to_num(states, nan=0.0)
         if self.embeddings is not None:
             batch["language"] = np.stack([self.embeddings[text] for text in batch["instruction"]])
         return batch
@@ -116,6 +137,15 @@ def normalisers(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig) -> tup
         action_targets(table["action"].to_pylist(), table["expert_action"].to_pylist(), cfg.targets))
     proprio = np.asarray(table["proprio"].to_pylist(), dtype=np.float32)
     return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM)
+
+
+def state_normaliser(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig) -> Normaliser | None:
+    """Statistics of the simulator states over the training selection, per component as long as the
+    longest state; None when no auxiliary state loss asks for them (train.state_weight 0)."""
+    if cfg.state_weight == 0:
+        return None
+    qpos = dataset.selection.kept_steps(catalog, ["qpos"], cfg.where)["qpos"].to_pylist()
+    return Normaliser.fit(padded_states(qpos, max(map(len, qpos))), 0)
 
 
 def training_device(choice: str) -> torch.device:
@@ -180,11 +210,14 @@ def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device
     depth = batch["depth"].to(device, non_blocking=True) if "depth" in batch else None
     image = random_shift(pixels(batch["image"].to(device, non_blocking=True), depth), cfg.augment_shift, shifts)
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
+    state = (batch["state"].to(device, non_blocking=True), batch["state_mask"].to(device, non_blocking=True)) \
+        if "state" in batch else None
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
         losses = vla_loss(
             model, image, model.language_input(batch["instruction"], cached),
             batch["proprio"].to(device, non_blocking=True), batch["action"].to(device, non_blocking=True),
             batch["action_index"].to(device, non_blocking=True), cfg.contrastive_weight, cfg.temperature,
+            state, cfg.state_weight,
         )
     optimiser.zero_grad(set_to_none=True)
     losses.total.backward()
@@ -204,6 +237,7 @@ class _Run:
     key: str
     batches: StepBatches  # each member reads them in its own shuffled order
     device: torch.device
+    state_dim: int  # the auxiliary state head's width (0: none)
     on_metrics: OnMetrics | None
     progress: Progress
 
@@ -223,7 +257,7 @@ def _train_member(run: _Run, member: int) -> _Member:
     which = f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else ""  # log lines of a single model as before
     state_path = run.workspace.train_state(key, member)
     torch.manual_seed(derive_seed(run.config.name, run.config.seed, "train", key, member))
-    model = VLAModel(cfg.model, model_dims(run.config)).to(run.device)
+    model = VLAModel(cfg.model, model_dims(run.config, run.state_dim)).to(run.device)
     optimiser = optimiser_for(model, cfg)
     batches = run.batches
     batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
@@ -327,11 +361,12 @@ def run_train(
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
     action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
+    state_norm = state_normaliser(catalog, dataset, cfg)
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
         rows, cfg.batch_size, cfg.shuffle_buffer, 0, cfg.epochs, cfg.loader_workers,  # seeded per member
-        TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets),
+        TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm),
     )
     samples, steps_per_member = batches.rows_per_epoch, cfg.epochs * batches.batches_per_epoch
     log.info(
@@ -340,7 +375,8 @@ def run_train(
         batches.batches_per_epoch, device, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
-    run = _Run(workspace, config, iteration, key, batches, device, on_metrics, progress)
+    run = _Run(workspace, config, iteration, key, batches, device, 0 if state_norm is None else len(state_norm.mean),
+               on_metrics, progress)
     try:
         members = [_train_member(run, member) for member in range(cfg.ensemble)]
     finally:

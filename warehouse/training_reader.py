@@ -27,7 +27,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from schemas.frames import decode_depth, decode_frame
 from warehouse.catalog import Catalog
 
-COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action"]
+COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action", "qpos"]
 
 
 class SelectionError(ValueError):
@@ -115,6 +115,7 @@ def decode_rows(rows: list[dict]) -> dict[str, Any]:
         "proprio": np.asarray([r["proprio"] for r in rows], dtype=np.float32),
         "action": [r["action"] for r in rows],
         "expert_action": [r["expert_action"] for r in rows],
+        "qpos": [r["qpos"] for r in rows],
     }
 
 

@@ -106,6 +106,25 @@ def test_action_error_is_reported_per_component_over_continuous_samples():
     assert torch.isclose(t["action_mse"], t["action_mse_dy"] / 7)
 
 
+def test_the_state_loss_counts_only_the_components_each_sample_has():
+    torch.manual_seed(0)
+    model = VLAModel(SMALL, ModelDims(**{**DIMS.__dict__, "state_dim": 5})).eval()
+    image, language, proprio, action, index = _batch(4)
+    with torch.no_grad():
+        predicted = model(image, language, proprio).state
+    present = torch.ones(4, 5)
+    present[2:, 3:] = 0.0  # samples 2 and 3 come from a scene with a 3-component state
+    target = predicted + 1.0
+    target[2:, 3:] = 100.0  # padding: must not count
+    batch = (image, language, proprio, action, index, 0.0, 0.1)
+    plain = vla_loss(model, *batch)
+    losses = vla_loss(model, *batch, state=(target, present), state_weight=0.5)
+    assert torch.isclose(losses.terms["state_mse"], torch.tensor(1.0), atol=1e-5)
+    assert torch.isclose(losses.total, plain.total + 0.5, atol=1e-5)
+    assert "state_mse" not in plain.terms
+    assert VLAModel(SMALL, DIMS)(image, language, proprio).state is None  # no head unless asked for
+
+
 def test_training_fits_a_small_mixed_batch():
     torch.manual_seed(0)
     model = VLAModel(SMALL, DIMS)

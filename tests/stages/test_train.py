@@ -21,12 +21,14 @@ from envs.observation import Observation
 from policies.policy import Normaliser, Policy, checkpoint_members
 from schemas.config import load_config
 from schemas.frames import encode_frame
+from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages.explore import run_explore
 from stages.filter import run_filter
 from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
-from stages.index import IndexResult, run_index
-from stages.train import TrainingCollate, action_targets, random_shift, run_train
+from stages.index import IndexResult, latest_index, run_index
+from stages.train import (EXECUTION_FIELDS, STAGE, VERSION, TrainingCollate, action_targets, random_shift, run_train,
+                          train_unit_key)
 from tests.conftest import SIM2ACT
 from warehouse.catalog import Catalog
 
@@ -138,14 +140,15 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
 
 def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, tmp_path):
     workspace = Workspace.at(_copy(campaign, tmp_path, "inproc"))
-    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0}})
+    # with the auxiliary state head: trained, then unread when acting
+    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0, "state_weight": 1.0}})
     catalog = Catalog(workspace.catalog)
     [(tasks_key,)] = catalog.query("SELECT DISTINCT unit_key FROM tasks")
-    from stages.index import latest_index
-
     embeddings = load_embeddings(workspace, tasks_key, config.train.model.language_encoder)
     result = run_train(workspace, config, 0, latest_index(workspace, config.name), tasks_key, embeddings)
-    assert len(result.history) == 3 and "discrete_accuracy" in result.history[-1]
+    assert len(result.history) == 3 and "discrete_accuracy" in result.history[-1] and "state_mse" in result.history[-1]
+    longest = catalog.query("SELECT max(len(qpos)) FROM steps")[0][0]
+    assert torch.load(result.checkpoint, weights_only=False)["dims"]["state_dim"] == longest
     policy = Policy.load(Path(result.checkpoint))  # no cached embeddings: encodes on first use
     obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {})
     nav = policy.act(obs, "go to the red room", "navigation")
@@ -204,12 +207,38 @@ def test_the_targets_are_the_expert_labels_where_recorded_else_the_executed_acti
     collate = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity,
                               None, "expert")
     frame = encode_frame(np.zeros((8, 8, 3), np.uint8))
-    rows = [{"instruction": "x", "image": frame, "depth": None, "proprio": [0.0] * 9, "action": a, "expert_action": e}
-            for a, e in zip(executed, labels)]
+    rows = [{"instruction": "x", "image": frame, "depth": None, "proprio": [0.0] * 9, "action": a, "expert_action": e,
+             "qpos": [0.0]} for a, e in zip(executed, labels)]
     batch = collate(rows)
     assert batch["action_index"].tolist() == [-1, -1, 1]  # a navigation label stays discrete
     assert batch["action"][0] == pytest.approx(np.full(7, 0.1), abs=1e-3)  # the label, not the noisy action
     assert batch["action"][1] == pytest.approx(np.full(7, 0.2), abs=1e-3)  # no label recorded: the action
+
+
+def test_states_of_different_lengths_are_padded_normalised_and_masked():
+    identity = Normaliser.fit(np.zeros((0, 9)), 9)
+    state = Normaliser(np.array([1.0, 0.0, 0.0, 0.0], np.float32), np.array([2.0, 1.0, 1.0, 1.0], np.float32))
+    collate = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, None, "expert", state)
+    frame = encode_frame(np.zeros((8, 8, 3), np.uint8))
+    rows = [{"instruction": "x", "image": frame, "depth": None, "proprio": [0.0] * 9, "action": [0.0] * 7,
+             "expert_action": None, "qpos": qpos} for qpos in ([3.0, 1.0, 2.0, 4.0], [5.0, 1.0])]
+    batch = collate(rows)
+    assert batch["state"].tolist() == [[1.0, 1.0, 2.0, 4.0], [2.0, 1.0, 0.0, 0.0]]
+    assert batch["state_mask"].tolist() == [[1.0] * 4, [1.0, 1.0, 0.0, 0.0]]
+    assert "state" not in TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, None, "expert")(rows)
+
+
+def test_the_state_loss_enters_the_model_key_only_when_set(campaign):
+    workspace = Workspace.at(campaign[1])
+    config = load_config("smoke", campaign[0])
+    [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
+    dataset = latest_index(workspace, config.name)
+    # keyed as before the field existed: a campaign resumed across its addition retrains nothing
+    before = {"train": config.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight"}), "seed": config.seed,
+              "image": config.render.image_size, "depth": config.render.depth}
+    assert train_unit_key(config, dataset, tasks_key) == unit_key(STAGE, VERSION, before, [dataset.dataset_digest, tasks_key])
+    weighted = load_config("smoke", campaign[0], {"train": {"state_weight": 0.5}})
+    assert train_unit_key(weighted, dataset, tasks_key) != train_unit_key(config, dataset, tasks_key)
 
 
 def test_random_shift_moves_whole_frames_by_at_most_the_pad():
