@@ -37,7 +37,7 @@ from pydantic import BaseModel
 from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
 from envs.observation import PROPRIO_DIM, Observation
-from policies.policy import checkpoint_members
+from policies.policy import Policy
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.workspace import Workspace
 from stages.index import IndexResult
@@ -159,8 +159,8 @@ def _window_figures(samples_per_s: list[float], data_wait: list[float] | None) -
 
 
 def _parameters(checkpoint: Path) -> float:
-    state = checkpoint_members(torch.load(checkpoint, map_location="cpu", weights_only=False))[0]
-    return sum(v.numel() for v in state.values()) / 1e6
+    """Millions of parameters of the checkpoint's (first) model, its buffers (batch-norm statistics) left out."""
+    return sum(p.numel() for p in Policy.load(checkpoint).members[0].parameters()) / 1e6
 
 
 def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: TrainSizes, case: str, name: str,
@@ -203,8 +203,8 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     from torch.utils.data import default_convert
 
     from policies.model import VLAModel
-    from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, train_step, training_device,
-                              warmup_cosine)
+    from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, state_normaliser, train_step,
+                              training_device, warmup_cosine)
     from warehouse.training_reader import COLUMNS
 
     catalog = Catalog(source.catalog)
@@ -214,14 +214,15 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
+    state_norm = state_normaliser(catalog, dataset, cfg)
     rows = dataset.selection.kept_steps(catalog, list(COLUMNS), cfg.where).to_pylist()
-    collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets)
+    collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets, state_norm)
     order = np.random.default_rng(0).permutation(len(rows))
     batches = [default_convert(collate([rows[i] for i in order[first : first + cfg.batch_size]]))
                for first in range(0, len(rows), cfg.batch_size)]
     if device.type == "cuda":  # as the stage's DataLoader hands them over (pin_memory)
         batches = [{k: v.pin_memory() if torch.is_tensor(v) else v for k, v in b.items()} for b in batches]
-    model = VLAModel(cfg.model, model_dims(config)).to(device)
+    model = VLAModel(cfg.model, model_dims(config, state_norm)).to(device)
     optimiser = optimiser_for(model, cfg)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(steps))
     model.train()
@@ -248,7 +249,6 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
 
 def run_latency(checkpoint: Path, vision: str, threads: int, sizes: TrainSizes, image_size: int) -> TrainRow:
     """`Policy.act` at batch 1 on real-sized frames, as evaluation and explore workers call it."""
-    from policies.policy import Policy
 
     instruction = f"do {TASKS[0]}"
     policy = Policy.load(checkpoint, {instruction: _embeddings()[instruction]})  # embeddings cached, as workers have

@@ -210,10 +210,10 @@ class TrainConfig(_Strict):
         description="shift each training frame by up to this many pixels each way (edges repeated); 0: off",
     )
     state_weight: float = Field(
-        default=0.0, ge=0.0,
+        default=1.0, ge=0.0,
         description="weight of an auxiliary loss: a head on z_ol predicts the simulator state before the action (the "
         "steps' qpos, normalised per component), supervision available in simulation at training time only and read "
-        "nowhere when acting; it asks the encoder where the objects are; 0: off",
+        "nowhere when acting; it asks the encoder where the objects are; 0: off (the recipe before session 13)",
     )
     targets: Literal["expert", "executed"] = Field(
         default="expert",

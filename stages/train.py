@@ -35,9 +35,9 @@ WARMUP_FRACTION = 0.05
 # How a run computes, not what it learns: left out of the unit key (a GPU re-run of a CPU-trained
 # config finds the CPU model).
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
-# Fields added after the stage's version enter the key only when set off these defaults: models
-# trained before a field existed keep their keys (a campaign resumed across the change retrains nothing).
-ADDED_DEFAULTS = {"state_weight": 0.0}
+# Fields added after the stage's version, each with the value that does what the stage did before it
+# existed: at that value a field stays out of the key, so a model trained before it keeps its key.
+LEGACY_VALUES = {"state_weight": 0.0}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -56,7 +56,7 @@ class TrainResult(BaseModel):
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
     train = config.train.model_dump(exclude=EXECUTION_FIELDS)
-    train = {k: v for k, v in train.items() if k not in ADDED_DEFAULTS or v != ADDED_DEFAULTS[k]}
+    train = {k: v for k, v in train.items() if k not in LEGACY_VALUES or v != LEGACY_VALUES[k]}
     reads = {"train": train, "seed": config.seed,
              "image": config.render.image_size, "depth": config.render.depth}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
@@ -66,10 +66,12 @@ def selection_digest(dataset: IndexResult, where: str | None) -> str:
     return dataset.dataset_digest if where is None else digest_of([dataset.dataset_digest, where])
 
 
-def model_dims(config: CampaignConfig, state_dim: int = 0) -> ModelDims:
+def model_dims(config: CampaignConfig, state: Normaliser | None = None) -> ModelDims:
+    """What the model reads and writes; `state`: the statistics of the simulator states an auxiliary
+    head predicts (train.state_weight), None for none."""
     return ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, len(NAVIGATION_ACTIONS),
                      ENCODERS[config.train.model.language_encoder].dim, channels=4 if config.render.depth else 3,
-                     state_dim=state_dim)
+                     state_dim=0 if state is None else len(state.mean))
 
 
 def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
@@ -237,7 +239,7 @@ class _Run:
     key: str
     batches: StepBatches  # each member reads them in its own shuffled order
     device: torch.device
-    state_dim: int  # the auxiliary state head's width (0: none)
+    state: Normaliser | None  # the statistics of the states an auxiliary head predicts
     on_metrics: OnMetrics | None
     progress: Progress
 
@@ -257,7 +259,7 @@ def _train_member(run: _Run, member: int) -> _Member:
     which = f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else ""  # log lines of a single model as before
     state_path = run.workspace.train_state(key, member)
     torch.manual_seed(derive_seed(run.config.name, run.config.seed, "train", key, member))
-    model = VLAModel(cfg.model, model_dims(run.config, run.state_dim)).to(run.device)
+    model = VLAModel(cfg.model, model_dims(run.config, run.state)).to(run.device)
     optimiser = optimiser_for(model, cfg)
     batches = run.batches
     batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
@@ -375,8 +377,7 @@ def run_train(
         batches.batches_per_epoch, device, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
-    run = _Run(workspace, config, iteration, key, batches, device, 0 if state_norm is None else len(state_norm.mean),
-               on_metrics, progress)
+    run = _Run(workspace, config, iteration, key, batches, device, state_norm, on_metrics, progress)
     try:
         members = [_train_member(run, member) for member in range(cfg.ensemble)]
     finally:

@@ -4,11 +4,13 @@ times the trained policy's act()."""
 import json
 import os
 
+import numpy as np
 import pytest
 import torch
 
 from flows.cli import main
 from policies.model import VLAModel
+from policies.policy import Normaliser
 from schemas.config import CampaignConfig, ModelConfig
 from stages.train import model_dims
 
@@ -33,7 +35,8 @@ def test_bench_train_reports_the_stage_the_reference_the_latency_and_the_ratios(
     assert stage["samples_per_s"] > 0 and 0 <= stage["data_wait"] <= 1 and stage["other_load"] >= 0
     # the figures are the training windows', not the whole call's (spawning the loader worker alone takes seconds)
     assert stage["samples_per_s"] > bench["triplets"] / stage["wall_s"]
-    default_model = VLAModel(ModelConfig(), model_dims(CampaignConfig()))
+    synthetic_state = Normaliser.fit(np.zeros((1, 16)), 16)  # the synthetic steps' qpos: the auxiliary state head's width
+    default_model = VLAModel(ModelConfig(), model_dims(CampaignConfig(), synthetic_state))
     parameters = sum(p.numel() for p in default_model.parameters()) / 1e6
     assert f"; {parameters:.2f}M parameters;" in stage["note"]  # the default model, as the stage saved it
     assert memory["loader_workers"] is None and memory["data_wait"] is None

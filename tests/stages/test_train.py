@@ -140,8 +140,8 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
 
 def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, tmp_path):
     workspace = Workspace.at(_copy(campaign, tmp_path, "inproc"))
-    # with the auxiliary state head: trained, then unread when acting
-    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0, "state_weight": 1.0}})
+    # with the auxiliary state head (the default): trained, then unread when acting
+    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0}})
     catalog = Catalog(workspace.catalog)
     [(tasks_key,)] = catalog.query("SELECT DISTINCT unit_key FROM tasks")
     embeddings = load_embeddings(workspace, tasks_key, config.train.model.language_encoder)
@@ -228,17 +228,16 @@ def test_states_of_different_lengths_are_padded_normalised_and_masked():
     assert "state" not in TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, None, "expert")(rows)
 
 
-def test_the_state_loss_enters_the_model_key_only_when_set(campaign):
+def test_without_the_state_loss_a_model_keeps_the_key_it_had_before_the_field_existed(campaign):
     workspace = Workspace.at(campaign[1])
-    config = load_config("smoke", campaign[0])
+    legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
-    dataset = latest_index(workspace, config.name)
-    # keyed as before the field existed: a campaign resumed across its addition retrains nothing
-    before = {"train": config.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight"}), "seed": config.seed,
-              "image": config.render.image_size, "depth": config.render.depth}
-    assert train_unit_key(config, dataset, tasks_key) == unit_key(STAGE, VERSION, before, [dataset.dataset_digest, tasks_key])
-    weighted = load_config("smoke", campaign[0], {"train": {"state_weight": 0.5}})
-    assert train_unit_key(weighted, dataset, tasks_key) != train_unit_key(config, dataset, tasks_key)
+    dataset = latest_index(workspace, legacy.name)
+    before = {"train": legacy.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight"}), "seed": legacy.seed,
+              "image": legacy.render.image_size, "depth": legacy.render.depth}
+    assert train_unit_key(legacy, dataset, tasks_key) == unit_key(STAGE, VERSION, before, [dataset.dataset_digest, tasks_key])
+    default = load_config("smoke", campaign[0])  # the state loss on: another model
+    assert train_unit_key(default, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key)
 
 
 def test_random_shift_moves_whole_frames_by_at_most_the_pad():
