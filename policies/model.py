@@ -1,7 +1,8 @@
 """The VLA model of the proposal: a vision encoder (ViT, or ResNet-18 for the ablation), a
 pretrained language encoder (frozen: its cached embedding; or fine-tuned inside the model), a
 cross-modal fusion transformer giving z_ol, a Gaussian head over continuous actions, a softmax
-head over discrete ones, an action encoder giving z_a, and lambda*InfoNCE + (1-lambda)*BC.
+head over discrete ones, an action encoder giving z_a, and lambda*InfoNCE + (1-lambda)*BC; plus,
+for training only, a head predicting the simulator state from z_ol and its weighted error.
 
 Actions come in two kinds, told apart per sample by `action_index`: -1 for a continuous action
 (manipulation: ACTION_DIM normalised components in `action`), else the index of a discrete

@@ -1,7 +1,8 @@
-"""train: the VLA model on the iteration's selection, lambda*InfoNCE + (1-lambda)*BC, AdamW with
-warm-up and cosine decay, gradient clipping, bf16 autocast on a GPU, seeded. One unit = one
-training run; it checkpoints every `train.checkpoint_every` steps and a killed run resumes from
-the last checkpoint (weights, optimiser, schedule, step and data position) to the same result."""
+"""train: the VLA model on the iteration's selection, lambda*InfoNCE + (1-lambda)*BC plus the auxiliary
+state loss (train.state_weight), AdamW with warm-up and cosine decay, gradient clipping, bf16
+autocast on a GPU, seeded. One unit = one training run; it checkpoints every
+`train.checkpoint_every` steps and a killed run resumes from the last checkpoint (weights,
+optimiser, schedule, step and data position) to the same result."""
 
 from __future__ import annotations
 
