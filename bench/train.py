@@ -203,8 +203,8 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     from torch.utils.data import default_convert
 
     from policies.model import VLAModel
-    from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, state_normaliser, train_step,
-                              training_device, warmup_cosine)
+    from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, train_step, training_device,
+                              warmup_cosine)
     from warehouse.training_reader import COLUMNS
 
     catalog = Catalog(source.catalog)
@@ -213,8 +213,7 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     device = training_device(cfg.device)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
-    action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
-    state_norm = state_normaliser(catalog, dataset, cfg)
+    action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
     rows = dataset.selection.kept_steps(catalog, list(COLUMNS), cfg.where).to_pylist()
     collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets, state_norm)
     order = np.random.default_rng(0).permutation(len(rows))

@@ -133,22 +133,22 @@ class TrainingCollate:
         return batch
 
 
-def normalisers(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig) -> tuple[Normaliser, Normaliser]:
-    """Action-target and proprio statistics over exactly the training selection (continuous actions only)."""
-    table = dataset.selection.kept_steps(catalog, ["action", "expert_action", "proprio"], cfg.where)
+def normalisers(catalog: Catalog, dataset: IndexResult,
+                cfg: TrainConfig) -> tuple[Normaliser, Normaliser, Normaliser | None]:
+    """Statistics over exactly the training selection, in one read: of the action targets (continuous
+    actions only), of proprio, and of the simulator states where an auxiliary state loss asks for
+    them (per component as long as the longest state; None at train.state_weight 0)."""
+    with_state = cfg.state_weight > 0
+    columns = ["action", "expert_action", "proprio", *(["qpos"] if with_state else [])]
+    table = dataset.selection.kept_steps(catalog, columns, cfg.where)
     continuous, index = split_actions(
         action_targets(table["action"].to_pylist(), table["expert_action"].to_pylist(), cfg.targets))
     proprio = np.asarray(table["proprio"].to_pylist(), dtype=np.float32)
-    return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM)
-
-
-def state_normaliser(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig) -> Normaliser | None:
-    """Statistics of the simulator states over the training selection, per component as long as the
-    longest state; None when no auxiliary state loss asks for them (train.state_weight 0)."""
-    if cfg.state_weight == 0:
-        return None
-    qpos = dataset.selection.kept_steps(catalog, ["qpos"], cfg.where)["qpos"].to_pylist()
-    return Normaliser.fit(padded_states(qpos, max(map(len, qpos))), 0)
+    state = None
+    if with_state:
+        qpos = table["qpos"].to_pylist()
+        state = Normaliser.fit(padded_states(qpos, max(map(len, qpos))), 0)
+    return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM), state
 
 
 def training_device(choice: str) -> torch.device:
@@ -363,8 +363,7 @@ def run_train(
     rows = dataset.selection.rows(catalog, cfg.where)
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
-    action_norm, proprio_norm = normalisers(catalog, dataset, cfg)
-    state_norm = state_normaliser(catalog, dataset, cfg)
+    action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
