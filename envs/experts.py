@@ -19,6 +19,7 @@ DROPPED = 0.04  # grasp point this far from the fingers while carrying: the obje
 TURN_GAIN, ALIGNED = 3.0, 0.1  # wrist yaw: action per radian of error; radians counted as aligned
 BACK_OFF = 12  # steps spent letting go and rising between placements
 GRASP_STEPS = 10  # fingers take ~0.5 s to close on a thin nut handle
+AT_GRASP, ABOVE_LINE = 0.025, 0.01  # metres: the hand counted at the grasp point; on the line above it
 
 
 def horizontal(vector: np.ndarray) -> np.ndarray:
@@ -90,6 +91,17 @@ class PickPlaceExpert:
     def _go(self, phase: Phase) -> None:
         self.phase, self.hold, self.waited, self.aim = phase, 0, 0, None
 
+    def _catch_up(self, eef: np.ndarray, grasp_point: np.ndarray, above: np.ndarray) -> None:
+        """Leave APPROACH for the phase the hand is already in: on the line above the object
+        (descend) or at its grasp point (grasp). A DAgger labeller follows another explorer's hand,
+        which reaches the object without stopping at this expert's waypoint above it; waiting for
+        that waypoint labelled every grasp the labeller did not make itself "open, go back up"
+        (4% of the labels on the policy's successful Lift episodes said "closed")."""
+        if np.linalg.norm(grasp_point - eef) < AT_GRASP:
+            self._go(Phase.GRASP)
+        elif np.linalg.norm((above - eef)[:2]) < ABOVE_LINE and grasp_point[2] < eef[2] < above[2] + 0.02:
+            self._go(Phase.DESCEND)
+
     def _converged(self, error: float, tolerance: float, fallback: float) -> bool:
         """Within tolerance; or, after PATIENCE steps in this phase, within the looser fallback."""
         self.waited += 1
@@ -105,12 +117,13 @@ class PickPlaceExpert:
             self.stage = float(seen["stage"][0])
         grasp, eef = seen["grasp"], seen["gripper"]
         above = grasp + np.array([0.0, 0.0, 0.08])
+        grasp_point = grasp + np.array([0.0, 0.0, -0.005])
         if self.phase is Phase.APPROACH:
             turn = self._turn_to_grip(obs)
-            if np.linalg.norm((above - eef)[:2]) < 0.01 and abs(above[2] - eef[2]) < 0.02 and abs(turn) < ALIGNED:
-                self._go(Phase.DESCEND)
-            return self._towards(obs, above, OPEN, turn)
-        grasp_point = grasp + np.array([0.0, 0.0, -0.005])
+            if abs(turn) < ALIGNED:
+                self._catch_up(eef, grasp_point, above)
+            if self.phase is Phase.APPROACH:
+                return self._towards(obs, above, OPEN, turn)
         if self.phase is Phase.DESCEND:
             if self._converged(float(np.linalg.norm(grasp_point - eef)), 0.012, 0.025):
                 self._go(Phase.GRASP)

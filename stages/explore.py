@@ -32,7 +32,7 @@ from stages.priority import TaskPriority, plan_priorities
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ShardFile, write_shard
 
-STAGE, VERSION = "explore", 3
+STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a hand already at the object
 EXPERT, VLM = "expert", "vlm"
 log = logging.getLogger("sim2act.stages.explore")
 

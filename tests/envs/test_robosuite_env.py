@@ -4,7 +4,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from envs.experts import PickPlaceExpert
+from envs.experts import CLOSED, Phase, PickPlaceExpert
 from envs.observation import PROPRIO_DIM
 from envs.robosuite_env import RobosuiteEnv
 from schemas.config import CampaignConfig, RenderConfig
@@ -73,6 +73,26 @@ def test_the_scripted_expert_lifts_the_cube(lift_env):
     expert = PickPlaceExpert(noise=0.1, rng=np.random.default_rng(0))
     rows, _, success = rollout(lift_env, task, seed=11, act=expert.act)
     assert success and rows[-1]["done"] and len(rows) < task.horizon
+
+
+def test_a_labeller_joining_at_the_grasp_labels_it_closed(lift_env):
+    """DAgger: the noiseless expert labels the states another explorer reaches. One that meets the
+    hand already at the cube (it never stopped at its own waypoint above it) labels the grasp and
+    the lift "closed", as the explorer itself does, not "open, go back up"."""
+    task = _lift("red")
+    actor = PickPlaceExpert(noise=0.1, rng=np.random.default_rng(2))
+    obs, labeller, labels, success = lift_env.reset(task, seed=4), None, [], False
+    for _ in range(task.horizon):
+        action = actor.act(obs)
+        if labeller is None and actor.phase is Phase.GRASP:
+            labeller = PickPlaceExpert(noise=0.0, rng=np.random.default_rng(0))
+        if labeller is not None:
+            labels.append(labeller.act(obs)[6])
+        obs, _, success = lift_env.step(action)
+        if success:
+            break
+    assert success and len(labels) > 5
+    assert labels == [CLOSED] * len(labels)
 
 
 def test_an_explore_unit_writes_triplet_shards(tmp_path):
