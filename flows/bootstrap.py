@@ -20,6 +20,7 @@ from flows.tracking import Tracking
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE, Split
 from schemas.workspace import Workspace
+from stages.adapt import AdaptResult, run_adapt
 from stages.baselines import BaselinesResult, run_baselines
 from stages.evaluate import EvaluateResult, group_success, run_evaluate
 from stages.explore import ExploreResult, PolicyExplorer, run_explore
@@ -113,6 +114,16 @@ def baselines_task(workspace: str, config: CampaignConfig, iteration: int, tasks
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
     return run_baselines(ws, config, iteration, tasks_key, load_tasks(ws, tasks_key), embeddings, explore_units)
+
+
+@stage_task(name="adapt")
+def adapt_task(workspace: str, config: CampaignConfig, source: PolicyExplorer) -> AdaptResult:
+    return run_adapt(Workspace.at(workspace), config, source.model_key, source.checkpoint)
+
+
+def _adapt_metrics(result: AdaptResult) -> dict[str, float]:
+    """adapt.<start>.success.<episodes>: success in the shifted domain after that many target episodes."""
+    return {f"adapt.{p.start}.success.{p.episodes}": p.success_rate for p in result.points}
 
 
 def _baseline_metrics(result: BaselinesResult) -> dict[str, float]:
@@ -222,6 +233,9 @@ def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "works
         last = outcomes[-1]  # its dataset aggregates every iteration's explore units
         baselines = baselines_task(str(ws.root), config, last.iteration, last.tasks_key, last.dataset.explore_units)
         tracking.log_metrics(campaign_run_id, _baseline_metrics(baselines))
+    if config.adapt.episodes_per_task:
+        adapted = adapt_task(str(ws.root), config, outcomes[-1].champion)
+        tracking.log_metrics(campaign_run_id, _adapt_metrics(adapted))
     plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
                                      f"{config.name}: success per iteration (Wilson 95%)",
                                      ws.media / f"{config.name}-success-by-iteration.png")

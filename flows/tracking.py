@@ -40,9 +40,9 @@ class Tracking:
             if experiment
             else self.client.create_experiment(EXPERIMENT, artifact_location=workspace.artifact_root.as_uri())
         )
-        # A campaign is its name plus everything but the iteration count: asking for more
-        # iterations continues the same campaign run.
-        settings = config.model_dump_json(exclude={"iterations"})
+        # A campaign is its name plus everything but the iteration count and the adaptation after its
+        # iterations: asking for more iterations, or for an adaptation, continues the same campaign run.
+        settings = config.model_dump_json(exclude={"iterations", "adapt"})
         self.config_hash = hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
 
     def _find_or_create(self, tags: dict[str, str], name: str, params: dict[str, str] | None = None) -> str:

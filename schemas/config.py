@@ -226,6 +226,11 @@ class TrainConfig(_Strict):
         description="SQL condition over the steps columns narrowing the iteration's kept steps, e.g. "
         "\"task_id LIKE 'lift-%'\"",
     )
+    init_from: str | None = Field(
+        default=None, min_length=1,
+        description="fine-tune: the model key (in this workspace) whose weights and action/proprio statistics "
+        "start the training; None: from scratch",
+    )
     loader_workers: int = Field(
         default=1, ge=0, le=32, description="processes reading and decoding batches (0: the training process)"
     )
@@ -266,6 +271,25 @@ class BaselinesConfig(_Strict):
     workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
 
 
+SHIFTED_DOMAIN = RandomiseConfig(
+    light=(0.35, 0.55), camera_shift_m=0.05, camera_rotation_deg=6.0, tint=0.4, colour_jitter=0.1,
+    size=(1.1, 1.2), mass=(1.5, 2.0), friction=(0.45, 0.65),
+)  # darker, more tinted, the camera moved further, heavier, larger and slipperier objects than RandomiseConfig()
+
+
+class AdaptConfig(_Strict):
+    """Adaptation to a shifted domain after the last iteration (stages.adapt), from the champion
+    and from scratch; off while `episodes_per_task` is empty."""
+
+    episodes_per_task: list[PositiveInt] = Field(
+        default=[], description="target-domain episodes per seen task each pair of trainings (fine-tuned, scratch) "
+                                "gets; []: no adaptation")
+    domain: RandomiseConfig = Field(default=SHIFTED_DOMAIN, description="the shifted domain's randomisation")
+    train_steps: PositiveInt = Field(default=300, description="steps each adaptation training takes (train.batch_size each)")
+    eval_episodes: PositiveInt = Field(default=10, description="evaluation episodes per seen task in the shifted domain")
+    target_success: float = Field(default=0.8, gt=0, le=1, description="the success the episodes are counted to")
+
+
 class CampaignConfig(_Strict):
     """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
 
@@ -281,6 +305,7 @@ class CampaignConfig(_Strict):
     evaluate: EvaluateConfig = EvaluateConfig()
     redeploy: RedeployConfig = RedeployConfig()
     baselines: BaselinesConfig = BaselinesConfig()
+    adapt: AdaptConfig = AdaptConfig()
 
     @model_validator(mode="after")
     def _baselines_see_enough(self) -> CampaignConfig:

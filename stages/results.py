@@ -11,6 +11,7 @@ import os
 import platform
 
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
+from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from stages.report import success_by_iteration
@@ -53,6 +54,39 @@ def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str
     return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
 
 
+def _reached(result: AdaptResult, start: str) -> str:
+    episodes = episodes_to_reach(result.points, start, result.target_success)
+    most = max(p.episodes for p in result.points)
+    return f"**{episodes}**" if episodes is not None else f"not reached within {most}"
+
+
+def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
+    """The latest adaptation's table: success in the shifted domain per number of its episodes,
+    fine-tuned from the campaign's champion and from scratch."""
+    results = adapt_results(catalog, campaign)
+    if not results:
+        return ["No adaptation has run for this campaign (`adapt.episodes_per_task` in its config)."]
+    result = results[-1]
+    domain = result.domain.model_dump(exclude={"enabled"})
+    lines = ["The campaign's seen tasks in a held-out simulated domain, **a stand-in for the proposal's real-robot "
+             "transfer**: " + ", ".join(f"{name} {value}" for name, value in domain.items()) + " (per episode, "
+             "outside the campaign's own randomisation). The expert explores it; each model trains on the first "
+             "episodes of every task, fine-tuned from the champion "
+             f"(`{result.source_model}`) or from scratch, and meets the same evaluation episodes there.", ""]
+    cells: dict[tuple[int, str], str] = {
+        (p.episodes, p.start): f"{p.successes}/{p.trials} = {p.success_rate:.0%}" for p in result.points}
+    counts = sorted({p.episodes for p in result.points if p.start != "source"})
+    lines += _table(["target-domain episodes", "fine-tuned from Sim2Act", "from scratch"],
+                    [[0, cells[0, "source"] + " (the champion as it is)", "–"]]
+                    + [[n, cells.get((n, "fine-tuned"), "–"), cells.get((n, "scratch"), "–")] for n in counts])
+    [(seconds,)] = catalog.query("SELECT coalesce(sum(wall_s), 0) FROM stage_runs WHERE campaign = ? AND stage <> ?",
+                                 [result.campaign, ADAPT_STAGE])
+    lines += ["", f"Episodes to reach {result.target_success:.0%}: fine-tuned {_reached(result, 'fine-tuned')}, "
+                  f"from scratch {_reached(result, 'scratch')} (the proposal's target: ≤ 50). "
+                  f"Compute: {seconds:,.0f} wall seconds over the adaptation's stages (campaign `{result.campaign}`)."]
+    return lines
+
+
 def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
     by_iteration = success_by_iteration(catalog, campaign)
     if not by_iteration:
@@ -85,6 +119,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         header = ["iteration", *[f"{family}/{split}" for family in families for split in ("seen", "unseen")]]
         lines += _table(header, [[iteration, *_cells(groups, header[1:])]
                                  for iteration, groups in sorted(by_iteration.items())])
+
+    lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(

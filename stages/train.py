@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, pixels, vla_loss
-from policies.policy import Normaliser, policy_state, save_atomically
+from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, unit_key
 from schemas.workspace import Workspace
@@ -38,7 +38,7 @@ WARMUP_FRACTION = 0.05
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
-LEGACY_VALUES = {"state_weight": 0.0}
+LEGACY_VALUES = {"state_weight": 0.0, "init_from": None}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -151,6 +151,16 @@ def normalisers(catalog: Catalog, dataset: IndexResult,
     return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM), state
 
 
+def initial_policy(catalog: Catalog, workspace: Workspace, model_key: str | None) -> dict | None:
+    """The checkpoint a fine-tuning starts from (train.init_from), None from scratch."""
+    if model_key is None:
+        return None
+    found = catalog.query("SELECT checkpoint_path FROM models WHERE model_key = ?", [model_key])
+    if not found:
+        raise SelectionError(f"train.init_from: no model {model_key!r} in the workspace {workspace.root}")
+    return torch.load(workspace.root / found[0][0], map_location="cpu", weights_only=False)
+
+
 def training_device(choice: str) -> torch.device:
     if choice == "cuda" and not torch.cuda.is_available():
         raise RuntimeError("train.device: cuda asked for, and torch sees no GPU")
@@ -241,6 +251,7 @@ class _Run:
     batches: StepBatches  # each member reads them in its own shuffled order
     device: torch.device
     state: Normaliser | None  # the statistics of the states an auxiliary head predicts
+    start: list[dict] | None  # fine-tuning: the source model's members' weights
     on_metrics: OnMetrics | None
     progress: Progress
 
@@ -260,7 +271,14 @@ def _train_member(run: _Run, member: int) -> _Member:
     which = f"member {member + 1}/{cfg.ensemble}, " if cfg.ensemble > 1 else ""  # log lines of a single model as before
     state_path = run.workspace.train_state(key, member)
     torch.manual_seed(derive_seed(run.config.name, run.config.seed, "train", key, member))
-    model = VLAModel(cfg.model, model_dims(run.config, run.state)).to(run.device)
+    model = VLAModel(cfg.model, model_dims(run.config, run.state))
+    if run.start is not None:
+        try:
+            model.load_state_dict(run.start[member % len(run.start)])
+        except RuntimeError as exc:
+            raise SelectionError(f"train.init_from: {cfg.init_from} is another architecture than train.model over "
+                                 f"this dataset: {str(exc).splitlines()[0]}") from None
+    model = model.to(run.device)
     optimiser = optimiser_for(model, cfg)
     batches = run.batches
     batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
@@ -356,6 +374,7 @@ def run_train(
                            dataset_shards=existing[0][1], history=[], resumed_at_step=0, skipped=True)
 
     check_where(cfg.where)
+    source = initial_policy(catalog, workspace, cfg.init_from)
     started = time.monotonic()
     device = training_device(cfg.device)
     threads_before = torch.get_num_threads()
@@ -364,6 +383,8 @@ def run_train(
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
     action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
+    if source is not None:  # the source's heads speak in its own units
+        action_norm, proprio_norm = Normaliser(*source["action"]), Normaliser(*source["proprio"])
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
@@ -377,7 +398,8 @@ def run_train(
         batches.batches_per_epoch, device, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
-    run = _Run(workspace, config, iteration, key, batches, device, state_norm, on_metrics, progress)
+    run = _Run(workspace, config, iteration, key, batches, device, state_norm,
+               None if source is None else checkpoint_members(source), on_metrics, progress)
     try:
         members = [_train_member(run, member) for member in range(cfg.ensemble)]
     finally:

@@ -1,0 +1,136 @@
+"""adapt: how many episodes of a shifted domain a Sim2Act model needs, against a model from scratch.
+
+The shifted domain stands in for the proposal's real-robot transfer: the campaign's seen tasks
+under `adapt.domain`, a randomisation outside what the campaign trained on (other light, scene
+colours, camera pose, object size, mass and friction). It runs as its own campaign,
+`<name>-adapt`, in the same workspace and with the same stages: the noisy expert explores every
+seen task `max(adapt.episodes_per_task)` times in the shifted domain; for each n in
+`adapt.episodes_per_task` two models train on the first n episodes of every task, one starting
+from the source model (`train.init_from`), one from scratch, `adapt.train_steps` steps each; every
+model, and the source model as it is (n = 0), is evaluated on the seen tasks in the shifted
+domain. Every training and evaluation is a unit: a re-run does only what is missing."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Literal
+
+from pydantic import BaseModel
+
+from schemas.config import AdaptConfig, BaselinesConfig, CampaignConfig, RandomiseConfig
+from schemas.keys import unit_key
+from schemas.workspace import Workspace
+from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
+from stages.explore import run_explore
+from stages.filter import run_filter
+from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
+from stages.index import run_index
+from stages.train import run_train
+from warehouse.catalog import Catalog
+
+STAGE, VERSION = "adapt", 1
+SUITE = "adapt"
+Start = Literal["source", "fine-tuned", "scratch"]
+log = logging.getLogger("sim2act.stages.adapt")
+
+
+class AdaptPoint(BaseModel):
+    start: Start  # source: the source model as it is, at 0 episodes
+    episodes_per_task: int
+    episodes: int  # target-domain episodes its training saw, over all tasks
+    model_key: str
+    successes: int
+    trials: int
+
+    @property
+    def success_rate(self) -> float:
+        return self.successes / self.trials
+
+
+class AdaptResult(BaseModel):
+    """Registered as the target campaign's `adapt` unit: what `sim2act report` tabulates."""
+
+    campaign: str
+    source_model: str
+    domain: RandomiseConfig
+    target_success: float
+    points: list[AdaptPoint]
+
+
+def target_campaign(config: CampaignConfig) -> CampaignConfig:
+    """The shifted domain's campaign: the same tasks, render and model, one iteration of the expert
+    exploring as many episodes as the largest training takes, no baselines."""
+    adapt = config.adapt
+    return config.model_copy(update={
+        "name": f"{config.name}-adapt", "iterations": 1, "randomise": adapt.domain,
+        "explore": config.explore.model_copy(update={"episodes_per_task": max(adapt.episodes_per_task)}),
+        "evaluate": config.evaluate.model_copy(update={"episodes_per_task": adapt.eval_episodes}),
+        "baselines": BaselinesConfig(), "adapt": AdaptConfig(),
+    })
+
+
+def first_episodes(campaign: str, per_task: int) -> str:
+    """train.where: the steps of each task's first `per_task` explored episodes (by their index,
+    the episode id's `-eNNN` suffix); a rejected episode is not replaced."""
+    return (f"episode_id IN (SELECT episode_id FROM episodes WHERE campaign = '{campaign}' "
+            f"AND CAST(regexp_extract(episode_id, '-e([0-9]+)$', 1) AS INTEGER) < {per_task})")
+
+
+def episodes_to_reach(points: list[AdaptPoint], start: Start, success: float) -> int | None:
+    """The fewest target-domain episodes with which `start`'s model reached `success` (fine-tuning
+    from no episodes is the source model as it is); None: never."""
+    counted = {start, "source"} if start == "fine-tuned" else {start}
+    reached = [p.episodes for p in points if p.start in counted and p.success_rate >= success]
+    return min(reached, default=None)
+
+
+def _score(evaluations: list[TaskEvaluation]) -> tuple[int, int]:
+    return sum(e.successes for e in evaluations), sum(e.episodes for e in evaluations)
+
+
+def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, source_checkpoint: str) -> AdaptResult:
+    catalog = Catalog(workspace.catalog)
+    started = time.monotonic()
+    target = target_campaign(config)
+    tasks_key = run_generate_tasks(workspace, target).unit_key
+    tasks = load_tasks(workspace, tasks_key)
+    embeddings = load_embeddings(workspace, tasks_key, target.train.model.language_encoder)
+    explored = run_explore(workspace, target, 0, tasks, None, embeddings)
+    filtered = run_filter(workspace, target, 0, explored.unit_keys)
+    dataset = run_index(workspace, target, 0, explored.unit_keys, filtered.unit_keys, None)
+    cases = [case for case in evaluation_cases(tasks) if case[1] == "seen"]
+    seen = len(cases)
+
+    def evaluate(start: Start, per_task: int, model_key: str, checkpoint: str) -> AdaptPoint:
+        evaluations, _ = evaluate_model(workspace, target, 0, model_key, Agent(kind="sim2act", path=checkpoint),
+                                        cases, embeddings, suite=SUITE)
+        successes, trials = _score(evaluations)
+        log.info("adapt: %s, %d episode(s) per task: success %d/%d", start, per_task, successes, trials)
+        return AdaptPoint(start=start, episodes_per_task=per_task, episodes=per_task * seen, model_key=model_key,
+                          successes=successes, trials=trials)
+
+    points = [evaluate("source", 0, source_model, source_checkpoint)]
+    for per_task in sorted(set(config.adapt.episodes_per_task)):
+        where = first_episodes(target.name, per_task)
+        samples = dataset.selection.kept_steps(catalog, ["step"], where).num_rows
+        epochs = max(1, round(config.adapt.train_steps / math.ceil(samples / target.train.batch_size)))
+        for start in ("fine-tuned", "scratch"):
+            train = target.train.model_copy(update={
+                "where": where, "epochs": epochs, "init_from": source_model if start == "fine-tuned" else None})
+            model = run_train(workspace, target.model_copy(update={"train": train}), 0, dataset, tasks_key, embeddings)
+            points.append(evaluate(start, per_task, model.model_key, model.checkpoint))
+    result = AdaptResult(campaign=target.name, source_model=source_model, domain=target.randomise,
+                         target_success=config.adapt.target_success, points=points)
+    key = unit_key(STAGE, VERSION, {"adapt": config.adapt}, [source_model, dataset.unit_key])
+    if not catalog.is_registered(key):
+        catalog.register_unit(unit_key=key, stage=STAGE, campaign=target.name, iteration=0,
+                              summary=result.model_dump(mode="json"), wall_s=time.monotonic() - started)
+    return result
+
+
+def adapt_results(catalog: Catalog, campaign: str) -> list[AdaptResult]:
+    """The adaptations registered for `campaign` (its `-adapt` campaign's), oldest first."""
+    return [AdaptResult.model_validate_json(summary) for (summary,) in catalog.query(
+        "SELECT summary FROM stage_runs WHERE stage = ? AND campaign = ? ORDER BY finished_at", [STAGE, f"{campaign}-adapt"])]

@@ -1,0 +1,122 @@
+"""Adaptation to a shifted domain on a real warehouse: the expert explores the shifted domain, models
+train on its first episodes from the source model and from scratch, and every one is evaluated there."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from policies.policy import checkpoint_members
+from schemas.config import CampaignConfig
+from schemas.workspace import Workspace
+from stages.adapt import AdaptPoint, episodes_to_reach, run_adapt, target_campaign
+from stages.generate_tasks import generate_tasks, load_embeddings, tasks_unit_key
+from stages.index import latest_index
+from stages.results import adaptation_markdown
+from stages.train import run_train
+from tests.stages.test_train import _iteration_zero_dataset
+from warehouse.catalog import Catalog
+from warehouse.training_reader import SelectionError
+
+CAMPAIGN = {
+    "name": "adapt-test",
+    "tasks": {"specs": ["lift"], "colours": ["red", "green"], "horizon": {"lift": 30}},
+    "explore": {"episodes_per_task": 2, "episodes_per_shard": 2, "workers": 2},
+    "filter": {"min_return": 0.0},
+    "train": {"epochs": 2, "batch_size": 16, "loader_workers": 0,
+              "model": {"dim": 32, "heads": 4, "vision_depth": 1, "fusion_depth": 1}},
+    "evaluate": {"videos": False, "workers": 2},
+    "adapt": {"episodes_per_task": [1, 2], "train_steps": 3, "eval_episodes": 1},
+}
+
+
+def _weights(checkpoint: str) -> dict[str, torch.Tensor]:
+    return checkpoint_members(torch.load(checkpoint, weights_only=False))[0]
+
+
+def _distance(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:
+    return sum(float((a[k].float() - b[k].float()).norm()) for k in a if a[k].is_floating_point())
+
+
+@pytest.fixture(scope="module")
+def adapted(tmp_path_factory):
+    config = CampaignConfig.model_validate(CAMPAIGN)
+    workspace = Workspace.at(tmp_path_factory.mktemp("adapt") / "workspace")
+    tasks_key, embeddings, dataset = _iteration_zero_dataset(workspace, config)
+    source = run_train(workspace, config, 0, dataset, tasks_key, embeddings)
+    return config, workspace, source, run_adapt(workspace, config, source.model_key, source.checkpoint)
+
+
+def test_the_shifted_domain_is_explored_by_the_expert_under_its_own_randomisation(adapted):
+    config, workspace, _, result = adapted
+    rows = Catalog(workspace.catalog).query(
+        "SELECT explorer, randomisation.light, randomisation.mass FROM episodes WHERE campaign = ?", [result.campaign])
+    assert len(rows) == 2 * 2  # two seen tasks, the largest training's episodes each
+    low, high = config.adapt.domain.light
+    assert all(explorer == "expert" and low <= light <= high and mass >= config.adapt.domain.mass[0]
+               for explorer, light, mass in rows)
+
+
+def test_each_count_trains_from_the_source_and_from_scratch_and_evaluates_in_the_shifted_domain(adapted):
+    config, workspace, source, result = adapted
+    assert [(p.start, p.episodes_per_task, p.episodes) for p in result.points] == [
+        ("source", 0, 0), ("fine-tuned", 1, 2), ("scratch", 1, 2), ("fine-tuned", 2, 4), ("scratch", 2, 4)]
+    catalog = Catalog(workspace.catalog)
+    samples = dict(catalog.query("SELECT model_key, train_samples FROM models WHERE campaign = ?", [result.campaign]))
+    one, two = (samples[p.model_key] for p in result.points if p.start == "fine-tuned")
+    assert 0 < one < two  # the first episode of each task, then the first two
+    # fine-tuning starts at the source's weights: three steps later it is still far nearer them than a new model
+    start = _weights(source.checkpoint)
+    tuned, scratch = (_weights(str(workspace.checkpoint(p.model_key))) for p in result.points[1:3])
+    assert _distance(tuned, start) < 0.2 * _distance(scratch, start)
+    evaluated = catalog.query("SELECT model_key, count(*), sum(episodes) FROM evaluations WHERE campaign = ? "
+                              "AND suite = 'adapt' GROUP BY 1", [result.campaign])
+    assert {key: (cases, episodes) for key, cases, episodes in evaluated} == {
+        p.model_key: (2, 2 * config.adapt.eval_episodes) for p in result.points}
+    assert all(p.trials == 2 for p in result.points)
+
+
+def test_the_report_tabulates_the_latest_adaptation(adapted):
+    _, workspace, _, result = adapted
+    catalog = Catalog(workspace.catalog)
+    text = "\n".join(adaptation_markdown(catalog, "adapt-test"))
+    cell = {(p.episodes, p.start): f"{p.successes}/{p.trials}" for p in result.points}
+    assert f"| 0 | {cell[0, 'source']} = " in text and "(the champion as it is)" in text
+    assert f"| 4 | {cell[4, 'fine-tuned']} = " in text and "Episodes to reach 80%: fine-tuned " in text
+    assert "stand-in" in text and "light (0.35, 0.55)" in text
+    assert adaptation_markdown(catalog, "another-campaign")[0].startswith("No adaptation has run")
+
+
+def test_a_rerun_does_no_work(adapted):
+    config, workspace, source, result = adapted
+    catalog = Catalog(workspace.catalog)
+    before = catalog.query("SELECT count(*) FROM stage_runs")[0][0]
+    again = run_adapt(workspace, config, source.model_key, source.checkpoint)
+    assert again == result and catalog.query("SELECT count(*) FROM stage_runs")[0][0] == before
+
+
+def test_an_unknown_source_model_is_refused_naming_the_field(adapted):
+    config, workspace, _, result = adapted
+    target = target_campaign(config)
+    train = target.train.model_copy(update={"init_from": "train-nosuchmodel"})
+    tasks_key = tasks_unit_key(target, generate_tasks(target.tasks, target.seed))
+    catalog = Catalog(workspace.catalog)
+    models = catalog.query("SELECT count(*) FROM models")[0][0]
+    with pytest.raises(SelectionError, match="train.init_from: no model 'train-nosuchmodel'"):
+        run_train(workspace, target.model_copy(update={"train": train}), 0, latest_index(workspace, result.campaign, 0),
+                  tasks_key, load_embeddings(workspace, tasks_key, target.train.model.language_encoder))
+    assert catalog.query("SELECT count(*) FROM models")[0][0] == models
+
+
+def test_the_episodes_to_reach_a_success_count_the_source_at_zero():
+    def point(start, episodes, successes):
+        return AdaptPoint(start=start, episodes_per_task=episodes // 2, episodes=episodes, model_key="m",
+                          successes=successes, trials=10)
+
+    points = [point("source", 0, 3), point("fine-tuned", 6, 8), point("scratch", 6, 2),
+              point("fine-tuned", 12, 9), point("scratch", 12, 8)]
+    assert episodes_to_reach(points, "fine-tuned", 0.8) == 6
+    assert episodes_to_reach(points, "scratch", 0.8) == 12
+    assert episodes_to_reach(points, "scratch", 0.9) is None
+    assert episodes_to_reach([point("source", 0, 9)] + points[1:], "fine-tuned", 0.8) == 0
+    assert episodes_to_reach([point("source", 0, 9)] + points[1:], "scratch", 0.8) == 12
