@@ -228,12 +228,12 @@ def test_states_of_different_lengths_are_padded_normalised_and_masked():
     assert "state" not in TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, None, "expert")(rows)
 
 
-def test_without_the_state_loss_a_model_keeps_the_key_it_had_before_the_field_existed(campaign):
+def test_without_the_state_loss_or_a_start_model_a_model_keeps_the_key_it_had_before_the_fields_existed(campaign):
     workspace = Workspace.at(campaign[1])
     legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
     dataset = latest_index(workspace, legacy.name)
-    before = {"train": legacy.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight"}), "seed": legacy.seed,
+    before = {"train": legacy.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight", "init_from"}), "seed": legacy.seed,
               "image": legacy.render.image_size, "depth": legacy.render.depth}
     assert train_unit_key(legacy, dataset, tasks_key) == unit_key(STAGE, VERSION, before, [dataset.dataset_digest, tasks_key])
     default = load_config("smoke", campaign[0])  # the state loss on: another model
