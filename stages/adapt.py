@@ -26,8 +26,6 @@ from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_ca
 from stages.explore import run_explore
 from stages.filter import run_filter
 from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
-from stages.index import run_index
-from stages.train import run_train
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "adapt", 1
@@ -91,6 +89,10 @@ def _score(evaluations: list[TaskEvaluation]) -> tuple[int, int]:
 
 
 def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, source_checkpoint: str) -> AdaptResult:
+    # torch comes with these: here, so `sim2act report` reads an adaptation's results without it
+    from stages.index import run_index
+    from stages.train import run_train
+
     catalog = Catalog(workspace.catalog)
     started = time.monotonic()
     target = target_campaign(config)
