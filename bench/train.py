@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import math
 import os
 import shutil
 import statistics
@@ -166,7 +165,7 @@ def _parameters(checkpoint: Path) -> float:
 def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: TrainSizes, case: str, name: str,
                    train: dict[str, Any]) -> tuple[TrainRow, Path]:
     """The train stage on a fresh copy of the warehouse: -> (its row, the checkpoint it wrote)."""
-    from stages.train import run_train, training_device
+    from stages.train import run_train, training_device, training_epochs
 
     workspace = Workspace.at(root / case)
     shutil.copytree(source.root, workspace.root)
@@ -174,8 +173,8 @@ def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: T
     batch_size = train.get("batch_size", defaults.batch_size)
     workers = train.get("loader_workers", defaults.loader_workers)
     per_epoch = _batches_per_epoch(Catalog(workspace.catalog), dataset, batch_size, workers)
-    epochs = max(1, math.ceil(sizes.steps / per_epoch))
-    config = _config({**train, "epochs": epochs, "log_every": sizes.log_every})
+    config = _config({**train, "steps": sizes.steps, "log_every": sizes.log_every})
+    epochs = training_epochs(config.train, per_epoch)
     device = training_device(config.train.device).type
     points: list[tuple[int, dict[str, float]]] = []
     meter = LoadMeter()

@@ -197,6 +197,10 @@ class ModelConfig(_Strict):
 
 class TrainConfig(_Strict):
     epochs: PositiveInt = 10
+    steps: PositiveInt | None = Field(
+        default=None, description="optimiser steps per model instead of epochs: the epochs become ceil(steps / "
+        "batches per epoch), so a training costs the same as the dataset grows over iterations; None: train.epochs",
+    )
     batch_size: PositiveInt = 64
     lr: float = Field(default=3e-4, gt=0)
     language_lr: float = Field(default=2e-5, gt=0, description="learning rate of a fine-tuned language encoder")
@@ -285,7 +289,7 @@ class AdaptConfig(_Strict):
         default=[], description="target-domain episodes per seen task each pair of trainings (fine-tuned, scratch) "
                                 "gets; []: no adaptation")
     domain: RandomiseConfig = Field(default=SHIFTED_DOMAIN, description="the shifted domain's randomisation")
-    train_steps: PositiveInt = Field(default=300, description="steps each adaptation training takes (train.batch_size each)")
+    train_steps: PositiveInt = Field(default=300, description="optimiser steps each adaptation training takes (train.steps; train.batch_size each)")
     eval_episodes: PositiveInt = Field(default=10, description="evaluation episodes per seen task in the shifted domain")
     target_success: float = Field(default=0.8, gt=0, le=1, description="the success the episodes are counted to")
 

@@ -13,7 +13,6 @@ domain. Every training and evaluation is a unit: a re-run does only what is miss
 from __future__ import annotations
 
 import logging
-import math
 import time
 from typing import Literal
 
@@ -116,11 +115,9 @@ def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, s
     points = [evaluate("source", 0, source_model, source_checkpoint)]
     for per_task in sorted(set(config.adapt.episodes_per_task)):
         where = first_episodes(target.name, per_task)
-        samples = dataset.selection.kept_steps(catalog, ["step"], where).num_rows
-        epochs = max(1, round(config.adapt.train_steps / math.ceil(samples / target.train.batch_size)))
         for start in ("fine-tuned", "scratch"):
             train = target.train.model_copy(update={
-                "where": where, "epochs": epochs, "init_from": source_model if start == "fine-tuned" else None})
+                "where": where, "steps": config.adapt.train_steps, "init_from": source_model if start == "fine-tuned" else None})
             model = run_train(workspace, target.model_copy(update={"train": train}), 0, dataset, tasks_key, embeddings)
             points.append(evaluate(start, per_task, model.model_key, model.checkpoint))
     result = AdaptResult(campaign=target.name, source_model=source_model, domain=target.randomise,

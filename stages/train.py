@@ -38,7 +38,7 @@ WARMUP_FRACTION = 0.05
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
-LEGACY_VALUES = {"state_weight": 0.0, "init_from": None}
+LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -61,6 +61,11 @@ def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str)
     reads = {"train": train, "seed": config.seed,
              "image": config.render.image_size, "depth": config.render.depth}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
+
+
+def training_epochs(cfg: TrainConfig, batches_per_epoch: int) -> int:
+    """train.epochs, or the fewest epochs that give train.steps optimiser steps."""
+    return cfg.epochs if cfg.steps is None else math.ceil(cfg.steps / batches_per_epoch)
 
 
 def selection_digest(dataset: IndexResult, where: str | None) -> str:
@@ -282,7 +287,7 @@ def _train_member(run: _Run, member: int) -> _Member:
     optimiser = optimiser_for(model, cfg)
     batches = run.batches
     batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
-    total_steps = cfg.epochs * batches.batches_per_epoch
+    total_steps = batches.epochs * batches.batches_per_epoch
     offset = member * total_steps  # of this member's steps in the training's (MLflow steps, progress)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
     step, history, epoch_means = 0, [], _Means()
@@ -344,7 +349,7 @@ def _train_member(run: _Run, member: int) -> _Member:
             record = {**epoch_means.means(), "lr": schedule.get_last_lr()[0],
                       "samples_per_s": epoch_samples / (time.monotonic() - epoch_started)}
             history.append(record)
-            log.info("train it%d: %sepoch %d/%d %s", run.iteration, which, len(history), cfg.epochs,
+            log.info("train it%d: %sepoch %d/%d %s", run.iteration, which, len(history), batches.epochs,
                      ", ".join(f"{k} {v:.3g}" for k, v in record.items()))
             epoch_means, epoch_started, epoch_samples = _Means(), time.monotonic(), 0
         if step < total_steps and step % cfg.checkpoint_every == 0 or step == total_steps and member + 1 < cfg.ensemble:
@@ -388,13 +393,14 @@ def run_train(
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
-        rows, cfg.batch_size, cfg.shuffle_buffer, 0, cfg.epochs, cfg.loader_workers,  # seeded per member
+        rows, cfg.batch_size, cfg.shuffle_buffer, 0, 1, cfg.loader_workers,  # seeded per member; epochs set below
         TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm),
     )
-    samples, steps_per_member = batches.rows_per_epoch, cfg.epochs * batches.batches_per_epoch
+    batches.epochs = training_epochs(cfg, batches.batches_per_epoch)
+    samples, steps_per_member = batches.rows_per_epoch, batches.epochs * batches.batches_per_epoch
     log.info(
         "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s, dataset %s", iteration, samples,
-        cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", cfg.epochs,
+        cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", batches.epochs,
         batches.batches_per_epoch, device, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
@@ -410,7 +416,7 @@ def run_train(
     save_atomically(checkpoint, policy_state([m.model for m in members], action_norm, proprio_norm))
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-        summary={"final_loss": history[-1]["loss"], "epochs": cfg.epochs, "steps": cfg.ensemble * steps_per_member,
+        summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
                  "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where},
         wall_s=time.monotonic() - started,
         rows={"models": [{

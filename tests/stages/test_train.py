@@ -4,6 +4,8 @@ resume to the same weights, bad selections refused before any work."""
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import shutil
 import signal
@@ -140,13 +142,17 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
 
 def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, tmp_path):
     workspace = Workspace.at(_copy(campaign, tmp_path, "inproc"))
-    # with the auxiliary state head (the default): trained, then unread when acting
-    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0}})
+    # with the auxiliary state head (the default): trained, then unread when acting; a budget in steps
+    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0, "steps": 20}})
     catalog = Catalog(workspace.catalog)
     [(tasks_key,)] = catalog.query("SELECT DISTINCT unit_key FROM tasks")
     embeddings = load_embeddings(workspace, tasks_key, config.train.model.language_encoder)
     result = run_train(workspace, config, 0, latest_index(workspace, config.name), tasks_key, embeddings)
-    assert len(result.history) == 3 and "discrete_accuracy" in result.history[-1] and "state_mse" in result.history[-1]
+    per_epoch = math.ceil(result.samples / config.train.batch_size)
+    [(summary,)] = catalog.query("SELECT summary FROM stage_runs WHERE stage = 'train'")
+    steps = json.loads(summary)["steps"]
+    assert steps == len(result.history) * per_epoch and steps - per_epoch < 20 <= steps  # the fewest whole epochs
+    assert "discrete_accuracy" in result.history[-1] and "state_mse" in result.history[-1]
     longest = catalog.query("SELECT max(len(qpos)) FROM steps")[0][0]
     assert torch.load(result.checkpoint, weights_only=False)["dims"]["state_dim"] == longest
     policy = Policy.load(Path(result.checkpoint))  # no cached embeddings: encodes on first use
@@ -228,12 +234,12 @@ def test_states_of_different_lengths_are_padded_normalised_and_masked():
     assert "state" not in TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, None, "expert")(rows)
 
 
-def test_without_the_state_loss_or_a_start_model_a_model_keeps_the_key_it_had_before_the_fields_existed(campaign):
+def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the_key_it_had_before_the_fields_existed(campaign):
     workspace = Workspace.at(campaign[1])
     legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
     dataset = latest_index(workspace, legacy.name)
-    before = {"train": legacy.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight", "init_from"}), "seed": legacy.seed,
+    before = {"train": legacy.train.model_dump(exclude=EXECUTION_FIELDS | {"state_weight", "init_from", "steps"}), "seed": legacy.seed,
               "image": legacy.render.image_size, "depth": legacy.render.depth}
     assert train_unit_key(legacy, dataset, tasks_key) == unit_key(STAGE, VERSION, before, [dataset.dataset_digest, tasks_key])
     default = load_config("smoke", campaign[0])  # the state loss on: another model
