@@ -13,6 +13,9 @@ from schemas.tasks import TaskRecord
 
 EXPERT_FAMILY = {"pick_place": "robosuite", "open_door": "robosuite", "metaworld_policy": "metaworld",
                  "navigation_planner": "navigation"}
+# Families whose observations say which of a task's goals is being pursued (privileged["stage"]):
+# only their long-horizon tasks can be explored by chaining sub-task instructions.
+STAGED_FAMILIES = {"navigation"}
 
 
 def _roles_by_env(family: str) -> dict[str, dict[str, object]] | None:
@@ -61,6 +64,9 @@ def check_spec(spec: TaskSpec, origin: str) -> None:
         raise ConfigError(
             f"{origin}: {spec.name}.objects: {spec.env} has roles {sorted(roles)}, the spec names {sorted(spec.objects)}"
         )
+    if spec.subtasks and spec.family not in STAGED_FAMILIES:
+        raise ConfigError(f"{origin}: {spec.name}.subtasks: {spec.family} environments do not report which goal is "
+                          f"being pursued, so no explorer can chain sub-tasks there (only {sorted(STAGED_FAMILIES)})")
     if EXPERT_FAMILY[spec.expert] != spec.family:
         raise ConfigError(f"{origin}: {spec.name}.expert: {spec.expert} does not drive {spec.family} environments")
     if spec.family == "robosuite":

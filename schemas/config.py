@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
-PRESETS = ("smoke", "default", "headline")
+PRESETS = ("smoke", "default", "headline", "curriculum")
 
 PositiveInt = Annotated[int, Field(gt=0)]
 
@@ -141,6 +141,12 @@ class ExploreConfig(_Strict):
     )
     expert_labels: bool = Field(
         default=True, description="record the noiseless expert action at every state (DAgger labels)"
+    )
+    curriculum: bool = Field(
+        default=False, description="long-horizon tasks (specs with subtasks) are learnt from their sub-tasks: no "
+        "scripted expert explores or labels them; from iteration 1 the champion explores them by following each "
+        "sub-task's instruction in turn (the environment says which goal is next), recorded under the task's own "
+        "instruction; iteration 0 leaves them out"
     )
     workers: PositiveInt = Field(default=2, description="local worker processes (one core each)")
     dask_address: str | None = Field(

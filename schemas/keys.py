@@ -31,6 +31,14 @@ def unit_key(stage: str, version: int, config: Mapping[str, Any] | BaseModel, in
     return f"{stage}-{hashlib.blake2b(payload.encode(), digest_size=8).hexdigest()}"
 
 
+def key_fields(config: BaseModel, exclude: set[str], legacy: Mapping[str, Any]) -> dict[str, Any]:
+    """A config as a unit key reads it: without `exclude` (how a stage runs, not what it makes), and
+    without each field added after the stage's version that holds its `legacy` value (the one that
+    does what the stage did before the field existed), so work done before it keeps its key."""
+    fields = config.model_dump(exclude=exclude)
+    return {k: v for k, v in fields.items() if k not in legacy or v != legacy[k]}
+
+
 def derive_seed(*parts: object) -> int:
     """A 31-bit seed from (campaign, iteration, task, shard, episode, ...): re-runs reproduce data."""
     digest = hashlib.blake2b("/".join(map(str, parts)).encode(), digest_size=8).digest()

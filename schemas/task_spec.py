@@ -40,6 +40,13 @@ class SplitSpec(_Strict):
     unseen_templates: list[str] = []
 
 
+class SubtaskSpec(_Strict):
+    """One step of a long-horizon task: another spec, its roles bound to this spec's."""
+
+    spec: str
+    objects: dict[str, str] = Field(description="the sub-spec's role -> this spec's role whose colour it takes")
+
+
 class TaskSpec(_Strict):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9-]*$")
     family: Family
@@ -50,6 +57,10 @@ class TaskSpec(_Strict):
     horizon: int = Field(gt=0)
     expert: Literal["pick_place", "open_door", "metaworld_policy", "navigation_planner"]
     split: SplitSpec = SplitSpec()
+    subtasks: list[SubtaskSpec] = Field(
+        default=[], description="long-horizon: the sub-tasks whose goals the task reaches in order (a curriculum "
+        "learns it from them: explore.curriculum)",
+    )
 
     @model_validator(mode="after")
     def _templates_name_roles(self) -> TaskSpec:
@@ -58,6 +69,10 @@ class TaskSpec(_Strict):
             unknown = sorted(fields - set(self.objects))
             if unknown:
                 raise ValueError(f"template {template!r} names {unknown}, which are not in objects")
+        for sub in self.subtasks:
+            unknown = sorted(set(sub.objects.values()) - set(self.objects))
+            if unknown:
+                raise ValueError(f"subtasks: {sub.spec} takes the colour of {unknown}, which are not in objects")
         shared = sorted(set(self.templates) & set(self.split.unseen_templates))
         if shared:
             raise ValueError(f"template {shared[0]!r} is both seen and held out (split.unseen_templates)")
@@ -110,4 +125,12 @@ def load_specs(extra_files: list[Path] = ()) -> dict[str, SuiteEntry]:
             if spec.name in specs:
                 raise ConfigError(f"{origin}: spec name {spec.name!r} is already defined")
             specs[spec.name] = SuiteEntry(spec, origin)
+    for entry in specs.values():
+        for sub in entry.spec.subtasks:
+            if sub.spec not in specs:
+                raise ConfigError(f"{entry.origin}: {entry.spec.name}.subtasks: unknown spec {sub.spec!r}")
+            roles = set(specs[sub.spec].spec.objects)
+            if set(sub.objects) != roles:
+                raise ConfigError(f"{entry.origin}: {entry.spec.name}.subtasks: {sub.spec} has roles {sorted(roles)}, "
+                                  f"the sub-task binds {sorted(sub.objects)}")
     return specs

@@ -23,7 +23,7 @@ from pydantic import BaseModel
 from envs.observation import Observation
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_depth, encode_frame
-from schemas.keys import derive_seed, unit_key
+from schemas.keys import derive_seed, key_fields, unit_key
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -34,6 +34,9 @@ from warehouse.shard_writer import ShardFile, write_shard
 
 STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a hand already at the object
 EXPERT, VLM = "expert", "vlm"
+CHAINED = "via subtasks"  # suffix of the champion's name on the episodes it explores by chaining sub-tasks
+# Fields added after VERSION, at the value that does what the stage did before them (stages/train.py)
+LEGACY_VALUES = {"curriculum": False}
 log = logging.getLogger("sim2act.stages.explore")
 
 
@@ -51,6 +54,7 @@ class EpisodePlan(BaseModel):
     instruction: str
     explorer: str
     expert_noise: float | None  # the expert's noise level, when the expert explores this episode
+    subgoals: list[str] = []  # chaining: the instruction the policy follows for each goal the environment pursues
 
 
 class ExploreUnit(BaseModel):
@@ -103,19 +107,25 @@ def plan_explore(
     embeddings: dict[str, np.ndarray],
     workspace: Workspace,
     episodes_of: dict[str, int] | None = None,
+    subgoals_of: dict[str, list[str]] | None = None,
 ) -> list[ExploreUnit]:
     """Pure: the shards this iteration explores, `episodes_of[task_id]` episodes per seen task
-    (default: explore.episodes_per_task each). Unseen tasks are never explored."""
+    (default: explore.episodes_per_task each). Unseen tasks are never explored. Under
+    explore.curriculum a task with sub-tasks (`subgoals_of[task_id]`: their instructions) is
+    explored only by the policy chaining them, so not at all before there is one."""
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
-        "randomise": config.randomise, "explore": explore.model_dump(exclude={"workers", "dask_address"}),
+        "randomise": config.randomise, "explore": key_fields(explore, {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }
     units = []
     for task in (t for t in tasks if t.split == "seen"):
+        subgoals = (subgoals_of or {}).get(task.task_id, []) if explore.curriculum else []
+        if subgoals and policy is None:
+            continue
         count = explore.episodes_per_task if episodes_of is None else episodes_of[task.task_id]
-        explorer_of = _explorers(config, iteration, task, policy, count)
+        explorer_of = [f"{policy.name} {CHAINED}"] * count if subgoals else _explorers(config, iteration, task, policy, count)
         # the noise schedule runs over the expert's own episodes: each level gets its share
         expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
         for shard, first in enumerate(range(0, count, explore.episodes_per_shard)):
@@ -126,15 +136,17 @@ def plan_explore(
                 instruction = task.instructions[np.random.default_rng(seed).integers(len(task.instructions))]
                 episode_id = f"{config.name}-i{iteration}-{task.task_id}-{key[-8:]}-e{index:03d}"
                 episodes.append(EpisodePlan(episode_id=episode_id, seed=seed, instruction=instruction,
-                                            explorer=explorer_of[index],
+                                            explorer=explorer_of[index], subgoals=subgoals,
                                             expert_noise=explore.noise_of(expert_rank[index]) if index in expert_rank else None))
-            said = {e.instruction for e in episodes if policy and e.explorer == policy.name}
+            said = {e.instruction for e in episodes if policy and e.explorer == policy.name} | set(subgoals)
             units.append(
                 ExploreUnit(
                     unit_key=key, workspace=str(workspace.root), campaign=config.name, iteration=iteration,
                     task=task, shard=shard, render=config.render, randomise=config.randomise,
                     expert_labels=explore.expert_labels, episodes=episodes,
-                    policy=policy, vlm=explore.vlm, embeddings={text: embeddings[text].tolist() for text in said},
+                    policy=policy, vlm=explore.vlm,
+                    # a sub-task the campaign does not hold has no cached embedding: the policy encodes it
+                    embeddings={text: embeddings[text].tolist() for text in said if text in embeddings},
                 )
             )
     return units
@@ -145,11 +157,12 @@ def plan_explore(
 _ENVS: dict[tuple[str, str, str], object] = {}
 
 
-@atexit.register
 def _close_envs() -> None:
     """Free GL contexts while the process can still do so cleanly (not in interpreter teardown).
-    Another library's exit hook may have terminated the EGL display first (MetaWorld's glfw,
-    PyOpenGL's): then the contexts are gone with it, and the process is ending anyway."""
+    Registered after the first environment, so after the GL libraries' own exit hooks, which then
+    run after it (last registered, first run). Another library's hook may still have terminated
+    the EGL display first (MetaWorld's glfw): then the contexts are gone with it, and the process
+    is ending anyway."""
     for env in _ENVS.values():
         try:
             env.close()
@@ -163,7 +176,9 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
 
     key = (task.family, task.env_name, render.model_dump_json() if render else "no camera")
     if key not in _ENVS:
-        _ENVS[key] = make_env(task.family, task.env_name, render)
+        _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
+        if len(_ENVS) == 1:
+            atexit.register(_close_envs)
     return _ENVS[key]
 
 
@@ -218,15 +233,23 @@ def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
 
         vlm = VlmExplorer(unit.vlm, unit.task.family, plan.instruction)
         return Explorer(act=vlm.act, stats=vlm.stats)
+    if plan.subgoals:
+        def follow_subgoals(obs: Observation) -> np.ndarray:
+            goal = min(int(obs.privileged["stage"][0]), len(plan.subgoals) - 1)
+            return policy.act(obs, plan.subgoals[goal], unit.task.family).action
+
+        return Explorer(act=follow_subgoals)
     return Explorer(act=lambda obs: policy.act(obs, plan.instruction, unit.task.family).action)
 
 
 def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
     """The noiseless expert, following along whoever explores (its own rng: the explorer's
-    draws, and so the episode, do not depend on whether labels are recorded)."""
+    draws, and so the episode, do not depend on whether labels are recorded); none where the
+    curriculum withholds it (a chained episode)."""
     from envs.registry import make_expert
 
-    return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if unit.expert_labels else None
+    labelled = unit.expert_labels and not plan.subgoals
+    return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if labelled else None
 
 
 def _depth_bytes(depth: np.ndarray | None) -> bytes | None:
@@ -298,6 +321,17 @@ def on_local_workers(workers: int) -> Execute:
     return lambda units: run_in_pool(run_explore_unit, units, workers, unit_label)
 
 
+def curriculum_subgoals(config: CampaignConfig, tasks: list[TaskRecord]) -> dict[str, list[str]]:
+    """task id -> its sub-tasks' instructions, for the long-horizon tasks a curriculum chains."""
+    if not config.explore.curriculum:
+        return {}
+    from schemas.task_spec import load_specs
+    from stages.generate_tasks import subtask_instructions
+
+    suite = load_specs(config.tasks.spec_files)
+    return {t.task_id: chain for t in tasks if (chain := subtask_instructions(t, suite))}
+
+
 def run_explore(
     workspace: Workspace,
     config: CampaignConfig,
@@ -319,7 +353,7 @@ def run_explore(
                  ", ".join(f"{p.task_id} {p.episodes}" + ("" if p.success is None else
                            f" ({p.success:.0%}, {p.uncertainty:.2f} -> {p.score:.2f})") for p in priorities))
     episodes_of = {p.task_id: p.episodes for p in priorities} if priorities else None
-    units = plan_explore(config, iteration, tasks, policy, embeddings, workspace, episodes_of)
+    units = plan_explore(config, iteration, tasks, policy, embeddings, workspace, episodes_of, curriculum_subgoals(config, tasks))
     keys = [u.unit_key for u in units]
     done = catalog.registered_keys(keys)
     todo = [u for u in units if u.unit_key not in done]

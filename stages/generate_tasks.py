@@ -20,7 +20,7 @@ from schemas.config import CampaignConfig, ConfigError, TasksConfig
 from schemas.experts import load_expert_table
 from schemas.keys import derive_seed, unit_key
 from schemas.tables import INSTRUCTIONS
-from schemas.task_spec import TaskSpec, load_specs
+from schemas.task_spec import SuiteEntry, TaskSpec, load_specs
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
@@ -108,6 +108,15 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
     if not tasks:
         raise ConfigError("tasks: the config yields no task")
     return tasks
+
+
+def subtask_instructions(task: TaskRecord, suite: dict[str, SuiteEntry]) -> list[str]:
+    """A long-horizon task's sub-tasks, said canonically with its colours, in order ([]: not long-horizon,
+    or a spec the suite does not hold, such as a proposer's)."""
+    entry = suite.get(task.spec)
+    subtasks = entry.spec.subtasks if entry else []
+    return [suite[sub.spec].spec.templates[0].format(**{role: task.object_colours[mine] for role, mine in sub.objects.items()})
+            for sub in subtasks]
 
 
 def suite_tasks(spec_files: list[Path] = (), seed: int = 0) -> list[TaskRecord]:

@@ -11,9 +11,8 @@ from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_ev
 from warehouse.catalog import Catalog
 
 
-def success_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[GroupSuccess]]:
-    """Iteration -> success per split, family and split within family, of the model that
-    iteration deployed, over the flow's evaluation cases."""
+def evaluations_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[TaskEvaluation]]:
+    """Iteration -> the evaluation cases of the model that iteration deployed (the flow's own)."""
     rows = read_evaluations(
         catalog, "v.iteration",
         "JOIN deployments d ON d.campaign = v.campaign AND d.iteration = v.iteration AND d.model_key = v.model_key "
@@ -22,7 +21,14 @@ def success_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[Grou
     by_iteration: dict[int, list[TaskEvaluation]] = {}
     for iteration, evaluation in rows:
         by_iteration.setdefault(iteration, []).append(evaluation)
-    return {iteration: group_success(evaluations) for iteration, evaluations in by_iteration.items()}
+    return by_iteration
+
+
+def success_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[GroupSuccess]]:
+    """Iteration -> success per split, family and split within family, of the model that
+    iteration deployed, over the flow's evaluation cases."""
+    return {iteration: group_success(evaluations)
+            for iteration, evaluations in evaluations_by_iteration(catalog, campaign).items()}
 
 
 def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], groups: list[str], title: str,

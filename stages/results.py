@@ -14,7 +14,7 @@ from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
-from stages.report import success_by_iteration
+from stages.report import evaluations_by_iteration, success_by_iteration
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
@@ -87,6 +87,21 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
     return lines
 
 
+def spec_markdown(catalog: Catalog, campaign: str) -> list[str]:
+    """Success per task spec and split per iteration, where the campaign has several specs (a
+    long-horizon spec beside its sub-tasks' shows what a curriculum did); else nothing."""
+    spec_of = dict(catalog.query("SELECT DISTINCT task_id, spec FROM tasks WHERE campaign = ?", [campaign]))
+    specs = sorted(set(spec_of.values()))
+    if len(specs) < 2:
+        return []
+    by_iteration = {  # grouped as if each spec were a family: "<spec>/<split>"
+        iteration: group_success([e.model_copy(update={"family": spec_of[e.task_id]}) for e in evaluations])
+        for iteration, evaluations in evaluations_by_iteration(catalog, campaign).items()}
+    header = ["iteration", *[f"{spec}/{split}" for spec in specs for split in ("seen", "unseen")]]
+    return ["", "### Per task spec (Sim2Act)", "",
+            *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]
+
+
 def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
     by_iteration = success_by_iteration(catalog, campaign)
     if not by_iteration:
@@ -119,6 +134,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         header = ["iteration", *[f"{family}/{split}" for family in families for split in ("seen", "unseen")]]
         lines += _table(header, [[iteration, *_cells(groups, header[1:])]
                                  for iteration, groups in sorted(by_iteration.items())])
+
+    lines += spec_markdown(catalog, campaign)
 
     lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
 

@@ -24,7 +24,7 @@ from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, pixels, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
 from schemas.config import CampaignConfig, TrainConfig
-from schemas.keys import derive_seed, digest_of, unit_key
+from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.workspace import Workspace
 from stages.index import IndexResult
 from stages.pool import Progress
@@ -56,9 +56,7 @@ class TrainResult(BaseModel):
 
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
-    train = config.train.model_dump(exclude=EXECUTION_FIELDS)
-    train = {k: v for k, v in train.items() if k not in LEGACY_VALUES or v != LEGACY_VALUES[k]}
-    reads = {"train": train, "seed": config.seed,
+    reads = {"train": key_fields(config.train, EXECUTION_FIELDS, LEGACY_VALUES), "seed": config.seed,
              "image": config.render.image_size, "depth": config.render.depth}
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 

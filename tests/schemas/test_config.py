@@ -2,8 +2,10 @@ import subprocess
 
 import pytest
 
-from schemas.config import CampaignConfig, ConfigError, load_config
+from schemas.config import PRESETS, CampaignConfig, ConfigError, load_config
 from schemas.keys import derive_seed, unit_key
+from stages.explore import curriculum_subgoals
+from stages.generate_tasks import generate_tasks
 from tests.conftest import SIM2ACT
 
 
@@ -88,3 +90,12 @@ def test_set_overrides_name_fields_by_path_and_are_validated_like_the_file():
         load_config("smoke", None, parse_settings(["train.model.vision=alexnet"]))
     with pytest.raises(ConfigError, match="is not FIELD.PATH=VALUE"):
         parse_settings(["contrastive_weight"])
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_loads_and_yields_its_tasks(preset):
+    config = load_config(preset, None)
+    tasks = generate_tasks(config.tasks, config.seed)
+    assert tasks and any(t.split == "seen" for t in tasks)
+    if config.explore.curriculum:  # a curriculum needs a long-horizon task whose sub-tasks it can chain
+        assert curriculum_subgoals(config, tasks)

@@ -1,19 +1,27 @@
 """The explore stage's own decisions: who explores which episode, what a shard records (DAgger
-labels, a VLM explorer's counters) and what a failure mid-episode costs. Real navigation
+labels, a VLM explorer's counters), what a failure mid-episode costs, and how a curriculum
+explores long-horizon tasks by chaining their sub-tasks. Real navigation
 scenes, rendered; the VLM is a local server speaking the chat-completions protocol."""
 
 from __future__ import annotations
 
 import json
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from envs.navigation_env import ACTIONS
-from schemas.config import CampaignConfig, ExploreConfig, TasksConfig, VlmExplorerConfig
+from envs.observation import ACTION_DIM, PROPRIO_DIM
+from policies.model import ModelDims, VLAModel
+from policies.policy import Normaliser, Policy, policy_state
+from schemas.config import CampaignConfig, ExploreConfig, ModelConfig, TasksConfig, VlmExplorerConfig
+from schemas.keys import unit_key
 from schemas.workspace import Workspace
-from stages.explore import EXPERT, PolicyExplorer, plan_explore, run_explore_unit, worker_env
+from stages.explore import (CHAINED, EXPERT, STAGE, VERSION, PolicyExplorer, _explorer, curriculum_subgoals,
+                            plan_explore, run_explore_unit, worker_env)
 from stages.generate_tasks import generate_tasks
 from tests.chat_server import closed_port
 from warehouse.shard_writer import read_shard
@@ -116,3 +124,69 @@ def test_a_noise_schedule_cycles_over_each_tasks_episodes(tmp_path):
         assert all(e.expert_noise is None for e in unit.episodes if e.explorer != EXPERT)
     with pytest.raises(ValueError, match="expert_noise: the schedule is empty"):
         ExploreConfig(expert_noise=[])
+
+
+def _curriculum(tmp_path, curriculum: bool = True) -> tuple[CampaignConfig, list, Path]:
+    """A campaign of nav-room and its long-horizon composition, and a real (untrained) policy checkpoint."""
+    config = CampaignConfig(
+        name="curriculum-test",
+        tasks=TasksConfig(specs=["nav-room", "nav-room-sequence"], colours=["red", "green"],
+                          horizon={"nav-room": 6, "nav-room-sequence": 6}),
+        explore=ExploreConfig(episodes_per_task=2, episodes_per_shard=2, workers=1, curriculum=curriculum),
+    )
+    torch.manual_seed(0)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1),
+                     ModelDims(84, PROPRIO_DIM, ACTION_DIM, len(ACTIONS), 384))
+    checkpoint = tmp_path / "policy.pt"
+    torch.save(policy_state([model], Normaliser(np.zeros(ACTION_DIM), np.ones(ACTION_DIM)),
+                            Normaliser(np.zeros(PROPRIO_DIM), np.ones(PROPRIO_DIM))), checkpoint)
+    return config, generate_tasks(config.tasks, config.seed), checkpoint
+
+
+def _plan_curriculum(config, tasks, tmp_path, policy: PolicyExplorer | None):
+    embeddings = {text: np.zeros(384, dtype=np.float32) for t in tasks for text in t.instructions}
+    return plan_explore(config, 1 if policy else 0, tasks, policy, embeddings, Workspace.at(tmp_path).create(),
+                        subgoals_of=curriculum_subgoals(config, tasks))
+
+
+def test_a_curriculum_leaves_long_tasks_to_the_policy_chaining_their_subtasks(tmp_path):
+    config, tasks, checkpoint = _curriculum(tmp_path)
+    first = _plan_curriculum(config, tasks, tmp_path, None)
+    assert {u.task.task_id for u in first} == {"nav-room-red", "nav-room-green"}  # no policy yet to chain them
+    policy = PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint=str(checkpoint))
+    units = {u.task.task_id: u for u in _plan_curriculum(config, tasks, tmp_path, policy)}
+    assert set(units) == {t.task_id for t in tasks}
+    chained = units["nav-room-sequence-green-red"]
+    assert {e.explorer for e in chained.episodes} == {f"policy:m/1 {CHAINED}"}
+    assert all(e.subgoals == ["go to the green room", "go to the red room"] for e in chained.episodes)
+    assert not any(e.subgoals for e in units["nav-room-red"].episodes)
+    assert EXPERT in {e.explorer for e in units["nav-room-red"].episodes}  # sub-tasks keep their expert
+
+    episodes, steps = _shards(chained)
+    assert len(episodes) == 2 and all(e["error"] is None and e["num_steps"] > 0 for e in episodes)
+    said = {e["episode_id"]: e["instruction"] for e in episodes}
+    assert all(s["instruction"] == said[s["episode_id"]] in chained.task.instructions for s in steps)
+    assert all(s["expert_action"] is None for s in steps)  # the curriculum withholds the expert's labels
+
+    plan = chained.episodes[0]
+    policy = Policy.load(checkpoint, {t: np.asarray(v, np.float32) for t, v in chained.embeddings.items()})
+    asked, act = [], policy.act
+    policy.act = lambda obs, instruction, family: asked.append(instruction) or act(obs, instruction, family)
+    explorer = _explorer(chained, plan, policy)
+    obs = worker_env(chained.task, chained.render).reset(chained.task, plan.seed)
+    for stage in (0, 1, 1, 0):  # the environment's goal picks the instruction
+        obs.privileged["stage"] = np.array([stage])
+        assert explorer.act(obs) == act(obs, plan.subgoals[stage], "navigation").action
+    assert asked == [plan.subgoals[s] for s in (0, 1, 1, 0)]
+
+
+def test_without_a_curriculum_long_tasks_are_the_experts_and_keys_stay_as_before(tmp_path):
+    config, tasks, _ = _curriculum(tmp_path, curriculum=False)
+    units = _plan_curriculum(config, tasks, tmp_path, None)
+    assert {u.task.task_id for u in units} == {t.task_id for t in tasks}
+    assert all(e.explorer == EXPERT and not e.subgoals for u in units for e in u.episodes)
+    explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum"})
+    reads = {"campaign": config.name, "seed": config.seed, "iteration": 0, "render": config.render,
+             "randomise": config.randomise, "explore": explore, "policy": None}
+    assert [u.unit_key for u in units] == [
+        unit_key(STAGE, VERSION, reads, [u.task.model_dump_json(), str(u.shard), "2"]) for u in units]

@@ -2,7 +2,7 @@ import pytest
 
 from schemas.config import ConfigError, TasksConfig
 from schemas.task_spec import load_specs, parse_spec_file
-from stages.generate_tasks import generate_tasks
+from stages.generate_tasks import generate_tasks, subtask_instructions
 
 
 def test_the_suite_has_over_100_tasks_in_three_families_each_said_three_ways():
@@ -79,6 +79,14 @@ def test_a_user_adds_tasks_by_writing_a_file(tmp_path):
          "'lift the {target} one' is both seen and held out"),
         (("env: Lift", 'env: Lift\n    split: {unseen_templates: ["hoist the {colour} one"]}'),
          "template 'hoist the {colour} one' names ['colour']"),
+        (("env: Lift", "env: Lift\n    subtasks: [{spec: lift, objects: {target: cube}}]"),
+         "subtasks: lift takes the colour of ['cube'], which are not in objects"),
+        (("env: Lift", "env: Lift\n    subtasks: [{spec: lifft, objects: {target: target}}]"),
+         "my-lift.subtasks: unknown spec 'lifft'"),
+        (("env: Lift", "env: Lift\n    subtasks: [{spec: stack, objects: {pick: target}}]"),
+         "my-lift.subtasks: stack has roles ['pick', 'place'], the sub-task binds ['pick']"),
+        (("env: Lift", "env: Lift\n    subtasks: [{spec: lift, objects: {target: target}}]"),
+         "my-lift.subtasks: robosuite environments do not report which goal is being pursued"),
     ],
 )
 def test_a_broken_spec_is_refused_with_the_field_and_reason(tmp_path, change, words):
@@ -87,6 +95,13 @@ def test_a_broken_spec_is_refused_with_the_field_and_reason(tmp_path, change, wo
     with pytest.raises(ConfigError) as error:
         generate_tasks(TasksConfig(specs=["my-lift"], spec_files=[path]), 0)
     assert words in str(error.value) and str(path) in str(error.value)
+
+
+def test_a_long_horizon_task_names_its_subtasks_in_its_own_colours():
+    suite = load_specs()
+    tasks = {t.task_id: t for t in generate_tasks(TasksConfig(specs=["nav-room-sequence", "lift"], colours=["red", "blue"]), 0)}
+    assert subtask_instructions(tasks["nav-room-sequence-blue-red"], suite) == ["go to the blue room", "go to the red room"]
+    assert subtask_instructions(tasks["lift-red"], suite) == []
 
 
 def test_spec_names_are_unique():
