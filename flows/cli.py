@@ -44,6 +44,19 @@ def configure_environment(workspace: Workspace) -> None:
         os.environ.setdefault(key, value)
 
 
+def log_stages_to_stderr() -> None:
+    """Outside a flow (`sim2act train`, `eval`) no Prefect handler takes the stages' log lines, and
+    the progress bar is drawn only on a terminal: without this, a run piped to a file is silent."""
+    import logging
+
+    logger = logging.getLogger("sim2act")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     overrides = parse_settings(args.set)
     if args.iterations is not None:
@@ -91,6 +104,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not catalog.is_registered(tasks_key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
     configure_environment(workspace)
+    log_stages_to_stderr()
     tracking = Tracking(workspace, config)
     run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
     print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
@@ -122,6 +136,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     workspace = Workspace.at(args.workspace)
     Catalog(workspace.catalog).check_version()
     configure_environment(workspace)
+    log_stages_to_stderr()
     from flows.tracking import Tracking
     from stages.evaluate import Agent, evaluate_model, group_success
     from stages.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model

@@ -267,6 +267,7 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
     spec.write_text(NEW_TASKS)
     new = evaluate("--model", "champion", "--tasks", str(spec), "--episodes", "2")
     assert new.returncode == 0, new.stderr[-3000:]
+    assert "sim2act.stages.evaluate - evaluate it" in new.stderr  # progress lines, with no terminal for a bar
     rows = catalog.query("SELECT task_id, split, episodes, instruction, model_key FROM evaluations "
                          "WHERE suite = 'file:elsewhere.yaml' ORDER BY task_id")
     champion = catalog.query("SELECT champion_model_key FROM deployments ORDER BY iteration DESC LIMIT 1")[0][0]

@@ -123,6 +123,7 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
     run = _train(campaign[0], workspace)
     output = run.communicate(timeout=600)[0]
     assert run.returncode == 0, output
+    assert "sim2act.stages.train - train it0: epoch 1/" in output  # progress lines, with no terminal to draw a bar on
     client = MlflowClient(tracking_uri=Workspace.at(workspace).tracking_uri)
     [iteration_run] = client.search_runs(
         [client.get_experiment_by_name("sim2act").experiment_id], "tags.`sim2act.kind` = 'iteration'")
