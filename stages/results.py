@@ -38,6 +38,13 @@ def _table(header: list[str], rows: list[list[object]]) -> list[str]:
     return lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
 
 
+def _split_table(title: str, by_iteration: dict[int, list[GroupSuccess]], names: list[str]) -> list[str]:
+    """Success per iteration in every split of each family or spec `names` (groups "<name>/<split>")."""
+    header = ["iteration", *[f"{name}/{split}" for name in names for split in SPLIT_COLUMNS]]
+    return ["", f"### {title}", "",
+            *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]
+
+
 def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str | None, int], list[TaskEvaluation]]:
     """(agent, family, environment steps its training took) -> its evaluations on the campaign's
     cases; the expert first, then by agent and family."""
@@ -97,9 +104,7 @@ def spec_markdown(catalog: Catalog, campaign: str) -> list[str]:
     by_iteration = {  # grouped as if each spec were a family: "<spec>/<split>"
         iteration: group_success([e.model_copy(update={"family": spec_of[e.task_id]}) for e in evaluations])
         for iteration, evaluations in evaluations_by_iteration(catalog, campaign).items()}
-    header = ["iteration", *[f"{spec}/{split}" for spec in specs for split in ("seen", "unseen")]]
-    return ["", "### Per task spec (Sim2Act)", "",
-            *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]
+    return _split_table("Per task spec (Sim2Act)", by_iteration, specs)
 
 
 def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
@@ -130,10 +135,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
 
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
-        lines += ["", "### Per family (Sim2Act)", ""]
-        header = ["iteration", *[f"{family}/{split}" for family in families for split in ("seen", "unseen")]]
-        lines += _table(header, [[iteration, *_cells(groups, header[1:])]
-                                 for iteration, groups in sorted(by_iteration.items())])
+        lines += _split_table("Per family (Sim2Act)", by_iteration, families)
 
     lines += spec_markdown(catalog, campaign)
 

@@ -15,15 +15,16 @@ TASKS = {"nav-room-red": ("nav-room", "seen"), "nav-room-sequence-red-green": ("
          "nav-room-sequence-purple-red": ("nav-room-sequence", "unseen")}
 
 
-def _register(catalog: Catalog, iteration: int, successes: dict[str, int], episodes: int = 10) -> None:
+def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10) -> None:
+    """successes: (task, split) -> successful episodes of `episodes`."""
     model = f"train-{iteration}"
     rows = []
-    for task_id, won in successes.items():
+    for (task_id, split), won in successes.items():
         low, high = wilson_interval(won, episodes)
         rows.append({
-            "unit_key": f"evaluate-{iteration}-{task_id}", "campaign": CAMPAIGN, "iteration": iteration,
+            "unit_key": f"evaluate-{iteration}-{task_id}-{split}", "campaign": CAMPAIGN, "iteration": iteration,
             "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id, "family": "navigation",
-            "split": TASKS[task_id][1], "instruction": task_id, "episodes": episodes, "successes": won,
+            "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
             "ci_low": low, "ci_high": high, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
             "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
             "failure_video": None, "success_rate": won / episodes})
@@ -46,12 +47,17 @@ def test_success_per_spec_and_split_per_iteration(tmp_path):
               "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
     catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": tasks})
-    _register(catalog, 0, {"nav-room-red": 9, "nav-room-sequence-red-green": 0, "nav-room-sequence-purple-red": 0})
-    _register(catalog, 1, {"nav-room-red": 8, "nav-room-sequence-red-green": 4, "nav-room-sequence-purple-red": 1})
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-red-green", "seen"): 0,
+                           ("nav-room-sequence-purple-red", "unseen"): 0})
+    _register(catalog, 1, {("nav-room-red", "seen"): 8, ("nav-room-sequence-red-green", "seen"): 4,
+                           ("nav-room-sequence-purple-red", "unseen"): 1,
+                           ("nav-room-sequence-red-green", "unseen_paraphrase"): 3})
     lines = spec_markdown(catalog, CAMPAIGN)
-    assert "| iteration | nav-room/seen | nav-room/unseen | nav-room-sequence/seen | nav-room-sequence/unseen |" in lines
-    assert lines[-2].startswith("| 0 | 9/10 = 90% ") and "| – | 0/10 = 0% " in lines[-2]
-    assert lines[-1].startswith("| 1 | 8/10 = 80% ") and "| 4/10 = 40% " in lines[-1] and "| 1/10 = 10% " in lines[-1]
+    assert ("| iteration | nav-room/seen | nav-room/unseen | nav-room/unseen_paraphrase | nav-room-sequence/seen "
+            "| nav-room-sequence/unseen | nav-room-sequence/unseen_paraphrase |") in lines
+    row0, row1 = ([cell.strip() for cell in line.strip("|").split("|")] for line in lines[-2:])
+    assert row0 == ["0", "9/10 = 90% (60%–98%)", "–", "–", "0/10 = 0% (0%–28%)", "0/10 = 0% (0%–28%)", "–"]
+    assert [cell.split(" ")[0] for cell in row1] == ["1", "8/10", "–", "–", "4/10", "1/10", "3/10"]
     catalog_one_spec = Catalog(Workspace.at(tmp_path / "one").create().catalog)
     catalog_one_spec.initialise()
     assert spec_markdown(catalog_one_spec, CAMPAIGN) == []  # one spec: the split table says it all
