@@ -44,7 +44,7 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
         found = catalog.query("SELECT checkpoint_path, iteration FROM models WHERE model_key = ?", [ref])
         if not found:
             raise ConfigError(f"--model: no model {ref!r} in {workspace.root}")
-        return ModelRef(ref, found[0][0], found[0][1], ref)
+        return ModelRef(ref, str(workspace.root / found[0][0]), found[0][1], ref)  # stored relative to the workspace
     name, version_number, alias = parse_registry_ref(ref, config.registered_model_name)
     client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
     try:

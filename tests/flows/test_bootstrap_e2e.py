@@ -261,6 +261,9 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
     seen = evaluate("--model", "1", "--split", "seen")
     assert seen.returncode == 0, seen.stderr[-3000:]
     assert "3 case(s) of campaign" in seen.stdout and "lift-red" in seen.stdout and "robosuite/seen" in seen.stdout
+    [(first_key,)] = catalog.query("SELECT model_key FROM models ORDER BY iteration LIMIT 1")  # version 1's
+    by_key = evaluate("--model", first_key, "--split", "seen")  # its checkpoint path is stored relative to the workspace
+    assert by_key.returncode == 0 and f"evaluating {first_key}" in by_key.stdout, by_key.stderr[-3000:]
     assert catalog.query("SELECT count(*) FROM evaluations") == before
 
     spec = tmp_path / "elsewhere.yaml"
