@@ -264,6 +264,7 @@ class _Member:
     model: VLAModel
     history: list[dict[str, float]]
     resumed_at_step: int
+    earlier_wall_s: float  # spent on this member by the runs a kill interrupted: the compute it took counts them
 
 
 def _train_member(run: _Run, member: int) -> _Member:
@@ -288,7 +289,8 @@ def _train_member(run: _Run, member: int) -> _Member:
     total_steps = batches.epochs * batches.batches_per_epoch
     offset = member * total_steps  # of this member's steps in the training's (MLflow steps, progress)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(total_steps))
-    step, history, epoch_means = 0, [], _Means()
+    step, history, epoch_means, earlier_wall_s = 0, [], _Means(), 0.0
+    member_started = time.monotonic()
     shifts = torch.Generator().manual_seed(derive_seed(run.config.seed, key, "augment", member))
     if state_path.exists():
         state = torch.load(state_path, map_location="cpu", weights_only=False)
@@ -298,12 +300,13 @@ def _train_member(run: _Run, member: int) -> _Member:
         torch.set_rng_state(state["rng"])
         shifts.set_state(state["shifts"])
         step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
+        earlier_wall_s = state.get("wall_s", 0.0)  # states saved before it was recorded: unknown, not counted
         log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
     resumed_at = step
     run.progress.done = offset + step
     log.info("train it%d: %s%.2fM parameters", run.iteration, which, sum(p.numel() for p in model.parameters()) / 1e6)
     if step == total_steps:
-        return _Member(model, history, resumed_at)
+        return _Member(model, history, resumed_at, earlier_wall_s)
 
     def save_state() -> None:
         save_atomically(state_path, {
@@ -311,6 +314,7 @@ def _train_member(run: _Run, member: int) -> _Member:
             "schedule": schedule.state_dict(), "rng": torch.get_rng_state(),
             "shifts": shifts.get_state(), "step": step,
             "history": history, "epoch_means": epoch_means.state(),
+            "wall_s": earlier_wall_s + time.monotonic() - member_started,
         })
 
     batches.start_batch = step
@@ -353,7 +357,7 @@ def _train_member(run: _Run, member: int) -> _Member:
         if step < total_steps and step % cfg.checkpoint_every == 0 or step == total_steps and member + 1 < cfg.ensemble:
             save_state()
         wait_started = time.monotonic()
-    return _Member(model, history, resumed_at)
+    return _Member(model, history, resumed_at, earlier_wall_s)
 
 
 def run_train(
@@ -416,7 +420,7 @@ def run_train(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
         summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
                  "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where},
-        wall_s=time.monotonic() - started,
+        wall_s=time.monotonic() - started + sum(m.earlier_wall_s for m in members),
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,
             "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": digest,

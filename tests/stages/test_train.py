@@ -103,12 +103,15 @@ def test_a_sigkilled_ensemble_training_resumes_to_the_same_weights(campaign, tmp
     os.killpg(victim.pid, signal.SIGKILL)  # the trainer and its loader worker
     victim.wait()
     assert victim.returncode == -signal.SIGKILL
-    first, second = (torch.load(states[0].with_name(f"train-state-{m}.pt"), weights_only=False)["step"] for m in (0, 1))
-    killed_at = first + second  # the first member finished: its steps, then the second's
+    saved = [torch.load(states[0].with_name(f"train-state-{m}.pt"), weights_only=False) for m in (0, 1)]
+    killed_at = saved[0]["step"] + saved[1]["step"]  # the first member finished: its steps, then the second's
 
     resumed = _train(config_file, killed, *ensemble)
     output = resumed.communicate(timeout=600)[0]
     assert resumed.returncode == 0 and f"resumed at step {killed_at}" in output, output
+    # the compute it took counts the killed run's training too, not only the resumed part
+    [(wall_s,)] = Catalog(Workspace.at(killed).catalog).query("SELECT wall_s FROM stage_runs WHERE stage = 'train'")
+    assert wall_s > saved[0]["wall_s"] + saved[1]["wall_s"] > 0
     a, b = _weights(straight), _weights(killed)
     assert len(a) == len(b) == 2 and any(not torch.equal(a[0][k], a[1][k]) for k in a[0])  # two different models
     assert all(x.keys() == y.keys() and all(torch.equal(x[k], y[k]) for k in x) for x, y in zip(a, b))
