@@ -15,7 +15,9 @@ from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.cache_policies import NO_CACHE
 from pydantic import BaseModel
 
+from flows.artifacts import iteration_markdown, publish_iteration_artifacts
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
+from flows.run_lock import exclusive_run
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE, Split
@@ -27,7 +29,7 @@ from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
 from stages.generate_tasks import TasksResult, load_embeddings, load_tasks, run_generate_tasks
 from stages.index import IndexResult, run_index
-from stages.redeploy import RedeployResult, run_redeploy
+from stages.redeploy import RedeployResult, finished_iterations, run_redeploy
 from stages.report import plot_success_by_iteration, success_by_iteration
 from stages.train import TrainResult, run_train
 from warehouse.catalog import Catalog
@@ -195,6 +197,12 @@ def iteration_flow(
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
     tracking.finish(run_id)
+    publish_iteration_artifacts(
+        config.name, iteration,
+        iteration_markdown(config.name, iteration, explorer, tasks, explore, filtered, index, model, evaluation,
+                           deployment, run_id),
+        evaluation, tracking.experiment_id, run_id,
+    )
     success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split != UNSEEN_PARAPHRASE}
     stages_run = sum([
         not tasks.skipped, explore.skipped_units < len(explore.unit_keys), filtered.skipped_units < len(filtered.unit_keys),
@@ -207,12 +215,29 @@ def iteration_flow(
 
 
 @flow(name="bootstrap", flow_run_name="{config.name}")
-def bootstrap(config: CampaignConfig = CampaignConfig(), workspace: str = "workspace") -> list[IterationOutcome]:
-    """Run a bootstrap campaign: `config.iterations` iterations, each exploring with the last champion."""
-    started = time.monotonic()
+def bootstrap(
+    config: CampaignConfig = CampaignConfig(), workspace: str = "workspace", continue_campaign: bool = False
+) -> list[IterationOutcome]:
+    """Run a bootstrap campaign: `config.iterations` iterations, each exploring with the last champion.
+
+    Args:
+        config: the campaign, as `sim2act run` takes it (preset, file, --set).
+        workspace: the folder holding the warehouse, models, MLflow and Prefect state.
+        continue_campaign: run one iteration past the campaign's latest finished one (at least
+            `config.iterations` in all): what the nightly deployment does.
+    """
     ws = Workspace.at(workspace).create()
+    with exclusive_run(ws, config.name):  # a second run on the workspace is refused before any work
+        return _run_campaign(config, ws, continue_campaign)
+
+
+def _run_campaign(config: CampaignConfig, ws: Workspace, continue_campaign: bool) -> list[IterationOutcome]:
+    started = time.monotonic()
     catalog = Catalog(ws.catalog)
     catalog.initialise()
+    if continue_campaign:
+        config = config.model_copy(update={"iterations": max(config.iterations, finished_iterations(ws, config.name) + 1)})
+        log.info("continuing campaign %s: iterations 0..%d", config.name, config.iterations - 1)
     orphans = catalog.clean_orphans()
     if orphans:
         log.info("removed %d unregistered file(s) left by an interrupted run", len(orphans))

@@ -42,6 +42,11 @@ def configure_environment(workspace: Workspace) -> None:
     }
     for key, value in defaults.items():
         os.environ.setdefault(key, value)
+    from flows.service import running_urls
+
+    # While `sim2act up` runs on this workspace, runs report to its servers and show in its UIs.
+    for key, value in running_urls(workspace).items():
+        os.environ.setdefault(key, value)
 
 
 def log_stages_to_stderr() -> None:
@@ -78,7 +83,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     from flows.bootstrap import bootstrap
 
-    bootstrap(config=config, workspace=str(workspace.root))
+    bootstrap(config=config, workspace=str(workspace.root), continue_campaign=args.continue_campaign)
     return 0
 
 
@@ -167,6 +172,76 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for g in group_success(evaluations):
         print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
               f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
+    return 0
+
+
+def _service_config(args: argparse.Namespace):
+    from pydantic import ValidationError
+
+    from schemas.config import describe_validation_error
+    from schemas.service import ServiceConfig
+
+    fields = ("prefect_port", "mlflow_port", "dashboard_port", "nightly_cron", "timezone")
+    try:
+        return ServiceConfig(**{f: getattr(args, f) for f in fields if getattr(args, f) is not None})
+    except ValidationError as exc:
+        raise ConfigError(describe_validation_error(exc)) from None
+
+
+def _print_status(rows: list[dict]) -> None:
+    for row in rows:
+        print(f"{row['name']:<12} {row['state']:<10} {row['url']:<36} pid {row['pid']:<8} log {row['log']}")
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    config = load_config(args.preset, args.config, parse_settings(args.set))  # the deployments' default campaign
+    service = _service_config(args)
+    from flows.service import up
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(args.workspace)
+    catalog = Catalog(workspace.catalog)
+    catalog.check_version()
+    configure_environment(workspace)
+    catalog.initialise()  # the dashboard reads it from the first minute
+    print(f"sim2act: starting the stack over {workspace.root} (campaign {config.name!r}, nightly "
+          f"{service.nightly_cron} {service.timezone})", flush=True)
+    rows = up(workspace, service, config, on_ready=lambda line: print(f"  ready: {line}", flush=True))
+    _print_status(rows)
+    print("trigger: prefect deployment run 'bootstrap/on-demand'   (with PREFECT_API_URL="
+          f"{service.url('prefect')}/api); stop: sim2act down --workspace {workspace.root}")
+    return 0
+
+
+def cmd_down(args: argparse.Namespace) -> int:
+    from flows.service import down
+
+    workspace = Workspace.at(args.workspace)
+    stopped = down(workspace)
+    print(f"sim2act: stopped {', '.join(stopped)}" if stopped else f"sim2act: nothing runs over {workspace.root}")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from flows.service import process_status
+
+    workspace = Workspace.at(args.workspace)
+    rows = process_status(workspace)
+    if not rows:
+        print(f"sim2act: the stack is not up over {workspace.root} (`sim2act up` starts it)")
+        return 1
+    _print_status(rows)
+    return 0 if all(row["state"] == "up" for row in rows) else 1
+
+
+def cmd_dashboard(args: argparse.Namespace) -> int:
+    from dashboards.server import serve
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(args.workspace)
+    Catalog(workspace.catalog).check_version()
+    print(f"sim2act: dashboard over {workspace.root} at http://{args.host}:{args.port}", flush=True)
+    serve(workspace, args.host, args.port)
     return 0
 
 
@@ -405,8 +480,10 @@ def build_parser() -> argparse.ArgumentParser:
         command.set_defaults(handler=handler)
         return command
 
-    campaign_parser("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run
-                    ).add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    run = campaign_parser("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run)
+    run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    run.add_argument("--continue", dest="continue_campaign", action="store_true",
+                     help="one iteration past the campaign's latest finished one (what the nightly deployment runs)")
     campaign_parser("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train
                     ).add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
 
@@ -421,6 +498,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     campaign_parser("report", "the results table: success per iteration beside the baselines, dataset, compute",
                     cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")
+
+    stack_up = campaign_parser("up", "start the local stack: Prefect and MLflow servers, dashboard, deployments "
+                               "(their default campaign: --preset/--config/--set)", cmd_up)
+    stack_up.add_argument("--prefect-port", type=int)
+    stack_up.add_argument("--mlflow-port", type=int)
+    stack_up.add_argument("--dashboard-port", type=int)
+    stack_up.add_argument("--nightly-cron", help="when bootstrap/nightly runs (default '0 2 * * *')")
+    stack_up.add_argument("--timezone", help="of the cron line, an IANA name (default UTC)")
+    for name, help, handler in (("down", "stop the local stack", cmd_down),
+                                ("status", "the local stack's processes, health and URLs", cmd_status)):
+        commands.add_parser(name, help=help).set_defaults(handler=handler)
+    dashboard = commands.add_parser("dashboard", help="serve the warehouse dashboard alone (sim2act up starts it too)")
+    dashboard.add_argument("--host", default="127.0.0.1")
+    dashboard.add_argument("--port", type=int, default=8765)
+    dashboard.set_defaults(handler=cmd_dashboard)
+    for command in (commands.choices["down"], commands.choices["status"], dashboard):
+        command.add_argument("--workspace", default=_default_workspace())
 
     tasks = commands.add_parser("tasks", help="the task suite: list, show, validate spec files")
     task_commands = tasks.add_subparsers(dest="tasks_command", required=True)
@@ -525,6 +619,9 @@ def main(argv: list[str] | None = None) -> int:
         print("sim2act: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     except Exception as exc:  # a known failure mode gets one line, not a traceback
+        from dashboards.panels import PanelError
+        from flows.run_lock import WorkspaceBusy
+        from flows.service import ServiceError
         from stages.replay import ReplayError
         from warehouse.catalog import CatalogMissing, CatalogVersionError
         from warehouse.export_lerobot import ExportError
@@ -532,7 +629,7 @@ def main(argv: list[str] | None = None) -> int:
         from warehouse.training_reader import SelectionError
 
         if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError, ReplayError,
-                            SelectionError)):
+                            SelectionError, ServiceError, PanelError, WorkspaceBusy)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

@@ -62,6 +62,28 @@ class Workspace:
     def prefect_home(self) -> Path:
         return self.root / "prefect"
 
+    @property
+    def run_lock(self) -> Path:
+        """Held by the campaign running on this workspace (flows/run_lock.py)."""
+        return self.root / "run.lock"
+
+    @property
+    def service(self) -> Path:
+        """The local stack's record (`sim2act up`): which processes run, on which ports, their logs."""
+        return self.root / "service"
+
+    @property
+    def service_state(self) -> Path:
+        return self.service / "state.json"
+
+    @property
+    def deployment_config(self) -> Path:
+        """The campaign config the served deployments take as their default parameters."""
+        return self.service / "campaign.json"
+
+    def service_log(self, name: str) -> Path:
+        return self.service / f"{name}.log"
+
     def create(self) -> Workspace:
         for folder in (self.shards, self.models, self.media, self.artifact_root, self.prefect_home):
             folder.mkdir(parents=True, exist_ok=True)

@@ -31,6 +31,14 @@ class RedeployResult(BaseModel):
     skipped: bool
 
 
+def finished_iterations(workspace: Workspace, campaign: str) -> int:
+    """How many of a campaign's iterations ran to the end (redeploy is the last stage)."""
+    [(count,)] = Catalog(workspace.catalog).query(
+        "SELECT coalesce(max(iteration) + 1, 0) FROM deployments WHERE campaign = ?", [campaign]
+    )
+    return count
+
+
 def _registered_version(client: MlflowClient, name: str, model_key: str) -> int | None:
     """A version already made for this model (a run killed after registering, before the catalog row)."""
     for version in client.search_model_versions(f"name = '{name}'"):

@@ -66,6 +66,17 @@ def sim2act_env(prefect_api: str) -> dict[str, str]:
     return {**os.environ, "PREFECT_API_URL": prefect_api}
 
 
+@pytest.fixture(scope="session")
+def finished_campaign(tmp_path_factory: pytest.TempPathFactory, prefect_api: str) -> tuple[Path, str, float]:
+    """One uninterrupted smoke campaign per test session -> (workspace, output, seconds). Tests that
+    change a workspace copy it first."""
+    from tests.campaign import run_campaign
+
+    workspace = tmp_path_factory.mktemp("campaign")
+    output, seconds = run_campaign(workspace, prefect_api)
+    return workspace, output, seconds
+
+
 @pytest.fixture
 def serve_chat():
     """serve_chat(*replies) -> a started ScriptedServer; a reply is content or (content, status, delay)."""

@@ -2,19 +2,15 @@
 shards in a DuckDB catalog, torch training, MLflow tracking and registry.
 
 One uninterrupted smoke campaign is the reference; a re-run must do no work; a campaign killed
-with SIGKILL during explore and again during train must finish with exactly the same rows.
+with SIGKILL in each stage in turn must finish with exactly the same rows.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
-import signal
 import subprocess
-import time
-from pathlib import Path
 
 import imageio.v2 as iio
 import pytest
@@ -25,58 +21,11 @@ from schemas.workspace import Workspace
 from stages.baselines import exploration_steps, rl_units
 from stages.generate_tasks import load_embeddings, load_tasks
 from stages.priority import plan_priorities
+from tests.campaign import run_campaign, snapshot
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 
 pytestmark = pytest.mark.timeout(900)
-
-ROW_COUNTS = """
-SELECT (SELECT count(*) FROM tasks), (SELECT count(*) FROM episodes), (SELECT count(*) FROM steps),
-       (SELECT count(*) FROM filter_decisions), (SELECT count(*) FROM evaluations), (SELECT count(*) FROM models),
-       (SELECT count(*) FROM deployments), (SELECT count(*) FROM stage_runs), (SELECT count(*) FROM shards),
-       (SELECT count(DISTINCT episode_id) FROM steps)
-"""
-
-
-def run_campaign(workspace: Path, prefect_api: str, kill_at: str | None = None) -> tuple[str, float]:
-    """Run `sim2act run --preset smoke`; with kill_at, SIGKILL the whole process group as soon
-    as a log line matches it. Returns (output, seconds)."""
-    started = time.monotonic()
-    process = subprocess.Popen(
-        [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace)],
-        env=sim2act_env(prefect_api), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True,
-    )
-    lines = []
-    for line in process.stdout:
-        lines.append(line)
-        if kill_at and re.search(kill_at, line):
-            os.killpg(process.pid, signal.SIGKILL)
-            break
-    process.wait(timeout=600)
-    output = "".join(lines)
-    if kill_at:
-        assert process.returncode == -signal.SIGKILL, output[-3000:]
-    else:
-        assert process.returncode == 0, output[-5000:]
-    return output, time.monotonic() - started
-
-
-def snapshot(workspace: Path) -> dict:
-    catalog = Catalog(Workspace.at(workspace).catalog)
-    return {
-        "counts": catalog.query(ROW_COUNTS)[0],
-        "episodes": catalog.query("SELECT episode_id, explorer, num_steps, episode_return FROM episodes ORDER BY 1"),
-        "digests": catalog.query("SELECT iteration, dataset_digest, triplets FROM iterations ORDER BY 1"),
-        "shards": catalog.query("SELECT path, sha256 FROM shards WHERE table_name <> 'instructions' ORDER BY 1"),
-    }
-
-
-@pytest.fixture(scope="module")
-def finished_campaign(tmp_path_factory, prefect_api):
-    workspace = tmp_path_factory.mktemp("campaign")
-    output, seconds = run_campaign(workspace, prefect_api)
-    return workspace, output, seconds
 
 
 def test_campaign_fills_the_warehouse(finished_campaign):
@@ -220,14 +169,33 @@ def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api)
     assert seconds < 0.5 * first_seconds, (seconds, first_seconds)
 
 
-def test_sigkill_during_explore_and_train_then_resume_gives_the_same_rows(finished_campaign, tmp_path, prefect_api):
+# Where each kill lands: inside generate_tasks (before it registers), explore, train and evaluate,
+# and at the seams where filter, index and redeploy start (those take a second or less).
+KILL_POINTS = (
+    r"generate_tasks: 3 tasks, \d+ instructions; embedding",
+    r"explore it0: 4/12 episodes",
+    r"filter it0: 6 shards",
+    r"index it0: dataset",
+    r"train it0: epoch 2/",
+    r"evaluate it0: 2/6 cases",
+    r"evaluate it0: promote",
+)
+
+
+def test_sigkill_in_every_stage_then_resume_gives_the_same_rows(finished_campaign, tmp_path, prefect_api):
+    """One workspace, killed (SIGKILL, the whole process group) once in or at the start of each
+    stage in turn; each run resumes where the last was killed; the end is the reference's rows."""
     reference, _, _ = finished_campaign
     workspace = tmp_path / "killed"
-    run_campaign(workspace, prefect_api, kill_at=r"explore it0: 4/12 episodes")
-    partial = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM episodes")[0][0]
-    assert 0 < partial < 12
-    output, _ = run_campaign(workspace, prefect_api, kill_at=r"train it0: epoch 2/")
-    assert re.search(r"explore it0: 6 shards \([1-5] already registered\)", output), output[-3000:]
+    outputs = []
+    for kill_at in KILL_POINTS:
+        output, _ = run_campaign(workspace, prefect_api, kill_at=kill_at)
+        outputs.append(output)
+        if kill_at.startswith("explore"):
+            partial = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM episodes")[0][0]
+            assert 0 < partial < 12
+    # the run after the explore kill kept the shards that were registered
+    assert re.search(r"explore it0: 6 shards \([1-5] already registered\)", outputs[2]), outputs[2][-3000:]
     run_campaign(workspace, prefect_api)
     assert snapshot(workspace) == snapshot(reference)
 

@@ -1,0 +1,78 @@
+"""The videos the page plays: the evaluation rollouts' MP4s in the workspace's media folder,
+and explored episodes drawn from the frames their steps store.
+
+Exploration writes no video, but every step keeps the frame the explorer saw, so an episode's
+video is those frames themselves, encoded once on first request (H.264, warehouse.video) into
+the server's own temporary folder: nothing is written into the workspace.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from dashboards.reads import episode_frames
+from schemas.frames import decode_frame
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog
+
+VIDEO_FPS = 20  # robosuite's and MetaWorld's control rate, as the evaluate stage's MP4s
+MIN_VIDEO_SIDE = 256  # 84 px frames are enlarged by whole pixels so the player does not blur them
+
+
+def media_file(workspace: Workspace, name: str) -> Path | None:
+    """The MP4 `name` names inside the workspace's media folder, or None: nothing outside it
+    (no `..`, no absolute path, no link out) and nothing but MP4s."""
+    folder = workspace.media.resolve()
+    path = (folder / name).resolve()
+    if path.suffix.lower() != ".mp4" or not path.is_relative_to(folder) or not path.is_file():
+        return None
+    return path
+
+
+def media_url(workspace: Workspace, stored: str | None) -> str | None:
+    """Where the page fetches a video the catalog names. The catalog stores the path it was written
+    at; a workspace copied or moved keeps its media folder, so the file name is what counts."""
+    if not stored or media_file(workspace, Path(stored).name) is None:
+        return None
+    return f"/media/{Path(stored).name}"
+
+
+def _enlarged(frame: np.ndarray) -> np.ndarray:
+    side = frame.shape[0]
+    factor = max(1, -(-MIN_VIDEO_SIDE // side))
+    factor += (side * factor) % 2  # yuv420p needs even sides
+    return frame.repeat(factor, axis=0).repeat(factor, axis=1) if factor > 1 else frame
+
+
+class EpisodeVideos:
+    """Explored episodes' MP4s, made from their stored frames on first request and kept."""
+
+    def __init__(self, catalog: Catalog, folder: Path):
+        self.catalog = catalog
+        self.folder = folder
+        self._lock = threading.Lock()  # two requests for one episode encode it once
+
+    def path(self, episode_id: str) -> Path | None:
+        """The episode's MP4, or None when it has no stored frames (unknown, failed, camera-less)."""
+        from warehouse.video import video_writer
+
+        path = self.folder / f"{hashlib.sha256(episode_id.encode()).hexdigest()[:24]}.mp4"
+        with self._lock:
+            if path.exists():
+                return path
+            frames = episode_frames(self.catalog, episode_id)
+            if not frames:
+                return None
+            partial = path.with_name(f".{path.name}.partial.mp4")
+            writer = video_writer(partial, fps=VIDEO_FPS)
+            try:
+                for blob in frames:
+                    writer.append_data(_enlarged(decode_frame(blob)))
+            finally:
+                writer.close()
+            partial.replace(path)
+            return path

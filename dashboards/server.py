@@ -1,0 +1,120 @@
+"""The dashboard's HTTP app: the page, its panels' rows, the episode browser and the videos.
+
+Every request reads the catalog afresh (read-only, briefly), so the page follows a campaign
+that is still running; the server writes nothing into the workspace.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import duckdb
+import uvicorn
+from fastapi import FastAPI, HTTPException
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+from dashboards import reads
+from dashboards.media import EpisodeVideos, media_file, media_url
+from dashboards.panels import PanelError, load_panels, run_panel
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog, CatalogMissing
+
+STATIC = Path(__file__).with_name("static")
+PAGE_SIZE = 50
+
+
+def create_app(workspace: Workspace) -> FastAPI:
+    catalog = Catalog(workspace.catalog)
+    panels = load_panels()
+    by_id = {panel.id: panel for panel in panels}
+    video_folder = tempfile.TemporaryDirectory(prefix="sim2act-dashboard-")
+    videos = EpisodeVideos(catalog, Path(video_folder.name))
+    app = FastAPI(title="Sim2Act dashboard", docs_url=None, redoc_url=None, openapi_url=None)
+    app.state.video_folder = video_folder  # removed when the app goes
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    def known_campaigns() -> tuple[list[str], str | None]:
+        """(campaigns, why there is nothing to show when there are none)."""
+        try:
+            found = reads.campaigns(catalog)
+        except CatalogMissing:
+            return [], f"No data yet: there is no warehouse at {workspace.warehouse}. Start a campaign with `sim2act run`."
+        except duckdb.CatalogException:  # created, its tables not yet
+            found = []
+        return found, None if found else "No data yet: the warehouse holds no campaign. Start one with `sim2act run`."
+
+    def campaign_of(requested: str | None) -> str:
+        found, message = known_campaigns()
+        if not found:
+            raise HTTPException(404, message)
+        if requested is None:
+            return found[0]
+        if requested not in found:
+            raise HTTPException(404, f"no campaign {requested!r} in the warehouse (it has {', '.join(found)})")
+        return requested
+
+    @app.get("/health")
+    def health() -> dict[str, Any]:
+        return {"status": "ok", "workspace": str(workspace.root), "catalog": workspace.catalog.exists()}
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    @app.get("/api/panels")
+    def panel_list() -> dict[str, Any]:
+        found, message = known_campaigns()
+        return {"campaigns": found, "message": message, "panels": [p.model_dump(exclude={"sql"}) for p in panels]}
+
+    @app.get("/api/panels/{panel_id}")
+    def panel_rows(panel_id: str, campaign: str | None = None) -> dict[str, Any]:
+        panel = by_id.get(panel_id)
+        if panel is None:
+            raise HTTPException(404, f"no panel {panel_id!r} (panels: {', '.join(by_id)})")
+        chosen = campaign_of(campaign)
+        try:
+            rows = run_panel(catalog, panel, chosen)
+        except (PanelError, duckdb.Error) as exc:
+            raise HTTPException(500, f"panel {panel_id}: {str(exc).splitlines()[0]}") from None
+        return {"id": panel.id, "campaign": chosen, "columns": rows.columns, "rows": rows.rows}
+
+    @app.get("/api/episodes")
+    def episode_page(campaign: str | None = None, iteration: int | None = None, task: str | None = None,
+                     explorer: str | None = None, reason: str | None = None, offset: int = 0,
+                     limit: int = PAGE_SIZE) -> dict[str, Any]:
+        query = reads.EpisodeQuery(campaign_of(campaign), iteration, task or None, explorer or None, reason or None)
+        total, rows = reads.episodes(catalog, query, max(0, offset), min(max(1, limit), 500))
+        return {"campaign": query.campaign, "total": total, "offset": offset, "rows": rows.rows,
+                "choices": reads.episode_choices(catalog, query.campaign)}
+
+    @app.get("/api/episodes/{episode_id}/video")
+    def episode_video(episode_id: str) -> FileResponse:
+        path = videos.path(episode_id)
+        if path is None:
+            raise HTTPException(404, f"episode {episode_id!r} has no stored frames")
+        return FileResponse(path, media_type="video/mp4")
+
+    @app.get("/api/evaluations")
+    def evaluations(task: str, campaign: str | None = None) -> dict[str, Any]:
+        rows = reads.task_evaluations(catalog, campaign_of(campaign), task).rows
+        return {"rows": [{**{k: v for k, v in row.items() if not k.endswith("_video")},
+                          "success_url": media_url(workspace, row["success_video"]),
+                          "failure_url": media_url(workspace, row["failure_video"])} for row in rows]}
+
+    @app.get("/media/{name:path}")
+    def media(name: str) -> FileResponse:
+        path = media_file(workspace, name)
+        if path is None:
+            raise HTTPException(404, f"no video {name!r} in the workspace's media folder")
+        return FileResponse(path, media_type="video/mp4")
+
+    return app
+
+
+def serve(workspace: Workspace, host: str = "127.0.0.1", port: int = 8765) -> None:
+    """Serve the dashboard over the workspace's warehouse until interrupted (blocking)."""
+    Catalog(workspace.catalog).check_version()  # a warehouse of another layout: refused before serving
+    uvicorn.run(create_app(workspace), host=host, port=port, log_level="warning")

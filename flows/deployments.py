@@ -1,0 +1,55 @@
+"""The bootstrap flow's two deployments, served from one process that `sim2act up` starts:
+
+- `bootstrap/on-demand`: run from the UI's form or `prefect deployment run 'bootstrap/on-demand'`;
+- `bootstrap/nightly`: on a cron schedule, one iteration past the campaign's latest finished one.
+
+Both default to the campaign config `sim2act up` was given, in its workspace. Flow runs execute
+one at a time (`limit=1`): a second run on the same workspace waits for the first.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from prefect import serve
+from prefect.client.schemas.schedules import CronSchedule
+from prefect.deployments.runner import EntrypointType, RunnerDeployment
+
+from flows.bootstrap import bootstrap
+from schemas.config import CampaignConfig
+from schemas.service import ServiceConfig
+from schemas.workspace import Workspace
+
+ON_DEMAND, NIGHTLY = "on-demand", "nightly"
+
+
+def build_deployments(config: CampaignConfig, workspace: Workspace, service: ServiceConfig) -> list[RunnerDeployment]:
+    parameters = {"config": config.model_dump(mode="json"), "workspace": str(workspace.root)}
+    # Module path, not file path: the runner imports `flows.bootstrap` whatever its working folder.
+    common = {"entrypoint_type": EntrypointType.MODULE_PATH, "tags": ["sim2act", config.name]}
+    return [
+        bootstrap.to_deployment(
+            name=ON_DEMAND, parameters=parameters, description="a bootstrap campaign, run when asked", **common,
+        ),
+        bootstrap.to_deployment(
+            name=NIGHTLY, parameters={**parameters, "continue_campaign": True},
+            schedules=[CronSchedule(cron=service.nightly_cron, timezone=service.timezone)],
+            description=f"one more iteration of {config.name!r}, {service.nightly_cron} ({service.timezone})",
+            **common,
+        ),
+    ]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m flows.deployments", description=__doc__.splitlines()[0])
+    parser.add_argument("--workspace", required=True)
+    parser.add_argument("--service", required=True, help="ServiceConfig as JSON")
+    args = parser.parse_args(argv)
+    workspace = Workspace.at(args.workspace)
+    config = CampaignConfig.model_validate_json(workspace.deployment_config.read_text())
+    service = ServiceConfig.model_validate_json(args.service)
+    serve(*build_deployments(config, workspace, service), limit=1, print_starting_message=True)
+
+
+if __name__ == "__main__":
+    main()

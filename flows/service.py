@@ -1,0 +1,191 @@
+"""The local stack behind `sim2act up / down / status`: a Prefect server and an MLflow server on
+the workspace's own SQLite databases (the ones the embedded default writes), the dashboard, and
+the process serving the bootstrap deployments. Loopback ports; one record file says what runs.
+
+Each process runs in its own session, so `down` stops it with everything it started.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+from schemas.config import CampaignConfig
+from schemas.service import HOST, ServiceConfig
+from schemas.workspace import Workspace, write_text_atomically
+
+STARTUP_TIMEOUT_S = 180.0  # a first Prefect start migrates its database: ~10-40 s on 2 cores
+STOP_TIMEOUT_S = 20.0
+# CLI runs and the served flows find the running stack through these.
+PREFECT_API_ENV, MLFLOW_UI_ENV = "PREFECT_API_URL", "SIM2ACT_MLFLOW_UI"
+
+
+class ServiceError(RuntimeError):
+    pass
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    name: str
+    command: list[str]
+    env: dict[str, str]
+    health_url: str  # answers 200 once the process is ready
+    url: str  # what the user opens
+
+
+def _bin(name: str) -> str:
+    return str(Path(sys.executable).with_name(name))
+
+
+def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
+    """In start order: the deployments' process needs the Prefect server up."""
+    base = {k: v for k, v in os.environ.items() if k != PREFECT_API_ENV}
+    prefect, mlflow, dashboard = (service.url(s) for s in ("prefect", "mlflow", "dashboard"))
+    linked = {**base, PREFECT_API_ENV: f"{prefect}/api", MLFLOW_UI_ENV: mlflow}
+    return [
+        ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
+                    base, f"{prefect}/api/health", prefect),
+        ProcessSpec("mlflow", [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port),
+                               "--backend-store-uri", workspace.tracking_uri,
+                               "--default-artifact-root", workspace.artifact_root.as_uri(), "--workers", "1"],
+                    base, f"{mlflow}/health", mlflow),
+        ProcessSpec("dashboard", [_bin("sim2act"), "dashboard", "--workspace", str(workspace.root),
+                                  "--host", HOST, "--port", str(service.dashboard_port)],
+                    linked, f"{dashboard}/health", dashboard),
+        ProcessSpec("deployments", [sys.executable, "-m", "flows.deployments", "--workspace", str(workspace.root),
+                                    "--service", service.model_dump_json()],
+                    linked, f"{prefect}/api/deployments/name/bootstrap/nightly", f"{prefect}/deployments"),
+    ]
+
+
+def answers(url: str, timeout: float = 2.0) -> bool:
+    try:
+        with urllib.request.urlopen(url, timeout=timeout) as response:
+            return response.status == 200
+    except OSError:
+        return False
+
+
+def is_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    # A zombie still answers kill(0): it has exited, its parent has not reaped it.
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[-1][0] != "Z"
+    except OSError:
+        return True
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers bind: TIME_WAIT is no conflict
+        try:
+            sock.bind((HOST, port))
+        except OSError:
+            return False
+    return True
+
+
+def read_state(workspace: Workspace) -> dict:
+    path = workspace.service_state
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def process_status(workspace: Workspace) -> list[dict]:
+    """Each recorded process: name, pid, url, log, and state up / unhealthy / exited."""
+    rows = []
+    for name, record in read_state(workspace).get("processes", {}).items():
+        state = "exited" if not is_alive(record["pid"]) else "up" if answers(record["health_url"]) else "unhealthy"
+        rows.append({"name": name, **record, "state": state})
+    return rows
+
+
+def running_urls(workspace: Workspace) -> dict[str, str]:
+    """The env a CLI run needs to report to the running stack; empty when it is not up."""
+    up = {row["name"]: row for row in process_status(workspace) if row["state"] == "up"}
+    if "prefect" not in up or "mlflow" not in up:
+        return {}
+    return {PREFECT_API_ENV: f"{up['prefect']['url']}/api", MLFLOW_UI_ENV: up["mlflow"]["url"]}
+
+
+def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while not answers(spec.health_url):
+        if process.poll() is not None or time.monotonic() > deadline:
+            why = f"exited with {process.returncode}" if process.poll() is not None else "did not answer in time"
+            tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:])
+            raise ServiceError(f"{spec.name} {why} ({spec.health_url}); the end of {log}:\n{tail}")
+        time.sleep(0.5)
+
+
+def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, on_ready=print) -> list[dict]:
+    """Start what is not running, wait until each answers its health check; -> process_status.
+    `campaign` is the deployments' default. A failed start stops what this call started, so
+    nothing is left half up."""
+    running = {row["name"] for row in process_status(workspace) if row["state"] != "exited"}
+    specs = [spec for spec in stack(workspace, service) if spec.name not in running]
+    taken = [f"{spec.name} port {spec.url.rsplit(':', 1)[1]}" for spec in specs
+             if spec.name != "deployments" and not _port_free(int(spec.url.rsplit(":", 1)[1]))]
+    if taken:
+        raise ServiceError(f"in use by another program: {', '.join(taken)}; choose others (sim2act up --help)")
+    workspace.service.mkdir(parents=True, exist_ok=True)
+    write_text_atomically(workspace.deployment_config, campaign.model_dump_json(indent=1))
+    state = read_state(workspace) or {"service": service.model_dump(), "processes": {}}
+    started: list[str] = []
+    try:
+        for spec in specs:
+            log = workspace.service_log(spec.name)
+            with log.open("a") as out:
+                process = subprocess.Popen(spec.command, env=spec.env, stdout=out, stderr=subprocess.STDOUT,
+                                           stdin=subprocess.DEVNULL, start_new_session=True)
+            started.append(spec.name)
+            state["processes"][spec.name] = {"pid": process.pid, "url": spec.url, "health_url": spec.health_url,
+                                             "log": str(log)}
+            write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
+            _wait_healthy(spec, process, log)
+            on_ready(f"{spec.name:<12} {spec.url}")
+    except BaseException:
+        down(workspace, only=started)
+        raise
+    return process_status(workspace)
+
+
+def _stop(pid: int) -> None:
+    try:
+        os.killpg(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    while is_alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if is_alive(pid):
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def down(workspace: Workspace, only: list[str] | None = None) -> list[str]:
+    """Stop the recorded processes (the last started first); -> the names stopped."""
+    state = read_state(workspace)
+    processes = state.get("processes", {})
+    names = [name for name in reversed(list(processes)) if only is None or name in only]
+    for name in names:
+        _stop(processes.pop(name)["pid"])
+    if processes:
+        write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
+    elif workspace.service_state.exists():
+        workspace.service_state.unlink()
+    return names

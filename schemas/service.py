@@ -1,0 +1,58 @@
+"""The local stack's settings (`sim2act up`): ports, and the nightly deployment's schedule. The
+campaign the deployments run by default is a CampaignConfig, given as `sim2act run` takes it.
+
+One model, validated before any process starts: a bad port or cron line costs one line.
+"""
+
+from __future__ import annotations
+
+from zoneinfo import available_timezones
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+# Loopback only: the stack has no authentication; reaching it from elsewhere is a deliberate
+# choice made with a reverse proxy (docs/service.md), not a flag.
+HOST = "127.0.0.1"
+SERVICES = ("prefect", "mlflow", "dashboard", "deployments")
+
+
+class ServiceConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    prefect_port: int = Field(default=4200, ge=1024, le=65535)
+    mlflow_port: int = Field(default=5000, ge=1024, le=65535)
+    dashboard_port: int = Field(default=8765, ge=1024, le=65535)
+    nightly_cron: str = Field(default="0 2 * * *", description="when the nightly iteration starts (cron, 5 fields)")
+    timezone: str = Field(default="UTC", description="IANA name, e.g. Europe/Berlin")
+
+    @field_validator("nightly_cron")
+    @classmethod
+    def _cron(cls, value: str) -> str:
+        from prefect.client.schemas.schedules import CronSchedule  # Prefect's own rules, so the server agrees
+
+        try:
+            valid = CronSchedule(cron=value) is not None and len(value.split()) == 5
+        except ValueError:
+            valid = False
+        if not valid:
+            raise ValueError("not a 5-field cron line (e.g. '0 2 * * *': every day at 02:00)")
+        return value
+
+    @field_validator("timezone")
+    @classmethod
+    def _timezone(cls, value: str) -> str:
+        if value not in available_timezones():
+            raise ValueError(f"unknown timezone {value!r} (an IANA name such as UTC or Europe/Berlin)")
+        return value
+
+    @field_validator("dashboard_port")
+    @classmethod
+    def _distinct(cls, value: int, info) -> int:
+        taken = {info.data.get("prefect_port"), info.data.get("mlflow_port")}
+        if value in taken or info.data.get("prefect_port") == info.data.get("mlflow_port"):
+            raise ValueError("the three ports must differ")
+        return value
+
+    def url(self, service: str) -> str:
+        port = {"prefect": self.prefect_port, "mlflow": self.mlflow_port, "dashboard": self.dashboard_port}[service]
+        return f"http://{HOST}:{port}"

@@ -1,0 +1,56 @@
+"""A real smoke campaign through the CLI, for tests that need a finished workspace: run it
+(optionally SIGKILLed when a log line matches), and snapshot its rows and digests."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+from schemas.workspace import Workspace
+from tests.conftest import SIM2ACT, sim2act_env
+from warehouse.catalog import Catalog
+
+ROW_COUNTS = """
+SELECT (SELECT count(*) FROM tasks), (SELECT count(*) FROM episodes), (SELECT count(*) FROM steps),
+       (SELECT count(*) FROM filter_decisions), (SELECT count(*) FROM evaluations), (SELECT count(*) FROM models),
+       (SELECT count(*) FROM deployments), (SELECT count(*) FROM stage_runs), (SELECT count(*) FROM shards),
+       (SELECT count(DISTINCT episode_id) FROM steps)
+"""
+
+
+def run_campaign(workspace: Path, prefect_api: str, kill_at: str | None = None) -> tuple[str, float]:
+    """Run `sim2act run --preset smoke`; with kill_at, SIGKILL the whole process group as soon
+    as a log line matches it. Returns (output, seconds)."""
+    started = time.monotonic()
+    process = subprocess.Popen(
+        [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace)],
+        env=sim2act_env(prefect_api), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True,
+    )
+    lines = []
+    for line in process.stdout:
+        lines.append(line)
+        if kill_at and re.search(kill_at, line):
+            os.killpg(process.pid, signal.SIGKILL)
+            break
+    process.wait(timeout=600)
+    output = "".join(lines)
+    if kill_at:
+        assert process.returncode == -signal.SIGKILL, output[-3000:]
+    else:
+        assert process.returncode == 0, output[-5000:]
+    return output, time.monotonic() - started
+
+
+def snapshot(workspace: Path) -> dict:
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    return {
+        "counts": catalog.query(ROW_COUNTS)[0],
+        "episodes": catalog.query("SELECT episode_id, explorer, num_steps, episode_return FROM episodes ORDER BY 1"),
+        "digests": catalog.query("SELECT iteration, dataset_digest, triplets FROM iterations ORDER BY 1"),
+        "shards": catalog.query("SELECT path, sha256 FROM shards WHERE table_name <> 'instructions' ORDER BY 1"),
+    }

@@ -1,0 +1,233 @@
+"""The dashboard: its panel file, its refusals, and the page itself in headless Chromium over a
+finished smoke campaign (charts drawn from the rows, the per-task table, videos that play)."""
+
+from __future__ import annotations
+
+import http.client
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import uvicorn
+
+from dashboards.panels import PanelError, load_panels
+from dashboards.server import create_app
+from schemas.workspace import Workspace
+from tests.conftest import SIM2ACT, _free_port
+from warehouse.catalog import Catalog
+
+CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
+
+
+@contextmanager
+def serving(workspace: Workspace) -> Iterator[int]:
+    """The dashboard app on a free local port, in a thread, for the duration -> the port."""
+    server = uvicorn.Server(uvicorn.Config(create_app(workspace), host="127.0.0.1", port=0, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "the dashboard did not start"
+        time.sleep(0.05)
+    try:
+        yield server.servers[0].sockets[0].getsockname()[1]
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+
+
+def get(port: int, path: str) -> tuple[int, bytes]:
+    """A request sent with its path exactly as written (no client-side `..` clean-up)."""
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    connection.request("GET", path)
+    response = connection.getresponse()
+    return response.status, response.read()
+
+
+# -- panels.yaml --------------------------------------------------------------------------
+
+
+def test_the_panel_file_validates():
+    panels = load_panels()
+    assert [p.id for p in panels][:2] == ["success_by_iteration", "filter_pass_rates"]
+    kinds = {p.id: p.kind for p in panels}
+    assert kinds["per_task"] == "table" and kinds["success_by_iteration"] == "line"
+    assert {"episodes_by_iteration", "episodes_by_family", "episodes_by_task"} <= set(kinds)
+    assert all(p.parameters <= {"campaign"} for p in panels)
+
+
+@pytest.mark.parametrize("panel, message", [
+    ("{id: wipe, title: Wipe, kind: table, sql: 'DELETE FROM episodes'}",
+     "panel wipe: the warehouse is read-only here: DELETE statements are refused (use SELECT)"),
+    ("{id: copy, title: Copy, kind: table, sql: \"COPY episodes TO '/tmp/x.csv'\"}",
+     "panel copy: the warehouse is read-only here: COPY statements are refused"),
+    ("{id: odd, title: Odd, kind: table, sql: 'SELECT * FROM episodes WHERE task_id = $task'}",
+     "panel odd: unknown SQL parameter(s) task"),
+    ("{id: flat, title: Flat, kind: line, x: iteration, sql: 'SELECT 1 AS iteration'}",
+     "panel flat: a line chart needs x and y columns"),
+    ("{id: pie, title: Pie, kind: pie, sql: 'SELECT 1'}", "panel pie: kind: Input should be 'line', 'bar' or 'table'"),
+])
+def test_a_bad_panel_is_refused_naming_it(tmp_path, panel, message):
+    path = tmp_path / "panels.yaml"
+    path.write_text(f"panels:\n  - {panel}\n")
+    with pytest.raises(PanelError) as refused:
+        load_panels(path)
+    assert message in str(refused.value) and str(path) in str(refused.value)
+
+
+# -- the server alone ---------------------------------------------------------------------
+
+
+def test_media_serves_the_media_folder_only(tmp_path):
+    workspace = Workspace.at(tmp_path / "ws").create()
+    (workspace.media / "evaluate-x-success.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(100))
+    (workspace.root / "secret.mp4").write_bytes(b"not for the page")
+    (workspace.media / "link.mp4").symlink_to(workspace.root / "secret.mp4")
+    (workspace.media / "notes.txt").write_text("not a video")
+    with serving(workspace) as port:
+        status, body = get(port, "/media/evaluate-x-success.mp4")
+        assert status == 200 and body.startswith(b"\x00\x00\x00\x18ftyp")
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        connection.request("GET", "/media/evaluate-x-success.mp4", headers={"Range": "bytes=4-7"})
+        response = connection.getresponse()
+        assert response.status == 206 and response.read() == b"ftyp"  # what <video> asks for
+        for path in ("/media/../secret.mp4", "/media/..%2Fsecret.mp4", "/media/%2e%2e/secret.mp4",
+                     f"/media/{workspace.root}/secret.mp4", "/media/link.mp4", "/media/notes.txt",
+                     "/media/../warehouse/catalog.duckdb", "/media/missing.mp4"):
+            status, body = get(port, path)
+            assert status == 404 and b"not for the page" not in body, path
+
+
+def test_an_empty_workspace_says_so(tmp_path):
+    workspace = Workspace.at(tmp_path / "ws")
+    with serving(workspace) as port:
+        status, _ = get(port, "/health")
+        assert status == 200
+        status, body = get(port, "/api/panels")
+        assert status == 200 and b'"campaigns":[]' in body and b"No data yet" in body
+        Catalog(workspace.catalog).initialise()  # a warehouse with nothing in it yet
+        status, body = get(port, "/api/panels")
+        assert status == 200 and b'"campaigns":[]' in body and b"holds no campaign" in body
+        status, _ = get(port, "/api/panels/per_task")
+        assert status == 404
+
+
+# -- the page in Chromium -----------------------------------------------------------------
+
+
+def _direct_rows(catalog: Catalog, sql: str, campaign: str) -> int:
+    """A panel's row count with its SQL run straight on the catalog, not through the dashboard."""
+    with catalog.connect(read_only=True) as con:
+        return len(con.execute(sql, {"campaign": campaign}).fetchall())
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"no {CHROMIUM}: `apt-get install chromium` (scripts/setup.sh does it as root)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+        yield chromium
+        chromium.close()
+
+
+def open_page(browser, url: str):
+    """A page at `url` and the console errors and uncaught exceptions it has shown."""
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    errors: list[str] = []
+    page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto(url)
+    page.wait_for_selector("body[data-ready=true]", state="attached", timeout=30_000)
+    return page, errors
+
+
+def wait_playing(page, timeout_ms: int = 20_000) -> dict:
+    """Play the player and wait until it has decoded frames and its time advances."""
+    page.wait_for_function("document.getElementById('player').readyState >= 2", timeout=timeout_ms)
+    page.evaluate("document.getElementById('player').play()")
+    page.wait_for_function("document.getElementById('player').currentTime > 0", timeout=timeout_ms)
+    return page.evaluate("(({currentSrc, currentTime, readyState, videoWidth, error}) => "
+                         "({src: currentSrc, time: currentTime, ready: readyState, width: videoWidth, error}))"
+                         "(document.getElementById('player'))")
+
+
+def test_the_page_over_a_finished_campaign(finished_campaign, browser, tmp_path):
+    workspace = Workspace.at(finished_campaign[0])
+    catalog = Catalog(workspace.catalog)
+    shots = tmp_path / "screenshots"
+    shots.mkdir()
+    with serving(workspace) as port:
+        page, errors = open_page(browser, f"http://127.0.0.1:{port}/")
+        page.wait_for_function("[...document.querySelectorAll('section[data-panel]')]"
+                               ".every(s => s.dataset.state === 'ready')", timeout=30_000)
+        page.wait_for_selector("#browser[data-state=ready]", state="attached", timeout=30_000)
+        page.screenshot(path=shots / "overview.png", full_page=True)
+
+        assert page.text_content("#campaign-name") == "campaign smoke"
+        for panel in load_panels():
+            rows = _direct_rows(catalog, panel.sql, "smoke")
+            section = page.locator(f"section[data-panel={panel.id}]")
+            assert rows > 0, f"{panel.id}: the smoke campaign gives it no rows"
+            drawn = {"line": "svg .point", "bar": "svg .bar", "table": "tbody tr"}[panel.kind]
+            assert section.locator(drawn).count() == rows, panel.id
+            if panel.kind == "line" and panel.low:
+                assert section.locator("svg .interval").count() == rows  # every point has its Wilson interval
+
+        # the per-task table: one row per task of the campaign, the task first
+        tasks = [row[0] for row in catalog.query("SELECT DISTINCT task_id FROM tasks WHERE campaign = 'smoke'")]
+        cells = page.locator("section[data-panel=per_task] tbody tr td:first-child").all_text_contents()
+        assert sorted(cells) == sorted(tasks)
+
+        # the episode browser lists the episodes and plays the first one, drawn from its stored frames
+        episodes = catalog.query("SELECT count(*) FROM episodes WHERE campaign = 'smoke'")[0][0]
+        assert page.locator("#episodes tbody tr").count() == min(episodes, 50)
+        assert page.text_content("#page-info").endswith(f"of {episodes}")
+        first = page.get_attribute("#episodes tbody tr.selected", "data-episode")
+        instruction = catalog.query("SELECT instruction FROM episodes WHERE episode_id = ?", [first])[0][0]
+        assert instruction in page.text_content("#episode-info")
+        played = wait_playing(page)
+        assert played["src"].endswith(f"/api/episodes/{first}/video") and played["width"] >= 256, played
+        page.locator("#browser").screenshot(path=shots / "episode.png")
+
+        # an evaluation rollout of the same task: the evaluate stage's own MP4 from the media folder
+        page.locator("#rollouts button[data-video]").first.click()
+        played = wait_playing(page)
+        assert "/media/evaluate-" in played["src"] and played["error"] is None, played
+        page.locator("#browser").screenshot(path=shots / "rollout.png")
+        assert errors == [], errors
+    print(f"screenshots: {shots}")
+
+
+def test_the_page_without_data_says_so(browser, tmp_path):
+    with serving(Workspace.at(tmp_path / "empty")) as port:
+        page, errors = open_page(browser, f"http://127.0.0.1:{port}/")
+        assert page.is_visible("#message") and "No data yet" in page.text_content("#message")
+        assert page.locator("section[data-panel]").count() == 0 and page.is_hidden("#browser")
+        assert errors == [], errors
+
+
+def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
+    """The entry point `sim2act up` runs: a process that answers /health."""
+    port = _free_port()
+    process = subprocess.Popen([SIM2ACT, "dashboard", "--workspace", str(tmp_path), "--port", str(port)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                status, body = get(port, "/health")
+                break
+            except OSError:
+                assert process.poll() is None and time.monotonic() < deadline, process.stdout.read()
+                time.sleep(0.2)
+        assert status == 200 and b'"status":"ok"' in body
+    finally:
+        process.terminate()
+        process.wait(timeout=30)

@@ -1,0 +1,51 @@
+"""Two runs on one workspace: the second is refused in one line naming the first, and writes
+nothing; the lock goes with its holder, however it ends."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from flows.run_lock import WorkspaceBusy, exclusive_run
+from schemas.workspace import Workspace
+from tests.conftest import SIM2ACT, sim2act_env
+
+
+def test_a_second_run_on_a_busy_workspace_is_refused_and_writes_nothing(tmp_path, prefect_api):
+    workspace = Workspace.at(tmp_path / "workspace")
+    with exclusive_run(workspace, "first"):
+        second = subprocess.run([SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace.root)],
+                                env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=300)
+        assert second.returncode == 2, second.stdout[-2000:] + second.stderr[-2000:]
+        [line] = [line for line in second.stderr.splitlines() if line.startswith("sim2act:")]
+        assert f"workspace {workspace.root} is in use by another run" in line
+        holder = json.loads(line[line.index("{"):line.index("}") + 1])
+        assert holder["campaign"] == "first" and holder["pid"] == os.getpid()
+        assert not workspace.catalog.exists() and not any(workspace.shards.rglob("*.parquet"))
+        with pytest.raises(WorkspaceBusy):  # the same holds within one process
+            with exclusive_run(workspace, "again"):
+                pass
+    with exclusive_run(workspace, "after"):  # released on exit
+        assert json.loads(workspace.run_lock.read_text())["campaign"] == "after"
+
+
+def test_a_killed_holder_leaves_the_workspace_free(tmp_path):
+    workspace = Workspace.at(tmp_path / "workspace")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom flows.run_lock import exclusive_run\n"
+         "from schemas.workspace import Workspace\n"
+         f"with exclusive_run(Workspace.at({str(workspace.root)!r}), 'held'):\n"
+         "    print('held', flush=True); time.sleep(600)"],
+        stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(WorkspaceBusy, match="held"):
+        with exclusive_run(workspace, "second"):
+            pass
+    holder.kill()
+    holder.wait()
+    with exclusive_run(workspace, "second"):
+        pass

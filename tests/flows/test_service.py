@@ -1,0 +1,137 @@
+"""The local stack for real: `sim2act up` starts a Prefect server, an MLflow server, the dashboard
+and the deployments' serve process over a finished smoke campaign; the nightly deployment is
+triggered from Prefect's CLI and continues the campaign; a bad parameter sent through the API is
+refused with its field named; `sim2act down` stops everything."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from flows.service import answers, is_alive
+from schemas.workspace import Workspace
+from tests.conftest import SIM2ACT, _free_port
+from warehouse.catalog import Catalog
+
+pytestmark = pytest.mark.timeout(900)
+PREFECT = str(Path(sys.executable).with_name("prefect"))
+
+
+def sim2act(*args: str, env: dict[str, str] | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([SIM2ACT, *args], capture_output=True, text=True, timeout=timeout,
+                          env={k: v for k, v in (env or os.environ).items() if k != "PREFECT_API_URL"})
+
+
+def get_json(url: str) -> dict:
+    with urllib.request.urlopen(url, timeout=10) as response:
+        return json.loads(response.read())
+
+
+def post_json(url: str, body: dict) -> tuple[int, dict]:
+    request = urllib.request.Request(url, json.dumps(body).encode(), {"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read() or b"{}")
+
+
+@pytest.fixture(scope="module")
+def stack(finished_campaign, tmp_path_factory):
+    workspace = tmp_path_factory.mktemp("stack") / "workspace"  # a copy: the nightly run adds an iteration
+    shutil.copytree(finished_campaign[0], workspace)
+    ports = {"prefect": _free_port(), "mlflow": _free_port(), "dashboard": _free_port()}
+    started = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "30 3 * * *",
+                      "--timezone", "Europe/Berlin", *(f"--{name}-port={port}" for name, port in ports.items()))
+    try:
+        assert started.returncode == 0, started.stdout[-3000:] + started.stderr[-3000:]
+        yield workspace, {name: f"http://127.0.0.1:{port}" for name, port in ports.items()}
+    finally:
+        stopped = sim2act("down", "--workspace", str(workspace))
+        assert stopped.returncode == 0, stopped.stderr
+
+
+def test_up_starts_every_service_and_status_reports_them(stack):
+    workspace, urls = stack
+    status = sim2act("status", "--workspace", str(workspace))
+    assert status.returncode == 0, status.stdout + status.stderr
+    lines = status.stdout.splitlines()
+    assert [line.split()[:2] for line in lines] == [[name, "up"] for name in ("prefect", "mlflow", "dashboard",
+                                                                               "deployments")]
+    assert get_json(f"{urls['prefect']}/api/health") is True
+    # the MLflow server reads the workspace's own tracking database: the campaign's runs are there
+    runs = post_json(f"{urls['mlflow']}/api/2.0/mlflow/runs/search", {"experiment_ids": ["1"], "max_results": 50})[1]
+    assert {run["info"]["run_name"] for run in runs["runs"]} >= {"smoke", "smoke-iteration-0", "smoke-iteration-1"}
+    nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
+    [schedule] = nightly["schedules"]
+    assert schedule["schedule"]["cron"] == "30 3 * * *" and schedule["schedule"]["timezone"] == "Europe/Berlin"
+    assert nightly["parameters"]["continue_campaign"] is True
+    assert nightly["parameters"]["workspace"] == str(Workspace.at(workspace).root)
+    # the typed form: the config's fields, nested, with their types and bounds
+    schema = nightly["parameter_openapi_schema"]
+    assert schema["definitions"]["TrainConfig"]["properties"]["lr"]["type"] == "number"
+
+
+def test_a_bad_parameter_through_the_api_is_refused_with_its_field_named(stack):
+    workspace, urls = stack
+    deployment = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/on-demand")
+    before = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM stage_runs")
+    status, body = post_json(f"{urls['prefect']}/api/deployments/{deployment['id']}/create_flow_run",
+                             {"parameters": {"config": {"train": {"lr": "fast"}}}})
+    assert status == 409, body
+    assert "lr" in body["detail"] and "fast" in body["detail"], body
+    assert Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM stage_runs") == before
+
+
+def test_the_nightly_deployment_continues_the_campaign(stack):
+    workspace, urls = stack
+    env = {**os.environ, "PREFECT_API_URL": f"{urls['prefect']}/api"}
+    triggered = subprocess.run([PREFECT, "deployment", "run", "bootstrap/nightly", "--watch"], env=env,
+                               capture_output=True, text=True, timeout=800)
+    assert triggered.returncode == 0, triggered.stdout[-3000:] + triggered.stderr[-3000:]
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    assert catalog.query("SELECT iteration FROM deployments ORDER BY 1") == [(0,), (1,), (2,)]
+    status, runs = post_json(f"{urls['prefect']}/api/flow_runs/filter",
+                             {"flow_runs": {"name": {"any_": ["smoke-iteration-2"]}}})
+    assert status == 200 and [run["state_type"] for run in runs] == ["COMPLETED"]
+    # its artifacts: every stage's summary, success per task, the link to the MLflow run
+    status, artifacts = post_json(f"{urls['prefect']}/api/artifacts/filter",
+                                  {"artifacts": {"flow_run_id": {"any_": [runs[0]["id"]]}}})
+    by_key = {a["key"]: a for a in artifacts}
+    assert {"smoke-iteration-2-summary", "smoke-iteration-2-success", "smoke-iteration-2-mlflow"} <= set(by_key)
+    summary = by_key["smoke-iteration-2-summary"]["data"]
+    assert "# smoke, iteration 2" in summary and all(f"| {stage} |" in summary for stage in (
+        "generate_tasks", "explore", "filter", "index", "train", "evaluate", "redeploy"))
+    table = json.loads(by_key["smoke-iteration-2-success"]["data"])
+    tasks = catalog.query("SELECT count(*) FROM evaluations WHERE iteration = 2 AND suite = 'campaign'")[0][0]
+    assert len(table) == tasks and {"task", "split", "success", "wilson_95"} <= set(table[0])
+    [link] = re.findall(r"\]\((http[^)]+)\)", by_key["smoke-iteration-2-mlflow"]["data"])
+    assert link.startswith(f"{urls['mlflow']}/#/experiments/")
+    # the link opens: the MLflow run exists on that server
+    run_id = link.rsplit("/", 1)[1]
+    assert get_json(f"{urls['mlflow']}/api/2.0/mlflow/runs/get?run_id={run_id}")["run"]["info"]["run_name"] == \
+        "smoke-iteration-2"
+
+
+def test_down_stops_every_process(stack):
+    """Last in this module: the fixture's own `down` then finds nothing to stop."""
+    workspace, urls = stack
+    pids = [p["pid"] for p in json.loads(Workspace.at(workspace).service_state.read_text())["processes"].values()]
+    stopped = sim2act("down", "--workspace", str(workspace))
+    assert stopped.returncode == 0 and "stopped deployments, dashboard, mlflow, prefect" in stopped.stdout
+    # each process led its own session: nothing it started (Prefect's API worker, MLflow's job
+    # consumers, flow-run subprocesses) outlives it
+    groups = subprocess.run(["ps", "-eo", "pgid=,stat="], capture_output=True, text=True).stdout.split("\n")
+    assert not [line for line in groups if line.split() and int(line.split()[0]) in pids and "Z" not in line.split()[1]]
+    assert not any(is_alive(pid) for pid in pids)
+    assert not any(answers(f"{url}/") for url in urls.values())
+    status = sim2act("status", "--workspace", str(workspace))
+    assert status.returncode == 1 and "not up" in status.stdout
