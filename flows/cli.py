@@ -625,11 +625,12 @@ def main(argv: list[str] | None = None) -> int:
         from stages.replay import ReplayError
         from warehouse.catalog import CatalogMissing, CatalogVersionError
         from warehouse.export_lerobot import ExportError
+        from warehouse.shard_writer import DiskFull
         from warehouse.sql import ReadOnlyViolation
         from warehouse.training_reader import SelectionError
 
         if isinstance(exc, (CatalogMissing, CatalogVersionError, ReadOnlyViolation, ExportError, ReplayError,
-                            SelectionError, ServiceError, PanelError, WorkspaceBusy)):
+                            SelectionError, ServiceError, PanelError, WorkspaceBusy, DiskFull)):
             print(f"sim2act: {exc}", file=sys.stderr)
             return 2
         raise

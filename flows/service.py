@@ -51,8 +51,9 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
     prefect, mlflow, dashboard = (service.url(s) for s in ("prefect", "mlflow", "dashboard"))
     linked = {**base, PREFECT_API_ENV: f"{prefect}/api", MLFLOW_UI_ENV: mlflow}
     return [
+        # The UI asks its API at PREFECT_UI_API_URL, which otherwise assumes port 4200.
         ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
-                    base, f"{prefect}/api/health", prefect),
+                    {**base, "PREFECT_UI_API_URL": f"{prefect}/api"}, f"{prefect}/api/health", prefect),
         ProcessSpec("mlflow", [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port),
                                "--backend-store-uri", workspace.tracking_uri,
                                "--default-artifact-root", workspace.artifact_root.as_uri(), "--workers", "1"],

@@ -103,8 +103,17 @@ def _serve(connection: Connection) -> None:
         started = time.monotonic()
         try:
             connection.send(("ok", work(unit), time.monotonic() - started))
-        except Exception:  # the unit raised, or its result cannot be pickled back
-            connection.send(("error", traceback.format_exc(), 0.0))
+        except Exception as exc:  # the unit raised, or its result cannot be pickled back
+            _send_failure(connection, exc, traceback.format_exc())
+
+
+def _send_failure(connection: Connection, exc: Exception, text: str) -> None:
+    """("error", (the worker's traceback, the exception if an OSError that pickles), 0): see
+    WorkerPool.run."""
+    try:
+        connection.send(("error", (text, exc if isinstance(exc, OSError) else None), 0.0))
+    except Exception:  # it does not pickle (nothing was sent)
+        connection.send(("error", (text, None), 0.0))
 
 
 @dataclass
@@ -117,6 +126,16 @@ def _death(exitcode: int | None) -> str:
     if exitcode is not None and exitcode < 0:
         return f"killed by {signal.Signals(-exitcode).name}"
     return f"exit code {exitcode}"
+
+
+def _failure(label: str, text: str, error: OSError | None) -> Exception:
+    """What a unit that raised raises here: an OSError (a full disk, a permission) is the machine's,
+    not the unit's, so it stays itself (`sim2act` says a known one in one line), the worker's
+    traceback added as a note; anything else is UnitFailed carrying that traceback."""
+    if error is None:
+        return UnitFailed(f"{label} failed in its worker:\n{text}")
+    error.add_note(f"{label} failed in its worker:\n{text}")
+    return error
 
 
 class WorkerPool:
@@ -144,8 +163,8 @@ class WorkerPool:
         return worker
 
     def run(self, work: Callable[[Unit], Result], unit: Unit, label: str = "") -> tuple[Result, float]:
-        """(result, seconds in the worker); WorkerLost if the worker died, UnitFailed if it raised,
-        PoolClosed if the pool was closed meanwhile."""
+        """(result, seconds in the worker); WorkerLost if the worker died, UnitFailed if it raised
+        (an OSError: that error itself), PoolClosed if the pool was closed meanwhile."""
         label = label or repr(unit)
         worker = self._next_idle()
         try:
@@ -162,7 +181,7 @@ class WorkerPool:
             raise
         self._idle.put(worker)
         if status == "error":
-            raise UnitFailed(f"{label} failed in its worker:\n{payload}")
+            raise _failure(label, *payload)
         return payload, seconds
 
     def _replace(self, worker: _Worker) -> None:

@@ -26,6 +26,7 @@ QUIET_ENV = {
 }
 os.environ.update(QUIET_ENV)
 SIM2ACT = str(Path(sys.executable).with_name("sim2act"))
+CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
 
 
 def _free_port() -> int:
@@ -75,6 +76,19 @@ def finished_campaign(tmp_path_factory: pytest.TempPathFactory, prefect_api: str
     workspace = tmp_path_factory.mktemp("campaign")
     output, seconds = run_campaign(workspace, prefect_api)
     return workspace, output, seconds
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """Headless Chromium driven by Playwright, for the dashboard's and the Prefect UI's pages."""
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"no {CHROMIUM}: `apt-get install chromium` (scripts/setup.sh does it as root)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
+        yield chromium
+        chromium.close()
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@ moved into place atomically, never over a different file."""
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 from dataclasses import dataclass
@@ -32,6 +33,11 @@ class ShardUnreadable(ValueError):
 
 class ShardConflict(FileExistsError):
     """Another writer already put different bytes at this shard's path."""
+
+
+class DiskFull(OSError):
+    """No space left on the device a shard is written to; the message is one line naming the
+    shard, its unit and what to do. An OSError, so a worker pool hands it back as itself."""
 
 
 @dataclass(frozen=True)
@@ -92,12 +98,27 @@ def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
     rows = rows.replace_schema_metadata(
         {b"sim2act.table": table_name.encode(), b"sim2act.schema_version": str(SCHEMA_VERSION).encode()}
     )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     sink = pa.BufferOutputStream()  # in memory first: hashed without reading the file back
     pq.write_table(rows, sink, compression="zstd", compression_level=ZSTD_LEVEL, row_group_size=ROW_GROUP_ROWS)
     data = sink.getvalue()
     sha = hashlib.sha256(data).hexdigest()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write_new(path, data, sha)
+    except OSError as exc:  # a bare `[Errno 28]` names neither the shard nor what to do
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise DiskFull(
+            f"no space left on device writing the {table_name} shard of unit {path.stem} ({path}); the unit is not "
+            "registered: free space on that disk, then run the same command again to resume at the first unfinished unit"
+        ) from None
+    return ShardFile(table_name, path, rows.num_rows, data.size, sha)
+
+
+def _write_new(path: Path, data: pa.Buffer, sha: str) -> None:
+    """`data` at `path` through a temporary file (fsynced, then linked): never partial, never over
+    other bytes."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         with tmp.open("wb") as handle:
             handle.write(data)
@@ -110,7 +131,6 @@ def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
                 raise ShardConflict(f"{path} exists with other content; remove it if no catalog row names it")
     finally:
         tmp.unlink(missing_ok=True)
-    return ShardFile(table_name, path, rows.num_rows, data.size, sha)
 
 
 def read_shard(table_name: str, path: Path, columns: list[str] | None = None) -> pa.Table:

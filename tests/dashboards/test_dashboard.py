@@ -9,7 +9,6 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 
 import pytest
 import uvicorn
@@ -19,9 +18,6 @@ from dashboards.server import create_app
 from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, _free_port
 from warehouse.catalog import Catalog
-
-CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
-
 
 @contextmanager
 def serving(workspace: Workspace) -> Iterator[int]:
@@ -123,18 +119,6 @@ def _direct_rows(catalog: Catalog, sql: str, campaign: str) -> int:
     """A panel's row count with its SQL run straight on the catalog, not through the dashboard."""
     with catalog.connect(read_only=True) as con:
         return len(con.execute(sql, {"campaign": campaign}).fetchall())
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"no {CHROMIUM}: `apt-get install chromium` (scripts/setup.sh does it as root)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(executable_path=CHROMIUM, headless=True)
-        yield chromium
-        chromium.close()
 
 
 def open_page(browser, url: str):

@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import urllib.request
@@ -17,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from flows.service import answers, is_alive
+from schemas.config import load_config
 from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, _free_port
 from warehouse.catalog import Catalog
@@ -91,6 +93,27 @@ def test_a_bad_parameter_through_the_api_is_refused_with_its_field_named(stack):
     assert Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM stage_runs") == before
 
 
+def test_a_bad_value_in_the_prefect_ui_form_is_refused_with_its_field_named(stack, browser):
+    """The deployment's run form in Prefect's own UI (it reaches its API on the stack's port)."""
+    workspace, urls = stack
+    deployment = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/on-demand")
+    runs_before = post_json(f"{urls['prefect']}/api/flow_runs/count", {})[1]
+    page = browser.new_page(viewport={"width": 1400, "height": 1000})
+    page.goto(f"{urls['prefect']}/deployments/deployment/{deployment['id']}/run", wait_until="networkidle")
+    # the form is typed from the config model: nested sections down to train.lr, a number input
+    lr = page.locator("xpath=//span[@class='schema-form-property__label' and text()='Lr (Optional)']"
+                      "/ancestor::div[contains(concat(' ', @class, ' '), ' schema-form-property ')][1]//input")
+    assert lr.get_attribute("type") == "number" and float(lr.input_value()) == 3e-4
+    lr.fill("-1")
+    page.get_by_role("button", name="Submit").click()
+    refusal = page.get_by_text("Validation failed for field 'config.train.lr'").first  # a toast, maybe twice
+    refusal.wait_for(timeout=20_000)
+    assert "less than or equal to the minimum of 0" in refusal.inner_text()
+    page.screenshot(path=str(workspace.parent / "prefect-form-refused.png"))
+    assert post_json(f"{urls['prefect']}/api/flow_runs/count", {})[1] == runs_before
+    page.close()
+
+
 def test_the_nightly_deployment_continues_the_campaign(stack):
     workspace, urls = stack
     env = {**os.environ, "PREFECT_API_URL": f"{urls['prefect']}/api"}
@@ -122,7 +145,7 @@ def test_the_nightly_deployment_continues_the_campaign(stack):
 
 
 def test_down_stops_every_process(stack):
-    """Last in this module: the fixture's own `down` then finds nothing to stop."""
+    """The last test on the stack: the fixture's own `down` then finds nothing to stop."""
     workspace, urls = stack
     pids = [p["pid"] for p in json.loads(Workspace.at(workspace).service_state.read_text())["processes"].values()]
     stopped = sim2act("down", "--workspace", str(workspace))
@@ -135,3 +158,32 @@ def test_down_stops_every_process(stack):
     assert not any(answers(f"{url}/") for url in urls.values())
     status = sim2act("status", "--workspace", str(workspace))
     assert status.returncode == 1 and "not up" in status.stdout
+
+
+def test_a_worker_in_another_process_runs_the_prefect_yaml_deployment(finished_campaign, prefect_api, tmp_path):
+    """The scale-out path (docs/scale-out.md): prefect.yaml deployed to a process work pool, a
+    worker polling it from another process, a run triggered through the API."""
+    workspace = tmp_path / "workspace"
+    shutil.copytree(finished_campaign[0], workspace)
+    env = {**os.environ, "PREFECT_API_URL": prefect_api}
+    repo = Path(__file__).resolve().parents[2]
+
+    def prefect(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        done = subprocess.run([PREFECT, *args], env=env, cwd=repo, capture_output=True, text=True, timeout=timeout)
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        return done
+
+    prefect("work-pool", "create", "sim2act", "--type", "process", "--overwrite")
+    parameters = {"workspace": str(workspace), "config": load_config("smoke").model_dump(mode="json")}
+    prefect("--no-prompt", "deploy", "--name", "on-demand", "--params", json.dumps(parameters))
+    log = (tmp_path / "worker.log").open("w")
+    worker = subprocess.Popen([PREFECT, "worker", "start", "--pool", "sim2act"], env=env, cwd=tmp_path,
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        prefect("deployment", "run", "bootstrap/on-demand", "--watch", timeout=600)
+    finally:
+        os.killpg(worker.pid, signal.SIGTERM)
+        worker.wait(timeout=60)
+    output = (tmp_path / "worker.log").read_text()
+    # the worker ran the finished campaign again: every stage found its units registered
+    assert output.count("stages that ran: 0/7") == 2, output[-3000:]
