@@ -78,9 +78,11 @@ def finished_campaign(tmp_path_factory: pytest.TempPathFactory, prefect_api: str
     return workspace, output, seconds
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
-    """Headless Chromium driven by Playwright, for the dashboard's and the Prefect UI's pages."""
+    """Headless Chromium driven by Playwright, for the dashboard's and the Prefect UI's pages. Per
+    module, never longer: Playwright's sync API runs an event loop in this thread while it lives,
+    and Prefect then answers a flow called in-process with a coroutine (tests/flows/test_rollouts)."""
     if not Path(CHROMIUM).exists():
         pytest.fail(f"no {CHROMIUM}: `apt-get install chromium` (scripts/setup.sh does it as root)")
     from playwright.sync_api import sync_playwright

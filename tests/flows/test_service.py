@@ -12,8 +12,11 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 import urllib.request
+from datetime import datetime
 from pathlib import Path
+from zoneinfo import ZoneInfo
 
 import pytest
 
@@ -97,7 +100,9 @@ def test_a_bad_value_in_the_prefect_ui_form_is_refused_with_its_field_named(stac
     """The deployment's run form in Prefect's own UI (it reaches its API on the stack's port)."""
     workspace, urls = stack
     deployment = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/on-demand")
-    runs_before = post_json(f"{urls['prefect']}/api/flow_runs/count", {})[1]
+    # its own runs only: the scheduler adds the nightly deployment's meanwhile
+    of_this = {"deployments": {"id": {"any_": [deployment["id"]]}}}
+    runs_before = post_json(f"{urls['prefect']}/api/flow_runs/count", of_this)[1]
     page = browser.new_page(viewport={"width": 1400, "height": 1000})
     page.goto(f"{urls['prefect']}/deployments/deployment/{deployment['id']}/run", wait_until="networkidle")
     # the form is typed from the config model: nested sections down to train.lr, a number input
@@ -110,7 +115,7 @@ def test_a_bad_value_in_the_prefect_ui_form_is_refused_with_its_field_named(stac
     refusal.wait_for(timeout=20_000)
     assert "less than or equal to the minimum of 0" in refusal.inner_text()
     page.screenshot(path=str(workspace.parent / "prefect-form-refused.png"))
-    assert post_json(f"{urls['prefect']}/api/flow_runs/count", {})[1] == runs_before
+    assert post_json(f"{urls['prefect']}/api/flow_runs/count", of_this)[1] == runs_before
     page.close()
 
 
@@ -142,6 +147,21 @@ def test_the_nightly_deployment_continues_the_campaign(stack):
     run_id = link.rsplit("/", 1)[1]
     assert get_json(f"{urls['mlflow']}/api/2.0/mlflow/runs/get?run_id={run_id}")["run"]["info"]["run_name"] == \
         "smoke-iteration-2"
+
+
+def test_the_scheduler_queues_the_nightly_run_at_its_local_time(stack):
+    """Prefect's scheduler (a loop of the server, every 60 s) puts the next nightly runs in the
+    queue the serve process polls: at 03:30 in Berlin, whatever the server's timezone."""
+    workspace, urls = stack
+    nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
+    query = {"deployments": {"id": {"any_": [nightly["id"]]}}, "flow_runs": {"state": {"type": {"any_": ["SCHEDULED"]}}}}
+    deadline = time.monotonic() + 150
+    while not (queued := post_json(f"{urls['prefect']}/api/flow_runs/filter", query)[1]):
+        assert time.monotonic() < deadline, "no nightly run was scheduled"
+        time.sleep(2)
+    starts = [datetime.fromisoformat(run["expected_start_time"]).astimezone(ZoneInfo("Europe/Berlin")) for run in queued]
+    assert all((start.hour, start.minute) == (3, 30) for start in starts), starts
+    assert all(run["parameters"]["continue_campaign"] is True for run in queued)
 
 
 def test_down_stops_every_process(stack):
