@@ -19,7 +19,6 @@ from schemas.frames import decode_frame
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 
-VIDEO_FPS = 20  # robosuite's and MetaWorld's control rate, as the evaluate stage's MP4s
 MIN_VIDEO_SIDE = 256  # 84 px frames are enlarged by whole pixels so the player does not blur them
 
 
@@ -58,7 +57,7 @@ class EpisodeVideos:
 
     def path(self, episode_id: str) -> Path | None:
         """The episode's MP4, or None when it has no stored frames (unknown, failed, camera-less)."""
-        from warehouse.video import video_writer
+        from warehouse.video import CONTROL_FPS, video_writer
 
         path = self.folder / f"{hashlib.sha256(episode_id.encode()).hexdigest()[:24]}.mp4"
         with self._lock:
@@ -68,7 +67,7 @@ class EpisodeVideos:
             if not frames:
                 return None
             partial = path.with_name(f".{path.name}.partial.mp4")
-            writer = video_writer(partial, fps=VIDEO_FPS)
+            writer = video_writer(partial, fps=CONTROL_FPS)
             try:
                 for blob in frames:
                     writer.append_data(_enlarged(decode_frame(blob)))

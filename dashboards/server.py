@@ -114,7 +114,6 @@ def create_app(workspace: Workspace) -> FastAPI:
     return app
 
 
-def serve(workspace: Workspace, host: str = "127.0.0.1", port: int = 8765) -> None:
+def serve(workspace: Workspace, host: str, port: int) -> None:
     """Serve the dashboard over the workspace's warehouse until interrupted (blocking)."""
-    Catalog(workspace.catalog).check_version()  # a warehouse of another layout: refused before serving
     uvicorn.run(create_app(workspace), host=host, port=port, log_level="warning")

@@ -8,6 +8,7 @@ import re
 
 from prefect.artifacts import create_link_artifact, create_markdown_artifact, create_table_artifact
 
+from flows.service import MLFLOW_UI_ENV
 from stages.evaluate import EvaluateResult, group_success
 from stages.explore import ExploreResult, PolicyExplorer
 from stages.filter import FilterResult
@@ -15,9 +16,6 @@ from stages.generate_tasks import TasksResult
 from stages.index import IndexResult
 from stages.redeploy import RedeployResult
 from stages.train import TrainResult
-
-# Set by `sim2act up` (and for CLI runs while the stack is up): where the MLflow UI answers.
-MLFLOW_UI_ENV = "SIM2ACT_MLFLOW_UI"
 
 
 def artifact_key(campaign: str, iteration: int, what: str) -> str:

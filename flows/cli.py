@@ -13,8 +13,10 @@ import sys
 from pathlib import Path
 
 from schemas.config import PRESETS, ConfigError, load_config, parse_settings
+from schemas.service import HOST, ServiceConfig
 from schemas.tasks import FAMILIES
 from schemas.workspace import Workspace, write_text_atomically
+from warehouse.video import CONTROL_FPS
 
 
 def _default_workspace() -> str:
@@ -175,15 +177,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _service_config(args: argparse.Namespace):
+def _service_config(args: argparse.Namespace) -> ServiceConfig:
     from pydantic import ValidationError
 
     from schemas.config import describe_validation_error
-    from schemas.service import ServiceConfig
 
-    fields = ("prefect_port", "mlflow_port", "dashboard_port", "nightly_cron", "timezone")
     try:
-        return ServiceConfig(**{f: getattr(args, f) for f in fields if getattr(args, f) is not None})
+        return ServiceConfig(**{f: getattr(args, f) for f in ServiceConfig.model_fields if getattr(args, f) is not None})
     except ValidationError as exc:
         raise ConfigError(describe_validation_error(exc)) from None
 
@@ -239,7 +239,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     from warehouse.catalog import Catalog
 
     workspace = Workspace.at(args.workspace)
-    Catalog(workspace.catalog).check_version()
+    Catalog(workspace.catalog).check_version()  # a warehouse of another layout: one line, before serving
     print(f"sim2act: dashboard over {workspace.root} at http://{args.host}:{args.port}", flush=True)
     serve(workspace, args.host, args.port)
     return 0
@@ -510,8 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 ("status", "the local stack's processes, health and URLs", cmd_status)):
         commands.add_parser(name, help=help).set_defaults(handler=handler)
     dashboard = commands.add_parser("dashboard", help="serve the warehouse dashboard alone (sim2act up starts it too)")
-    dashboard.add_argument("--host", default="127.0.0.1")
-    dashboard.add_argument("--port", type=int, default=8765)
+    dashboard.add_argument("--host", default=HOST)
+    dashboard.add_argument("--port", type=int, default=ServiceConfig.model_fields["dashboard_port"].default)
     dashboard.set_defaults(handler=cmd_dashboard)
     for command in (commands.choices["down"], commands.choices["status"], dashboard):
         command.add_argument("--workspace", default=_default_workspace())
@@ -583,7 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
     lerobot.add_argument("out_dir", type=Path, help="a new or empty folder")
     lerobot.add_argument("--where", help="SQL over the steps columns; whole episodes with a matching step go out")
     lerobot.add_argument("--include-rejected", action="store_true", help="also episodes the filter rejected")
-    lerobot.add_argument("--fps", type=int, default=20, help="control rate of the episodes (robosuite: 20)")
+    lerobot.add_argument("--fps", type=int, default=CONTROL_FPS, help="control rate of the episodes (robosuite: 20)")
     lerobot.add_argument("--repo-id", default="sim2act/export")
     lerobot.add_argument("--workspace", default=_default_workspace())
     lerobot.set_defaults(handler=cmd_export_lerobot)
@@ -593,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
     replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
     replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
-    replay.add_argument("--fps", type=int, default=None, help="frames per second (one frame per step; default 20)")
+    replay.add_argument("--fps", type=int, default=None, help=f"frames per second (one frame per step; default {CONTROL_FPS})")
     replay.add_argument("--workspace", default=_default_workspace())
     replay.set_defaults(handler=cmd_replay)
 

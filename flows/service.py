@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from urllib.parse import urlsplit
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +25,8 @@ from schemas.workspace import Workspace, write_text_atomically
 
 STARTUP_TIMEOUT_S = 180.0  # a first Prefect start migrates its database: ~10-40 s on 2 cores
 STOP_TIMEOUT_S = 20.0
-# CLI runs and the served flows find the running stack through these.
+# CLI runs and the served flows find the running stack through these (MLFLOW_UI_ENV: where the
+# iteration artifacts' links point).
 PREFECT_API_ENV, MLFLOW_UI_ENV = "PREFECT_API_URL", "SIM2ACT_MLFLOW_UI"
 
 
@@ -137,8 +139,8 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
     nothing is left half up."""
     running = {row["name"] for row in process_status(workspace) if row["state"] != "exited"}
     specs = [spec for spec in stack(workspace, service) if spec.name not in running]
-    taken = [f"{spec.name} port {spec.url.rsplit(':', 1)[1]}" for spec in specs
-             if spec.name != "deployments" and not _port_free(int(spec.url.rsplit(":", 1)[1]))]
+    ports = {spec.name: urlsplit(spec.url).port for spec in specs if spec.name != "deployments"}  # it binds none
+    taken = [f"{name} port {port}" for name, port in ports.items() if not _port_free(port)]
     if taken:
         raise ServiceError(f"in use by another program: {', '.join(taken)}; choose others (sim2act up --help)")
     workspace.service.mkdir(parents=True, exist_ok=True)

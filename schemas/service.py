@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from zoneinfo import available_timezones
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 # Loopback only: the stack has no authentication; reaching it from elsewhere is a deliberate
 # choice made with a reverse proxy (docs/service.md), not a flag.
@@ -30,12 +30,14 @@ class ServiceConfig(BaseModel):
     def _cron(cls, value: str) -> str:
         from prefect.client.schemas.schedules import CronSchedule  # Prefect's own rules, so the server agrees
 
+        # 5 fields as --help shows (Prefect would also take a seconds field and @daily)
+        refusal = ValueError("not a 5-field cron line (e.g. '0 2 * * *': every day at 02:00)")
+        if len(value.split()) != 5:
+            raise refusal
         try:
-            valid = CronSchedule(cron=value) is not None and len(value.split()) == 5
+            CronSchedule(cron=value)
         except ValueError:
-            valid = False
-        if not valid:
-            raise ValueError("not a 5-field cron line (e.g. '0 2 * * *': every day at 02:00)")
+            raise refusal from None
         return value
 
     @field_validator("timezone")
@@ -45,14 +47,12 @@ class ServiceConfig(BaseModel):
             raise ValueError(f"unknown timezone {value!r} (an IANA name such as UTC or Europe/Berlin)")
         return value
 
-    @field_validator("dashboard_port")
-    @classmethod
-    def _distinct(cls, value: int, info) -> int:
-        taken = {info.data.get("prefect_port"), info.data.get("mlflow_port")}
-        if value in taken or info.data.get("prefect_port") == info.data.get("mlflow_port"):
+    @model_validator(mode="after")
+    def _distinct_ports(self) -> ServiceConfig:
+        if len({self.prefect_port, self.mlflow_port, self.dashboard_port}) < 3:
             raise ValueError("the three ports must differ")
-        return value
+        return self
 
     def url(self, service: str) -> str:
-        port = {"prefect": self.prefect_port, "mlflow": self.mlflow_port, "dashboard": self.dashboard_port}[service]
-        return f"http://{HOST}:{port}"
+        """Where `service` (prefect, mlflow or dashboard) answers."""
+        return f"http://{HOST}:{getattr(self, f'{service}_port')}"

@@ -166,10 +166,10 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
 
 
 def _write_video(frames: list[np.ndarray], path: Path) -> None:
-    from warehouse.video import video_writer
+    from warehouse.video import CONTROL_FPS, video_writer
 
     tmp = path.with_name(path.stem + ".tmp.mp4")
-    writer = video_writer(tmp, fps=20)
+    writer = video_writer(tmp, fps=CONTROL_FPS)
     for frame in frames:
         writer.append_data(frame)
     writer.close()

@@ -24,8 +24,8 @@ from schemas.config import RenderConfig
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
+from warehouse.video import CONTROL_FPS
 
-DEFAULT_FPS = 20  # robosuite's and MetaWorld's control rate (navigation steps at 10 Hz): one frame a step
 
 
 class ReplayError(ValueError):
@@ -144,7 +144,7 @@ def replay(workspace: Workspace, episode_id: str, camera: str | None = None, siz
            out: Path | None = None, fps: int | None = None) -> ReplayResult:
     """Re-render an episode into an MP4 at `out` (default: default_video_path). Everything is
     checked (episode, camera, size, fps, path) before anything is rendered."""
-    fps = DEFAULT_FPS if fps is None else fps
+    fps = CONTROL_FPS if fps is None else fps
     if fps < 1:
         raise ReplayError(f"replay: --fps must be at least 1, got {fps}")
     if out is not None and out.suffix.lower() != ".mp4":

@@ -30,7 +30,7 @@ import pyarrow.parquet as pq
 
 from schemas.frames import decode_frame
 from warehouse.catalog import Catalog
-from warehouse.video import VIDEO_CODEC, video_writer
+from warehouse.video import CONTROL_FPS, VIDEO_CODEC, video_writer
 
 CODEBASE_VERSION = "v3.0"
 CAMERA = "observation.images.image"  # LeRobot's name for a single robosuite/LIBERO agent-view camera
@@ -72,7 +72,7 @@ def export_lerobot(
     out_dir: Path,
     where: str | None = None,
     *,
-    fps: int = 20,
+    fps: int = CONTROL_FPS,
     include_rejected: bool = False,
     repo_id: str = "sim2act/export",
     progress: Callable[[int, int], None] | None = None,

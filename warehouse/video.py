@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 VIDEO_CODEC = "h264"
+# robosuite's and MetaWorld's control rate (navigation steps at 10 Hz): one frame a step.
+CONTROL_FPS = 20
 
 
 def video_writer(path: Path, fps: int):

@@ -19,6 +19,7 @@ from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, _free_port
 from warehouse.catalog import Catalog
 
+
 @contextmanager
 def serving(workspace: Workspace) -> Iterator[int]:
     """The dashboard app on a free local port, in a thread, for the duration -> the port."""
