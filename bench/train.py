@@ -48,9 +48,10 @@ FAMILY = "robosuite"
 LANGUAGE_DIM = 384  # all-MiniLM-L6-v2, the default (frozen) encoder
 DATA_WAIT_TARGET = 0.10  # at most
 # the bench's cases, as `sim2act bench train --cases` names them
-CASES = ("stage", "memory", "workers0", "resnet18", "vit", "minilm", "cuda", "act")
+CASES = ("stage", "memory", "precision", "workers0", "resnet18", "vit", "minilm", "cuda", "act")
 CUDA_LOADER_WORKERS = 8  # at most: a GPU step outruns one worker decoding PNG frames
 LATENCY_P95_TARGET_MS = 20.0  # at most
+BF16_SPEEDUP_TARGET = 1.8  # bf16 + channels_last over fp32, samples/s, where the CPU has bf16 units (issue 9)
 
 
 class TrainSizes(BaseModel):
@@ -62,12 +63,14 @@ class TrainSizes(BaseModel):
     latency_calls: int = 200
     latency_warmup: int = 10
     cuda_batches: list[int] = [256, 1024]
+    precision_batch: int = 256  # the precision rows' batch size (the issue's figures are at 256)
+    precision_steps: int = 30  # each: emulated bf16 (a CPU without bf16 units) runs ~34 samples/s at batch 256
     cases: list[str] = list(CASES)  # which to run ("stage" always runs: every ratio is against it)
 
 
 # seconds, for tests and a smoke check; the figures mean little at these sizes
 QUICK = TrainSizes(units=2, episodes_per_unit=4, steps_per_episode=50, steps=6, log_every=2, latency_calls=20,
-                   cases=["stage", "memory", "cuda", "act"])
+                   precision_batch=16, precision_steps=6, cases=["stage", "memory", "precision", "cuda", "act"])
 
 
 class TrainRow(BaseModel):
@@ -196,20 +199,34 @@ def run_stage_case(source: Workspace, dataset: IndexResult, root: Path, sizes: T
     return row, checkpoint
 
 
-def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, steps: int) -> TrainRow:
+# The in-memory reference in each precision, side by side (`--cases precision`): (case, what,
+# bf16 autocast, channels_last); "memory" itself runs the device's own choice (policies/precision.py).
+PRECISIONS = (
+    ("memory-fp32", "in-memory steps, fp32, contiguous (NCHW)", False, False),
+    ("memory-fp32-cl", "in-memory steps, fp32, channels_last", False, True),
+    ("memory-bf16-cl", "in-memory steps, bf16 autocast, channels_last", True, True),
+)
+
+
+def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, steps: int, batch_size: int | None = None,
+                  precision: tuple[str, str, bool, bool] | None = None) -> TrainRow:
     """The reference: `steps` training steps as the stage takes them (same model, optimiser, schedule,
-    threads, device, batch size, collate), on batches built once in memory; windows as the stage's."""
+    threads, device, batch size, collate), on batches built once in memory; windows as the stage's.
+    `precision`: a row of PRECISIONS instead of the device's own choice."""
     from torch.utils.data import default_convert
 
     from policies.model import VLAModel
+    from policies.precision import describe, to_device_layout
     from stages.train import (TrainingCollate, model_dims, normalisers, optimiser_for, train_step, training_device,
                               warmup_cosine)
     from warehouse.training_reader import COLUMNS
 
     catalog = Catalog(source.catalog)
-    config = _config({"log_every": sizes.log_every})
+    config = _config({"log_every": sizes.log_every, **({"batch_size": batch_size} if batch_size else {})})
     cfg = config.train
     device = training_device(cfg.device)
+    case, name, bf16, channels_last = precision or (
+        "memory", "the same steps on in-memory batches (no reader, no DataLoader)", None, None)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
@@ -220,7 +237,7 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
                for first in range(0, len(rows), cfg.batch_size)]
     if device.type == "cuda":  # as the stage's DataLoader hands them over (pin_memory)
         batches = [{k: v.pin_memory() if torch.is_tensor(v) else v for k, v in b.items()} for b in batches]
-    model = VLAModel(cfg.model, model_dims(config, state_norm)).to(device)
+    model = to_device_layout(VLAModel(cfg.model, model_dims(config, state_norm)), device, channels_last)
     optimiser = optimiser_for(model, cfg)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, warmup_cosine(steps))
     model.train()
@@ -229,7 +246,7 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     window_started, samples = time.perf_counter(), 0
     for step in range(1, steps + 1):
         batch = batches[(step - 1) % len(batches)]
-        train_step(model, optimiser, schedule, batch, cfg, device)
+        train_step(model, optimiser, schedule, batch, cfg, device, bf16=bf16, channels_last=channels_last)
         samples += len(batch["instruction"])
         if step % cfg.log_every == 0 or step == steps:
             now = time.perf_counter()
@@ -237,11 +254,13 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
             window_started, samples = now, 0
     wall_s = time.perf_counter() - meter.wall
     rate, _, windows = _window_figures(rates, None)
+    computes = describe(device, cfg.amp) if precision is None else (
+        ("bf16 autocast" if bf16 else "fp32") + (", channels_last" if channels_last else ""))
     return TrainRow(
-        case="memory", name="the same steps on in-memory batches (no reader, no DataLoader)", device=device.type,
+        case=case, name=name, device=device.type,
         batch_size=cfg.batch_size, steps=steps, windows=windows, samples_per_s=rate, threads=cfg.threads,
         wall_s=wall_s, other_load=meter.other_load(),
-        note=f"{len(batches)} batches collated once (frames decoded, tensors), cycled",
+        note=f"{len(batches)} batches collated once (frames decoded, tensors), cycled; {computes}",
     )
 
 
@@ -313,6 +332,9 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
         rows = [default]
         if "memory" in wanted:
             rows.append(run_in_memory(source, dataset, sizes, default.steps))
+        if "precision" in wanted and default.device == "cpu":
+            rows += [run_in_memory(source, dataset, sizes, sizes.precision_steps, sizes.precision_batch, p)
+                     for p in PRECISIONS]
         checkpoints = {"hybrid": checkpoint}
         variants = [
             ("workers0", "train stage, loader_workers 0 (decoding in the training process)", {"loader_workers": 0}),
@@ -360,6 +382,11 @@ def _ratios(rows: dict[str, TrainRow]) -> list[Ratio]:
     for row in rows.values():
         if row.data_wait is not None and (row.case == "stage" or row.case.startswith("cuda")):
             ratios.append(_ratio(f"data wait, {row.name}", row.data_wait, "%", DATA_WAIT_TARGET, at_most=True))
+    if "memory-fp32" in rows:
+        fp32 = rows["memory-fp32"].samples_per_s
+        for case in ("memory-fp32-cl", "memory-bf16-cl"):
+            ratios.append(_ratio(f"{rows[case].name} / fp32 NCHW, samples/s", rows[case].samples_per_s / fp32,
+                                 target=BF16_SPEEDUP_TARGET if case == "memory-bf16-cl" else None))
     for case, name in (("workers0", "loader_workers 0 / 1"), ("resnet18", "ResNet-18 / ViT-hybrid"),
                        ("vit", "patch ViT / ViT-hybrid"),
                        ("minilm", "fine-tuned / frozen language encoder")):

@@ -568,7 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
-                                "stage, memory, workers0, resnet18, vit, minilm, cuda, act")
+                                "stage, memory, precision (fp32 vs bf16, CPU), workers0, resnet18, vit, minilm, cuda, act")
 
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")

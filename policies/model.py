@@ -7,6 +7,10 @@ for training only, a head predicting the simulator state from z_ol and its weigh
 Actions come in two kinds, told apart per sample by `action_index`: -1 for a continuous action
 (manipulation: ACTION_DIM normalised components in `action`), else the index of a discrete
 action (navigation). One model trains on both.
+
+With `config.chunk` = k > 1 the heads predict a chunk: this step's action and the next k-1 of the
+episode (ACT, Zhao et al. 2023; Diffusion Policy, Chi et al. 2023), and z_a embeds the whole chunk;
+targets then come as (B, k, ...) with a mask of the positions the episode still has.
 """
 
 from __future__ import annotations
@@ -41,10 +45,23 @@ class ModelDims:
 @dataclass
 class ModelOutput:
     z_ol: torch.Tensor  # (B, dim) joint observation-language embedding
-    mu: torch.Tensor  # (B, action_dim) Gaussian mean, normalised units
-    log_std: torch.Tensor  # (B, action_dim) diagonal: Sigma = diag(exp(2 log_std))
-    logits: torch.Tensor  # (B, discrete_actions)
+    chunk_mu: torch.Tensor  # (B, chunk, action_dim) Gaussian means, normalised units, this step's first
+    chunk_log_std: torch.Tensor  # (B, chunk, action_dim) diagonal: Sigma = diag(exp(2 log_std))
+    chunk_logits: torch.Tensor  # (B, chunk, discrete_actions)
     state: torch.Tensor | None = None  # (B, state_dim) the simulator state, normalised; models with the head
+
+    @property
+    def mu(self) -> torch.Tensor:
+        """(B, action_dim): this step's action."""
+        return self.chunk_mu[:, 0]
+
+    @property
+    def log_std(self) -> torch.Tensor:
+        return self.chunk_log_std[:, 0]
+
+    @property
+    def logits(self) -> torch.Tensor:
+        return self.chunk_logits[:, 0]
 
 
 def _transformer(dim: int, depth: int, heads: int) -> nn.TransformerEncoder:
@@ -192,12 +209,15 @@ class VLAModel(nn.Module):
         self.modality = nn.Parameter(torch.randn(4, d) * 0.02)  # cls, language, proprio, vision
         self.fusion = _transformer(d, config.fusion_depth, config.heads)
         self.norm = nn.LayerNorm(d)
-        self.mu = nn.Linear(d, dims.action_dim)
-        self.log_std = nn.Linear(d, dims.action_dim)
-        self.logits = nn.Linear(d, dims.discrete_actions)
+        k = self.chunk = config.chunk
+        self.mu = nn.Linear(d, k * dims.action_dim)
+        self.log_std = nn.Linear(d, k * dims.action_dim)
+        self.logits = nn.Linear(d, k * dims.discrete_actions)
         self.state = nn.Linear(d, dims.state_dim) if dims.state_dim else None  # a training aid, unread when acting
-        self.action_encoder = nn.Sequential(nn.Linear(dims.action_dim, d), nn.GELU(), nn.Linear(d, d))
+        self.action_encoder = nn.Sequential(nn.Linear(k * dims.action_dim, d), nn.GELU(), nn.Linear(d, d))
         self.discrete_action_encoder = nn.Embedding(dims.discrete_actions, d)
+        # a chunk of discrete actions: its k embeddings, in order, projected to one (absent at k = 1: old checkpoints load)
+        self.discrete_chunk_projection = nn.Linear(k * d, d) if k > 1 else None
         self.joint_projection = nn.Linear(d, d)
 
     def language_input(self, instructions: list[str], cached: torch.Tensor | None) -> torch.Tensor:
@@ -227,18 +247,21 @@ class VLAModel(nn.Module):
         joint = self.norm(self.fusion(tokens)[:, 0])
         return ModelOutput(
             z_ol=self.joint_projection(joint),
-            mu=self.mu(joint),
-            log_std=self.log_std(joint).clamp(*LOG_STD_RANGE),
-            logits=self.logits(joint),
+            chunk_mu=self.mu(joint).unflatten(-1, (self.chunk, -1)),
+            chunk_log_std=self.log_std(joint).clamp(*LOG_STD_RANGE).unflatten(-1, (self.chunk, -1)),
+            chunk_logits=self.logits(joint).unflatten(-1, (self.chunk, -1)),
             state=None if self.state is None else self.state(joint),
         )
 
     def encode_action(self, action: torch.Tensor, action_index: torch.Tensor) -> torch.Tensor:
-        """z_a: continuous actions through an MLP, discrete ones through an embedding."""
-        discrete = (action_index >= 0).unsqueeze(-1)
-        return torch.where(
-            discrete, self.discrete_action_encoder(action_index.clamp(min=0)), self.action_encoder(action)
-        )
+        """z_a: continuous actions (B, k, action_dim) through an MLP, discrete ones (B, k) through an
+        embedding (a chunk's k embeddings projected to one); a single step's (B, action_dim), (B,) too."""
+        action, action_index = action.reshape(len(action), self.chunk, -1), action_index.reshape(len(action), self.chunk)
+        embedded = self.discrete_action_encoder(action_index.clamp(min=0))  # (B, k, d)
+        embedded = embedded[:, 0] if self.discrete_chunk_projection is None else \
+            self.discrete_chunk_projection(embedded.flatten(1))
+        discrete = (action_index[:, 0] >= 0).unsqueeze(-1)
+        return torch.where(discrete, embedded, self.action_encoder(action.flatten(1)))
 
     def dims_dict(self) -> dict[str, int]:
         return asdict(self.dims)
@@ -288,34 +311,47 @@ def vla_loss(
     temperature: float,
     state: tuple[torch.Tensor, torch.Tensor] | None = None,
     state_weight: float = 0.0,
+    action_mask: torch.Tensor | None = None,
 ) -> Losses:
     """lambda * InfoNCE(z_ol, z_a) + (1 - lambda) * BC, BC per sample: for continuous actions the
-    squared error of mu plus the Gaussian NLL, for discrete ones the cross-entropy. With `state`
+    squared error of mu plus the Gaussian NLL, for discrete ones the cross-entropy; of a chunked
+    model, the mean over the chunk's positions `action_mask` marks as the episode's (targets
+    (B, k, action_dim) and (B, k); a single step's (B, action_dim) and (B,) where k = 1). With `state`
     (normalised simulator states (B, state_dim) and the mask of the components each sample has),
-    plus state_weight * the state head's squared error over those components."""
+    plus state_weight * the state head's squared error over those components. The action error
+    metrics are of this step's action (position 0), comparable across chunk sizes."""
     out = model(image, language, proprio)
+    batch, k = len(action), model.chunk
+    action, action_index = action.reshape(batch, k, -1), action_index.reshape(batch, k)
+    mask = torch.ones(batch, k, device=action.device) if action_mask is None else action_mask.reshape(batch, k).float()
     contrastive = info_nce(out.z_ol, model.encode_action(action, action_index), temperature)
-    discrete = action_index >= 0
-    mu, log_std = out.mu.float(), out.log_std.float()
+    discrete = action_index[:, 0] >= 0
+    mu, log_std = out.chunk_mu.float(), out.chunk_log_std.float()
     # mu learns from the squared error and Sigma from the NLL around a detached mu: trained jointly,
     # the NLL shrinks Sigma on easy dimensions faster than it fits mu, and mu barely moves.
-    squared = (mu - action) ** 2
+    squared = (mu - action) ** 2  # (B, k, A)
     mse = squared.mean(-1)
     nll = (0.5 * ((action - mu.detach()) / log_std.exp()) ** 2 + log_std).sum(-1)
-    cross_entropy = F.cross_entropy(out.logits.float(), action_index.clamp(min=0), reduction="none")
-    bc = torch.where(discrete, cross_entropy, mse + nll).mean()
+    cross_entropy = F.cross_entropy(out.chunk_logits.float().flatten(0, 1), action_index.clamp(min=0).flatten(),
+                                    reduction="none").view(batch, k)
+    per_position = torch.where(discrete[:, None], cross_entropy, mse + nll)
+    bc = ((per_position * mask).sum(1) / mask.sum(1).clamp_min(1)).mean()
     total = contrastive_weight * contrastive + (1.0 - contrastive_weight) * bc
-    n, n_discrete = len(action_index), int(discrete.sum())
+    n, n_discrete = batch, int(discrete.sum())
     terms = {"loss": total, "infonce": contrastive, "bc": bc}
     counts = {"loss": n, "infonce": n, "bc": n}
     if n_discrete < n:
         continuous = ~discrete
-        terms.update(action_mse=mse[continuous].mean(), bc_nll=nll[continuous].mean())
+        terms.update(action_mse=mse[continuous, 0].mean(), bc_nll=nll[continuous, 0].mean())
         counts.update(action_mse=n - n_discrete, bc_nll=n - n_discrete)
         # Per component, in normalised units (about 1 - R^2 over the selection): a training that never learns
         # one component (the lateral dy of a small cube, in half the seeds) hides in the mean of seven.
-        for name, error in zip(ACTION_COMPONENTS, squared[continuous].mean(0)):
+        for name, error in zip(ACTION_COMPONENTS, squared[continuous, 0].mean(0)):
             terms[f"action_mse_{name}"], counts[f"action_mse_{name}"] = error, n - n_discrete
+        if k > 1:  # over the whole chunk, the positions the episodes have
+            weights = mask[continuous]
+            terms["action_mse_chunk"] = (mse[continuous] * weights).sum() / weights.sum().clamp_min(1)
+            counts["action_mse_chunk"] = n - n_discrete
     if state is not None and out.state is not None:
         target, present = state
         # scenes differ in state length: a sample's missing components are padding, left out
@@ -323,8 +359,8 @@ def vla_loss(
         total = total + state_weight * state_mse
         terms["state_mse"], counts["state_mse"] = state_mse, n
     if n_discrete:
-        hit = (out.logits.argmax(-1) == action_index)[discrete].float()
-        terms.update(discrete_ce=cross_entropy[discrete].mean(), discrete_accuracy=hit.mean())
+        hit = (out.logits.argmax(-1) == action_index[:, 0])[discrete].float()
+        terms.update(discrete_ce=cross_entropy[discrete, 0].mean(), discrete_accuracy=hit.mean())
         counts.update(discrete_ce=n_discrete, discrete_accuracy=n_discrete)
     terms["loss"] = total  # with the state term where there is one
     return Losses(total, {k: v.detach() for k, v in terms.items()}, counts)

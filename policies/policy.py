@@ -5,13 +5,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from envs.observation import DISCRETE_FAMILIES, Observation
-from policies.model import ModelDims, VLAModel, mean_probabilities, pixels, uncertainty
+from policies.model import ModelDims, VLAModel, pixels, uncertainty
 from schemas.config import ModelConfig
+
+if TYPE_CHECKING:
+    from policies.chunking import EpisodeActor
 
 
 @dataclass
@@ -34,21 +38,45 @@ class Normaliser:
         return values * self.std + self.mean
 
 
-def policy_state(members: list[VLAModel], action: Normaliser, proprio: Normaliser) -> dict:
+def _cpu(weights: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    # contiguous: a channels_last training (policies/precision.py) loads into any model
+    return {k: v.detach().cpu().contiguous() for k, v in weights.items()}
+
+
+def policy_state(members: list[VLAModel], action: Normaliser, proprio: Normaliser,
+                 averages: list[dict[str, torch.Tensor]] | None = None, ema: float | None = None) -> dict:
     """What a policy checkpoint holds: enough to rebuild the model, or the ensemble of models trained
-    alike on the same data (train.ensemble), without the config or warehouse."""
+    alike on the same data (train.ensemble), without the config or warehouse. With `averages` (the
+    members' moving averages of their weights, decay `ema`), `members` are the averages, what gets
+    evaluated, registered and explores; the last weights are kept as `final_members`."""
+    final = [_cpu(model.state_dict()) for model in members]
     return {
         "model_config": members[0].config.model_dump(),
         "dims": members[0].dims_dict(),
-        "members": [{k: v.detach().cpu() for k, v in model.state_dict().items()} for model in members],
+        "members": final if averages is None else [_cpu(weights) for weights in averages],
+        "weights": "final" if averages is None else f"ema {ema}",
+        **({} if averages is None else {"final_members": final}),
         "action": (action.mean, action.std),
         "proprio": (proprio.mean, proprio.std),
     }
 
 
-def checkpoint_members(state: dict) -> list[dict]:
-    """The members' weights; a checkpoint written before ensembles holds one model's as `state_dict`."""
+WEIGHTS = ("registered", "final")  # which weights Policy.load reads: the checkpoint's own choice, or the last
+
+
+def checkpoint_members(state: dict, weights: str = "registered") -> list[dict]:
+    """The members' weights: the ones the checkpoint registers (the moving average where training kept
+    one), or `final`, the last weights. A checkpoint written before ensembles holds one model's as `state_dict`."""
+    if weights not in WEIGHTS:
+        raise ValueError(f"weights: expected one of {', '.join(WEIGHTS)}, got {weights!r}")
+    if weights == "final" and "final_members" in state:
+        return state["final_members"]
     return state["members"] if "members" in state else [state["state_dict"]]
+
+
+def weights_of(state: dict, weights: str = "registered") -> str:
+    """What `checkpoint_members(state, weights)` are, in words: `ema 0.999` or `final`."""
+    return "final" if weights == "final" else state.get("weights", "final")
 
 
 def save_atomically(path: Path, state: dict) -> None:
@@ -79,19 +107,23 @@ class Policy:
             text: torch.as_tensor(vector).unsqueeze(0) for text, vector in (embeddings or {}).items()
         }
         self._fine_tuned: dict[tuple[int, str], torch.Tensor] = {}  # (member, instruction): its own encoder's
+        self.weights = "final"  # which weights act, in words (Policy.load: "ema 0.999" where averaged)
 
     @classmethod
-    def load(cls, path: Path, embeddings: dict[str, np.ndarray] | None = None) -> Policy:
+    def load(cls, path: Path, embeddings: dict[str, np.ndarray] | None = None, weights: str = "registered") -> Policy:
         """`embeddings`: the frozen encoder's, per instruction, as the warehouse caches them; an
-        instruction without one is encoded on first use."""
+        instruction without one is encoded on first use. `weights`: `registered` (the moving average
+        where training kept one) or `final` (checkpoint_members)."""
         state = torch.load(path, map_location="cpu", weights_only=False)
         config, dims = ModelConfig(**state["model_config"]), ModelDims(**state["dims"])
         members = []
-        for weights in checkpoint_members(state):
+        for member in checkpoint_members(state, weights):
             model = VLAModel(config, dims)
-            model.load_state_dict(weights)
+            model.load_state_dict(member)
             members.append(model)
-        return cls(members, Normaliser(*state["action"]), Normaliser(*state["proprio"]), embeddings)
+        policy = cls(members, Normaliser(*state["action"]), Normaliser(*state["proprio"]), embeddings)
+        policy.weights = weights_of(state, weights)
+        return policy
 
     @property
     def config(self) -> ModelConfig:
@@ -114,10 +146,10 @@ class Policy:
         return self._embeddings[instruction]
 
     @torch.no_grad()
-    def act(self, obs: Observation, instruction: str, family: str) -> Decision:
-        """For one observation (its frame, depth map if the model reads RGB-D, and proprio): the
-        members' mean Gaussian mean (clipped to the action bounds), or the discrete action their
-        mean probabilities make most likely."""
+    def predict(self, obs: Observation, instruction: str, family: str) -> tuple[np.ndarray, float]:
+        """For one observation (its frame, depth map if the model reads RGB-D, and proprio): the chunk
+        the members predict, (chunk, action_dim) mean Gaussian means in normalised units or (chunk,
+        discrete actions) mean probabilities, and the uncertainty of this step's action."""
         # copies: frames decoded from the warehouse are read-only buffers, which torch warns about sharing
         depth = None if self.dims.channels == 3 or obs.depth is None else torch.tensor(obs.depth)[None]
         image = pixels(torch.tensor(obs.image)[None], depth)
@@ -125,8 +157,27 @@ class Policy:
         outputs = [model(image, self._language(i, instruction), proprio) for i, model in enumerate(self.members)]
         discrete = family in DISCRETE_FAMILIES
         if discrete:
-            action = np.array([mean_probabilities(outputs)[0].argmax().item()], dtype=np.float32)
+            chunk = torch.stack([o.chunk_logits[0].float().softmax(-1) for o in outputs]).mean(0)
         else:
-            mu = torch.stack([o.mu[0] for o in outputs]).mean(0)
-            action = np.clip(self.action.decode(mu.numpy()), -1.0, 1.0).astype(np.float32)
-        return Decision(action, float(uncertainty(outputs, discrete)[0]))
+            chunk = torch.stack([o.chunk_mu[0].float() for o in outputs]).mean(0)
+        return chunk.numpy(), float(uncertainty(outputs, discrete)[0])
+
+    def action_of(self, value: np.ndarray, family: str) -> np.ndarray:
+        """What the environment steps with, from one chunk position's prediction: the most likely
+        discrete action, or the Gaussian mean in the action's units, clipped to its bounds."""
+        if family in DISCRETE_FAMILIES:
+            return np.array([int(np.argmax(value))], dtype=np.float32)
+        return np.clip(self.action.decode(value), -1.0, 1.0).astype(np.float32)
+
+    def act(self, obs: Observation, instruction: str, family: str) -> Decision:
+        """This step's action alone: the members' mean Gaussian mean (clipped to the action bounds),
+        or the discrete action their mean probabilities make most likely. Stateless; an episode of a
+        chunked policy acts through `episode()`."""
+        chunk, unsure = self.predict(obs, instruction, family)
+        return Decision(self.action_of(chunk[0], family), unsure)
+
+    def episode(self, family: str) -> EpisodeActor:
+        """A fresh actor for one episode: it keeps the chunks predicted so far (policies/chunking.py)."""
+        from policies.chunking import EpisodeActor
+
+        return EpisodeActor(self, family)

@@ -193,15 +193,47 @@ class ModelConfig(_Strict):
     language_trainable: bool = Field(
         default=False, description="fine-tune the language encoder (else frozen: cached embeddings)"
     )
+    chunk: int = Field(
+        default=1, ge=1, le=64,
+        description="actions predicted per observation, this step's and the next chunk-1 of its episode (ACT, "
+        "Diffusion Policy: against compounding error); the InfoNCE action embedding reads the whole chunk; 1: one",
+    )
+    execution: Literal["temporal_ensemble", "receding"] = Field(
+        default="temporal_ensemble",
+        description="how a chunked policy acts: temporal_ensemble predicts every step and averages every earlier "
+        "chunk's prediction for this step, weights exp(-ensemble_decay * i), i = 0 the oldest (ACT); receding "
+        "executes the first execute_steps actions of a chunk, then predicts again (Diffusion Policy)",
+    )
+    execute_steps: int | None = Field(
+        default=None, ge=1, le=64, description="receding: actions executed per prediction; None: half the chunk"
+    )
+    ensemble_decay: float = Field(default=0.01, ge=0.0, description="temporal_ensemble: m in exp(-m i) (ACT: 0.01)")
 
     @model_validator(mode="after")
     def _heads_divide_dim(self) -> ModelConfig:
         if self.dim % self.heads:
             raise ValueError(f"dim {self.dim} is not divisible by heads {self.heads}")
+        if self.execute_steps is not None and self.execute_steps > self.chunk:
+            raise ValueError(f"execute_steps: expected at most chunk ({self.chunk}), got {self.execute_steps}")
         return self
+
+    @property
+    def steps_per_prediction(self) -> int:
+        """receding: actions executed per prediction."""
+        return self.execute_steps or max(1, self.chunk // 2)
 
 
 class TrainConfig(_Strict):
+    seed: int = Field(
+        default=0, ge=0, description="training seed (weights, data order, augmentation) on the same dataset: "
+        "the results protocol trains seeds 0..N-1 of one dataset (docs/evaluation.md)",
+    )
+    ema: float | None = Field(
+        default=0.999, gt=0.0, lt=1.0,
+        description="decay of an exponential moving average of the weights, warmed up as min(ema, (1+t)/(10+t)) at "
+        "step t; the average is what gets evaluated, registered and explores (the last weights are kept beside "
+        "it in the checkpoint); None: the last weights",
+    )
     epochs: PositiveInt = 10
     steps: PositiveInt | None = Field(
         default=None, description="optimiser steps per model instead of epochs: the epochs become ceil(steps / "
@@ -251,7 +283,8 @@ class TrainConfig(_Strict):
     checkpoint_every: PositiveInt = Field(default=200, description="steps between resumable checkpoints")
     log_every: PositiveInt = Field(default=20, description="steps between MLflow metric points")
     device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="auto: cuda when there is one")
-    amp: bool = Field(default=True, description="bf16 autocast on cuda (no effect on cpu)")
+    amp: bool = Field(default=True, description="bf16 autocast where the device has bf16 units: cuda, and CPUs with "
+                      "AMX or AVX-512 BF16 (elsewhere emulated bf16 is ~15x slower, so fp32 runs); policies/precision.py")
     threads: PositiveInt = 2
     model: ModelConfig = ModelConfig()
 

@@ -34,9 +34,23 @@ def unit_key(stage: str, version: int, config: Mapping[str, Any] | BaseModel, in
 def key_fields(config: BaseModel, exclude: set[str], legacy: Mapping[str, Any]) -> dict[str, Any]:
     """A config as a unit key reads it: without `exclude` (how a stage runs, not what it makes), and
     without each field added after the stage's version that holds its `legacy` value (the one that
-    does what the stage did before the field existed), so work done before it keeps its key."""
-    fields = config.model_dump(exclude=exclude)
-    return {k: v for k, v in fields.items() if k not in legacy or v != legacy[k]}
+    does what the stage did before the field existed), so work done before it keeps its key. A nested
+    model's added fields are a mapping under its name."""
+    return _without_legacy(config.model_dump(exclude=exclude), legacy)
+
+
+def _without_legacy(fields: dict[str, Any], legacy: Mapping[str, Any]) -> dict[str, Any]:
+    kept = {}
+    for name, value in fields.items():
+        old = legacy.get(name, _ABSENT)
+        if isinstance(old, Mapping) and isinstance(value, dict):
+            kept[name] = _without_legacy(value, old)
+        elif old is _ABSENT or value != old:
+            kept[name] = value
+    return kept
+
+
+_ABSENT = object()
 
 
 def derive_seed(*parts: object) -> int:

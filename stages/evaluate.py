@@ -187,11 +187,16 @@ def _episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
 
         policy = Policy.load(Path(unit.agent.path), {unit.instruction: embedding})
 
-        def decide(obs: Observation) -> tuple[np.ndarray, float]:
-            decision = policy.act(obs, unit.instruction, unit.task.family)
-            return decision.action, decision.uncertainty
+        def episode(seed: int) -> Decide:
+            actor = policy.episode(unit.task.family)  # a chunked policy keeps its chunks per episode
 
-        return lambda seed: decide
+            def decide(obs: Observation) -> tuple[np.ndarray, float]:
+                decision = actor(obs, unit.instruction)
+                return decision.action, decision.uncertainty
+
+            return decide
+
+        return episode
     if unit.agent.kind == "expert":
         from envs.registry import make_expert
 

@@ -233,13 +233,14 @@ def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
 
         vlm = VlmExplorer(unit.vlm, unit.task.family, plan.instruction)
         return Explorer(act=vlm.act, stats=vlm.stats)
+    actor = policy.episode(unit.task.family)  # a chunked policy keeps its chunks per episode
     if plan.subgoals:
         def follow_subgoals(obs: Observation) -> np.ndarray:
             goal = min(int(obs.privileged["stage"][0]), len(plan.subgoals) - 1)
-            return policy.act(obs, plan.subgoals[goal], unit.task.family).action
+            return actor(obs, plan.subgoals[goal]).action
 
         return Explorer(act=follow_subgoals)
-    return Explorer(act=lambda obs: policy.act(obs, plan.instruction, unit.task.family).action)
+    return Explorer(act=lambda obs: actor(obs, plan.instruction).action)
 
 
 def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:

@@ -1,6 +1,6 @@
 """train: the VLA model on the iteration's selection, lambda*InfoNCE + (1-lambda)*BC plus the auxiliary
 state loss (train.state_weight), AdamW with warm-up and cosine decay, gradient clipping, bf16
-autocast on a GPU, seeded. One unit = one training run; it checkpoints every
+autocast where the device has bf16 units (policies/precision.py), seeded. One unit = one training run; it checkpoints every
 `train.checkpoint_every` steps and a killed run resumes from the last checkpoint (weights,
 optimiser, schedule, step and data position) to the same result."""
 
@@ -23,6 +23,8 @@ from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, pixels, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
+from policies.ema import WeightAverage
+from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.workspace import Workspace
@@ -38,7 +40,8 @@ WARMUP_FRACTION = 0.05
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
-LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None}
+LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 0, "ema": None,
+                 "model": {"chunk": 1, "execution": "temporal_ensemble", "execute_steps": None, "ensemble_decay": 0.01}}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -110,20 +113,44 @@ def padded_states(qpos: list[list[float]], width: int) -> np.ndarray:
     return states
 
 
+def chunk_targets(action_chunks: list[list[list[float]]], expert_chunks: list[list[list[float] | None]],
+                  targets: str, chunk: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row, the targets of its step and the next chunk-1 of its episode -> (continuous (n, chunk,
+    ACTION_DIM), discrete index (n, chunk), mask (n, chunk): 1 where the episode has the step). Past
+    the episode's end the last target repeats, masked out of the loss (it still feeds z_a's encoder)."""
+    continuous = np.zeros((len(action_chunks), chunk, ACTION_DIM), np.float32)
+    index = np.full((len(action_chunks), chunk), -1, np.int64)
+    mask = np.zeros((len(action_chunks), chunk), np.float32)
+    for row, (actions, labels) in enumerate(zip(action_chunks, expert_chunks)):
+        values, indices = split_actions(action_targets(actions, labels, targets))
+        n = len(values)
+        continuous[row, :n], index[row, :n], mask[row, :n] = values, indices, 1.0
+        continuous[row, n:], index[row, n:] = values[-1], indices[-1]
+    return continuous, index, mask
+
+
 class TrainingCollate:
     """Rows -> a ready batch, in the loader workers: frames (and depth maps) decoded, the action targets chosen,
     split by kind and normalised, proprio normalised, the frozen encoder's embeddings looked up; with a
-    `state` normaliser, the simulator states normalised as `state` and which components each has as `state_mask`."""
+    `state` normaliser, the simulator states normalised as `state` and which components each has as `state_mask`.
+    For a chunked model (`chunk` > 1) the targets are (B, chunk, ...) with `action_mask` (chunk_targets)."""
 
     def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None,
-                 targets: str, state: Normaliser | None = None):
+                 targets: str, state: Normaliser | None = None, chunk: int = 1):
         self.action, self.proprio, self.embeddings, self.targets = action, proprio, embeddings, targets
-        self.state = state
+        self.state, self.chunk = state, chunk
 
     def __call__(self, rows: list[dict]) -> dict:
         batch = decode_rows(rows)
-        continuous, index = split_actions(action_targets(batch.pop("action"), batch.pop("expert_action"), self.targets))
-        batch["action"] = np.where((index < 0)[:, None], self.action.encode(continuous), 0.0).astype(np.float32)
+        if self.chunk > 1:
+            batch.pop("action"), batch.pop("expert_action")
+            continuous, index, batch["action_mask"] = chunk_targets(
+                batch.pop("action_chunk"), batch.pop("expert_chunk"), self.targets, self.chunk)
+            discrete = (index >= 0)[..., None]
+        else:
+            continuous, index = split_actions(action_targets(batch.pop("action"), batch.pop("expert_action"), self.targets))
+            discrete = (index >= 0)[:, None]
+        batch["action"] = np.where(discrete, 0.0, self.action.encode(continuous)).astype(np.float32)
         batch["action_index"] = index
         batch["proprio"] = self.proprio.encode(batch["proprio"])
         qpos = batch.pop("qpos")
@@ -222,18 +249,23 @@ def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | Non
 
 
 def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device,
-               shifts: torch.Generator | None = None):
+               shifts: torch.Generator | None = None, bf16: bool | None = None, channels_last: bool | None = None):
+    """One optimiser step. `bf16`, `channels_last`: None for this device's choice (policies/precision.py);
+    the benchmark sets them to compare."""
     depth = batch["depth"].to(device, non_blocking=True) if "depth" in batch else None
     image = random_shift(pixels(batch["image"].to(device, non_blocking=True), depth), cfg.augment_shift, shifts)
+    image = image_layout(image, device, channels_last)
+    bf16 = uses_bf16(device, cfg.amp) if bf16 is None else bf16
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None
     state = (batch["state"].to(device, non_blocking=True), batch["state_mask"].to(device, non_blocking=True)) \
         if "state" in batch else None
-    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=cfg.amp and device.type == "cuda"):
+    with autocast(device, bf16):
         losses = vla_loss(
             model, image, model.language_input(batch["instruction"], cached),
             batch["proprio"].to(device, non_blocking=True), batch["action"].to(device, non_blocking=True),
             batch["action_index"].to(device, non_blocking=True), cfg.contrastive_weight, cfg.temperature,
             state, cfg.state_weight,
+            batch["action_mask"].to(device, non_blocking=True) if "action_mask" in batch else None,
         )
     optimiser.zero_grad(set_to_none=True)
     losses.total.backward()
@@ -262,6 +294,7 @@ class _Run:
 @dataclass
 class _Member:
     model: VLAModel
+    average: WeightAverage | None  # train.ema: the weights registered
     history: list[dict[str, float]]
     resumed_at_step: int
     earlier_wall_s: float  # spent on this member by the runs a kill interrupted: the compute it took counts them
@@ -282,7 +315,8 @@ def _train_member(run: _Run, member: int) -> _Member:
         except RuntimeError as exc:
             raise SelectionError(f"train.init_from: {cfg.init_from} is another architecture than train.model over "
                                  f"this dataset: {str(exc).splitlines()[0]}") from None
-    model = model.to(run.device)
+    model = to_device_layout(model, run.device)
+    average = None if cfg.ema is None else WeightAverage(model, cfg.ema)
     optimiser = optimiser_for(model, cfg)
     batches = run.batches
     batches.seed = derive_seed(run.config.seed, key, "shuffle", member)
@@ -300,13 +334,15 @@ def _train_member(run: _Run, member: int) -> _Member:
         torch.set_rng_state(state["rng"])
         shifts.set_state(state["shifts"])
         step, history, epoch_means = state["step"], state["history"], _Means(state["epoch_means"])
+        if average is not None:
+            average = WeightAverage(model, cfg.ema, state["ema"])
         earlier_wall_s = state.get("wall_s", 0.0)  # states saved before it was recorded: unknown, not counted
         log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
     resumed_at = step
     run.progress.done = offset + step
     log.info("train it%d: %s%.2fM parameters", run.iteration, which, sum(p.numel() for p in model.parameters()) / 1e6)
     if step == total_steps:
-        return _Member(model, history, resumed_at, earlier_wall_s)
+        return _Member(model, average, history, resumed_at, earlier_wall_s)
 
     def save_state() -> None:
         save_atomically(state_path, {
@@ -315,6 +351,7 @@ def _train_member(run: _Run, member: int) -> _Member:
             "shifts": shifts.get_state(), "step": step,
             "history": history, "epoch_means": epoch_means.state(),
             "wall_s": earlier_wall_s + time.monotonic() - member_started,
+            **({} if average is None else {"ema": average.weights}),
         })
 
     batches.start_batch = step
@@ -334,6 +371,8 @@ def _train_member(run: _Run, member: int) -> _Member:
             raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
         losses = train_step(model, optimiser, schedule, batch, cfg, run.device, shifts)
         step += 1
+        if average is not None:
+            average.update(model, step)
         size = len(batch["instruction"])
         window.add(losses.terms, losses.counts)
         epoch_means.add(losses.terms, losses.counts)
@@ -357,7 +396,7 @@ def _train_member(run: _Run, member: int) -> _Member:
         if step < total_steps and step % cfg.checkpoint_every == 0 or step == total_steps and member + 1 < cfg.ensemble:
             save_state()
         wait_started = time.monotonic()
-    return _Member(model, history, resumed_at, earlier_wall_s)
+    return _Member(model, average, history, resumed_at, earlier_wall_s)
 
 
 def run_train(
@@ -396,14 +435,16 @@ def run_train(
     frozen_language = not cfg.model.language_trainable
     batches = StepBatches(
         rows, cfg.batch_size, cfg.shuffle_buffer, 0, 1, cfg.loader_workers,  # seeded per member; epochs set below
-        TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm),
+        TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm,
+                        cfg.model.chunk),
+        chunk=cfg.model.chunk,
     )
     batches.epochs = training_epochs(cfg, batches.batches_per_epoch)
     samples, steps_per_member = batches.rows_per_epoch, batches.epochs * batches.batches_per_epoch
     log.info(
-        "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s, dataset %s", iteration, samples,
+        "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s (%s), dataset %s", iteration, samples,
         cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", batches.epochs,
-        batches.batches_per_epoch, device, digest[:12],
+        batches.batches_per_epoch, device, describe(device, cfg.amp), digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
     run = _Run(workspace, config, iteration, key, batches, device, state_norm,
@@ -415,11 +456,14 @@ def run_train(
         torch.set_num_threads(threads_before)
     history = [record for member in members for record in member.history]
     resumed_at = max((i * steps_per_member + m.resumed_at_step for i, m in enumerate(members) if m.resumed_at_step), default=0)
-    save_atomically(checkpoint, policy_state([m.model for m in members], action_norm, proprio_norm))
+    averages = None if cfg.ema is None else [m.average.weights for m in members]
+    save_atomically(checkpoint, policy_state([m.model for m in members], action_norm, proprio_norm, averages, cfg.ema))
     catalog.register_unit(
         unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
         summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
-                 "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where},
+                 "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where,
+                 "weights": "final" if cfg.ema is None else f"ema {cfg.ema}", "chunk": cfg.model.chunk,
+                 "seed": cfg.seed},
         wall_s=time.monotonic() - started + sum(m.earlier_wall_s for m in members),
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,

@@ -5,6 +5,10 @@ through a shuffle buffer, and are made into batches (frames decoded) in the work
 Memory is bounded by configuration (the shuffle buffer plus one row group per worker), never
 by the warehouse: the selection itself is held as row ranges (an episode is one range).
 
+For a chunked model (`chunk` > 1) each row also carries the actions of the next chunk-1 steps of its
+episode (`action_chunk`, `expert_chunk`: this step's first, shorter at the episode's end), read
+from the same file whether or not the selection holds those steps.
+
 The batch sequence is a pure function of (selection, seed, batch size, workers): batch g comes
 from worker g % W, every worker yields the same number per epoch, so a training resumed at batch
 g reads exactly what it would have read (`start_batch`).
@@ -28,6 +32,7 @@ from schemas.frames import decode_depth, decode_frame
 from warehouse.catalog import Catalog
 
 COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action", "qpos"]
+LOOKAHEAD_COLUMNS = ["episode_id", "action", "expert_action"]  # what a chunk's later steps are read for
 
 
 class SelectionError(ValueError):
@@ -108,6 +113,8 @@ def decode_rows(rows: list[dict]) -> dict[str, Any]:
     """The plain batch: frames (and depth maps, where recorded) decoded and stacked, the other
     columns as read."""
     depths = {} if rows[0]["depth"] is None else {"depth": np.stack([decode_depth(r["depth"]) for r in rows])}
+    chunks = {} if "action_chunk" not in rows[0] else {
+        "action_chunk": [r["action_chunk"] for r in rows], "expert_chunk": [r["expert_chunk"] for r in rows]}
     return {
         "image": np.stack([decode_frame(r["image"]) for r in rows]),
         **depths,
@@ -116,6 +123,7 @@ def decode_rows(rows: list[dict]) -> dict[str, Any]:
         "action": [r["action"] for r in rows],
         "expert_action": [r["expert_action"] for r in rows],
         "qpos": [r["qpos"] for r in rows],
+        **chunks,
     }
 
 
@@ -147,6 +155,7 @@ class StepBatches(IterableDataset):
     def __init__(
         self, ranges: list[RowRange], batch_size: int, shuffle_buffer: int, seed: int, epochs: int,
         workers: int = 0, collate: Collate = decode_rows, start_batch: int = 0, piece_rows: int = 1024,
+        chunk: int = 1,
     ):
         self.streams = max(1, workers)
         self.parts = partition(ranges, self.streams, piece_rows)
@@ -156,7 +165,7 @@ class StepBatches(IterableDataset):
         self.worker_batches = math.ceil(rows / batch_size)  # per worker per epoch
         self.rows_per_epoch = rows * self.streams
         self.batch_size, self.shuffle_buffer, self.seed, self.epochs = batch_size, shuffle_buffer, seed, epochs
-        self.collate, self.start_batch = collate, start_batch
+        self.collate, self.start_batch, self.chunk = collate, start_batch, chunk
 
     @property
     def batches_per_epoch(self) -> int:
@@ -165,19 +174,47 @@ class StepBatches(IterableDataset):
     def __len__(self) -> int:
         return max(0, self.epochs * self.batches_per_epoch - self.start_batch)
 
-    @staticmethod
-    def _rows(path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
-        """The selected rows of one file, reading only the row groups they fall in."""
+    def _rows(self, path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
+        """The selected rows of one file, reading only the row groups they fall in (and, for chunks,
+        the look-ahead columns of the rows up to chunk-1 past them)."""
         parquet = pq.ParquetFile(Path(path))
-        first = 0
-        for group in range(parquet.num_row_groups):
-            last = first + parquet.metadata.row_group(group).num_rows
+        sizes = [parquet.metadata.row_group(g).num_rows for g in range(parquet.num_row_groups)]
+        starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        for group, first in enumerate(starts[:-1]):
+            last = int(starts[group + 1])
             wanted = [(max(a, first) - first, min(b, last) - first) for a, b in spans if a < last and b > first]
-            if wanted:
-                table = parquet.read_row_group(group, columns=COLUMNS)
-                for a, b in wanted:
-                    yield from table.slice(a, b - a).to_pylist()
-            first = last
+            if not wanted:
+                continue
+            table = parquet.read_row_group(group, columns=COLUMNS)
+            ahead = None
+            if self.chunk > 1:
+                low, high = min(a for a, _ in wanted), max(b for _, b in wanted) + self.chunk - 1
+                ahead = self._lookahead(parquet, starts, group, low, high)
+            for a, b in wanted:
+                rows = table.slice(a, b - a).to_pylist()
+                if ahead is not None:
+                    for offset, row in enumerate(rows, start=a - low):
+                        self._attach_chunk(row, ahead, offset)
+                yield from rows
+
+    @staticmethod
+    def _lookahead(parquet: pq.ParquetFile, starts: np.ndarray, group: int, low: int, high: int) -> dict[str, list]:
+        """LOOKAHEAD_COLUMNS of the file's rows `low` to `high` (counted from row group `group`'s first
+        row; the file may end first), as lists from row `low`."""
+        first = int(starts[group])
+        groups = [g for g in range(group, len(starts) - 1) if starts[g] < first + high]
+        table = parquet.read_row_groups(groups, columns=LOOKAHEAD_COLUMNS).slice(low, high - low)
+        return {name: table[name].to_pylist() for name in LOOKAHEAD_COLUMNS}
+
+    def _attach_chunk(self, row: dict, ahead: dict[str, list], offset: int) -> None:
+        """`action_chunk`, `expert_chunk`: the actions of the row's step and the next chunk-1 steps of
+        its episode (fewer where the episode ends first)."""
+        episode = ahead["episode_id"][offset]
+        stop = offset + 1
+        while stop < min(offset + self.chunk, len(episode_ids := ahead["episode_id"])) and episode_ids[stop] == episode:
+            stop += 1
+        row["action_chunk"] = ahead["action"][offset:stop]
+        row["expert_chunk"] = ahead["expert_action"][offset:stop]
 
     def _piece_rows(self, piece: Piece) -> Iterator[dict]:
         """A piece's rows in order, each of its files opened once."""

@@ -141,19 +141,19 @@ def test_training_fits_a_small_mixed_batch():
 
 
 def test_uncertainty_is_entropy_or_log_det_sigma():
-    uniform = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -1.0), torch.zeros(1, 4))
+    uniform = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 1, 7), torch.full((1, 1, 7), -1.0), torch.zeros(1, 1, 4))
     assert uncertainty([uniform], discrete=True).item() == pytest.approx(math.log(4))
     assert uncertainty([uniform], discrete=False).item() == pytest.approx(2 * 7 * -1.0)
-    sure = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 7), torch.full((1, 7), -3.0), torch.tensor([[20.0, 0, 0, 0]]))
+    sure = ModelOutput(torch.zeros(1, 8), torch.zeros(1, 1, 7), torch.full((1, 1, 7), -3.0), torch.tensor([[[20.0, 0, 0, 0]]]))
     assert uncertainty([sure], True) < uncertainty([uniform], True)
     assert uncertainty([sure], False) < uncertainty([uniform], False)
 
 
 def test_an_ensembles_uncertainty_counts_its_members_disagreement():
     def member(mu: float, top: int) -> ModelOutput:
-        logits = torch.zeros(1, 4)
-        logits[0, top] = 20.0
-        return ModelOutput(torch.zeros(1, 8), torch.full((1, 7), mu), torch.full((1, 7), -3.0), logits)
+        logits = torch.zeros(1, 1, 4)
+        logits[0, 0, top] = 20.0
+        return ModelOutput(torch.zeros(1, 8), torch.full((1, 1, 7), mu), torch.full((1, 1, 7), -3.0), logits)
 
     agreeing, disagreeing = [member(0.5, 0), member(0.5, 0)], [member(0.0, 0), member(1.0, 1)]
     # equal means: the mixture is each member's own Gaussian; sure members that disagree: about
