@@ -145,23 +145,51 @@ def cmd_eval(args: argparse.Namespace) -> int:
     configure_environment(workspace)
     log_stages_to_stderr()
     from flows.tracking import Tracking
-    from stages.evaluate import Agent, evaluate_model, group_success
+    from stages.evaluate import Agent, evaluate_model
     from stages.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
 
     suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
-    model = resolve_model(workspace, config, args.model)
-    check_model_fits(config, model)
+    models = [resolve_model(workspace, config, ref) for ref in args.model]
+    for model in models:
+        check_model_fits(config, model)
+    embeddings = instruction_embeddings(workspace, config, cases)
     tracking = Tracking(workspace, config)
-    run_id = tracking.evaluation_run(model.model_key, suite, model.label)
-    print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}) on "
-          f"{len(cases)} case(s) of {suite}, {config.evaluate.episodes_per_task} episodes each; MLflow run {run_id}",
-          flush=True)
-    evaluations, skipped = evaluate_model(workspace, config, model.iteration, model.model_key,
-                                          Agent(kind="sim2act", path=model.checkpoint), cases,
-                                          instruction_embeddings(workspace, config, cases), suite)
-    if skipped < len(evaluations):
-        tracking.log_evaluation(run_id, evaluations)
-    tracking.finish(run_id)
+    by_model = []
+    for model in models:
+        # the last weights are another agent than the registered (averaged) ones: their own evaluation units
+        model_key = model.model_key if args.weights == "registered" else f"{model.model_key}:{args.weights}"
+        run_id = tracking.evaluation_run(model_key, suite, model.label)
+        print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}, "
+              f"{weights_of_checkpoint(model.checkpoint, args.weights)} weights) on {len(cases)} case(s) of {suite}, "
+              f"{config.evaluate.episodes_per_task} episodes each; MLflow run {run_id}", flush=True)
+        evaluations, skipped = evaluate_model(workspace, config, model.iteration, model_key,
+                                              Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
+                                              cases, embeddings, suite)
+        if skipped < len(evaluations):
+            tracking.log_evaluation(run_id, evaluations)
+        tracking.finish(run_id)
+        _print_evaluations(evaluations)
+        by_model.append(evaluations)
+    if len(models) > 1:
+        from stages.protocol import protocol_success
+
+        print(f"\nover the {len(models)} models (training seeds): mean ± spread across them (each one's rate), "
+              "pooled episodes [Wilson 95%]")
+        for figure in protocol_success(by_model):
+            print(f"{figure.group:<24} {figure.describe()}")
+    return 0
+
+
+def weights_of_checkpoint(path: str, weights: str) -> str:
+    import torch
+
+    from policies.policy import weights_of
+
+    return weights_of(torch.load(path, map_location="cpu", weights_only=False), weights)
+
+
+def _print_evaluations(evaluations) -> None:
+    from stages.evaluate import group_success
 
     def interval(low: float, high: float) -> str:
         return f"[{low:4.0%}, {high:4.0%}]"
@@ -174,7 +202,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for g in group_success(evaluations):
         print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
               f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
-    return 0
 
 
 def _service_config(args: argparse.Namespace) -> ServiceConfig:
@@ -489,8 +516,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = campaign_parser("eval", "evaluate any model on the campaign's tasks, one split, or a task file",
                                cmd_eval)
-    evaluate.add_argument("--model", required=True, metavar="REF",
-                          help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...")
+    evaluate.add_argument("--model", required=True, action="append", metavar="REF",
+                          help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...; "
+                               "repeat it for several trainings (seeds): each is evaluated, then the results "
+                               "protocol's mean, spread and pooled interval over them")
+    evaluate.add_argument("--weights", choices=("registered", "final"), default="registered",
+                          help="registered: the weights the training registers (its moving average, train.ema); "
+                               "final: its last weights")
     which = evaluate.add_mutually_exclusive_group()
     which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
     which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase"), help="only this split's cases")

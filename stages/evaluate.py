@@ -34,6 +34,7 @@ class Agent(BaseModel):
 
     kind: Literal["sim2act", "expert", "ppo", "sac"]
     path: str | None = None  # the checkpoint or the saved agent; none for the expert
+    weights: Literal["registered", "final"] = "registered"  # sim2act: the averaged weights, or the last (Policy.load)
 
 
 class EvalUnit(BaseModel):
@@ -185,7 +186,7 @@ def _episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
     if unit.agent.kind == "sim2act":
         from policies.policy import Policy
 
-        policy = Policy.load(Path(unit.agent.path), {unit.instruction: embedding})
+        policy = Policy.load(Path(unit.agent.path), {unit.instruction: embedding}, unit.agent.weights)
 
         def episode(seed: int) -> Decide:
             actor = policy.episode(unit.task.family)  # a chunked policy keeps its chunks per episode

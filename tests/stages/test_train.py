@@ -121,6 +121,30 @@ def test_a_sigkilled_ensemble_training_resumes_to_the_same_weights(campaign, tmp
     assert "already trained" in again.communicate(timeout=300)[0] and again.returncode == 0
 
 
+def test_a_chunked_training_on_mixed_actions_registers_its_average_and_acts_per_episode(campaign, tmp_path):
+    """Chunks over lift (continuous) and navigation (discrete) episodes: the reader's look-ahead, the
+    chunk targets and their mask, both heads; the checkpoint holds the average and the last weights."""
+    workspace = _copy(campaign, tmp_path, "chunked")
+    run = _train(campaign[0], workspace, "--set", "train.model.chunk=3")
+    output = run.communicate(timeout=600)[0]
+    assert run.returncode == 0 and "action_mse_chunk" in output, output
+    [path] = (workspace / "models").glob("*/policy.pt")
+    state = torch.load(path, weights_only=False)
+    assert state["weights"] == "ema 0.999" and state["model_config"]["chunk"] == 3
+    assert any(not torch.equal(state["members"][0][k], state["final_members"][0][k]) for k in state["members"][0])
+    [(summary,)] = Catalog(Workspace.at(workspace).catalog).query("SELECT summary FROM stage_runs WHERE stage = 'train'")
+    assert json.loads(summary)["chunk"] == 3 and json.loads(summary)["weights"] == "ema 0.999"
+    embeddings = load_embeddings(Workspace.at(workspace), *Catalog(Workspace.at(workspace).catalog).query(
+        "SELECT DISTINCT unit_key FROM tasks")[0], "all-MiniLM-L6-v2")
+    policy = Policy.load(path, embeddings)
+    obs = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {})
+    instruction = next(iter(embeddings))
+    for family, shape in (("robosuite", (7,)), ("navigation", (1,))):
+        actor = policy.episode(family)
+        actions = [actor(obs, instruction).action for _ in range(4)]
+        assert all(a.shape == shape and np.isfinite(a).all() for a in actions)
+
+
 def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaign, tmp_path):
     workspace = _copy(campaign, tmp_path, "logged")
     run = _train(campaign[0], workspace)

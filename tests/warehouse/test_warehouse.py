@@ -235,3 +235,23 @@ def test_the_cli_queries_snapshots_verifies_and_exports(filled, tmp_path, capsys
     assert info["codebase_version"] == "v3.0" and info["total_episodes"] == kept_lift > 0
     assert main(["export", "lerobot", str(out), "--workspace", root]) == 2  # not empty: refused
     assert "is not an empty folder" in capsys.readouterr().err
+
+
+def test_a_chunked_stream_carries_each_steps_next_actions_of_its_episode(filled):
+    """Look-ahead past the selection (steps >= 7 are not selected but are read as a chunk's later
+    steps), never across episodes, shorter at an episode's end."""
+    catalog = Catalog(filled.catalog)
+    ranges = select_rows(catalog, "step < 7 OR step = 9")
+    stored = {(e, s): (a, x) for e, s, a, x in catalog.query("SELECT episode_id, step, action, expert_action FROM steps")}
+    by_action = {tuple(np.float32(a).tolist()): key for key, (a, _) in stored.items()}
+    read = list(StepBatches(ranges, batch_size=6, shuffle_buffer=8, seed=0, epochs=1, piece_rows=5, chunk=4))
+    rows = 0
+    for batch in read:
+        for action, chunk, expert in zip(batch["action"], batch["action_chunk"], batch["expert_chunk"]):
+            episode, step = by_action[tuple(np.float32(action).tolist())]
+            later = [s for s in range(step, step + 4) if (episode, s) in stored]
+            assert [tuple(np.float32(a).tolist()) for a in chunk] == [tuple(np.float32(stored[episode, s][0]).tolist())
+                                                                    for s in later]
+            assert expert == [stored[episode, s][1] for s in later]
+            rows += 1
+    assert rows == sum(r.stop - r.start for r in ranges) and min(len(c) for b in read for c in b["action_chunk"]) == 1

@@ -1,0 +1,134 @@
+"""Acting with action chunks: temporal ensembling and receding horizon on a known sequence of
+predictions, the episode's state, and the moving average of the weights a training registers."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from envs.observation import Observation
+from policies.chunking import EpisodeActor, temporal_ensemble
+from policies.ema import WeightAverage, decay_at
+from policies.model import ModelDims, VLAModel, vla_loss
+from policies.policy import Normaliser, Policy, policy_state, save_atomically
+from schemas.config import ModelConfig
+
+OBS = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {})
+IDENTITY = Normaliser(np.zeros(7, np.float32), np.ones(7, np.float32))
+DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, discrete_actions=4, language_dim=384)
+
+
+class ScriptedPolicy(Policy):
+    """A policy whose chunk predicted at its n-th call is known: position j holds 10 n + j in every
+    action component (normalised units, identity normaliser; clipped to [-1, 1] only when acted)."""
+
+    def __init__(self, config: ModelConfig):
+        self._config, self.calls, self.action = config, 0, Normaliser(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
+
+    @property
+    def config(self) -> ModelConfig:
+        return self._config
+
+    def predict(self, obs, instruction, family):
+        chunk = np.repeat((10.0 * self.calls + np.arange(self._config.chunk))[:, None], 7, axis=1)
+        self.calls += 1
+        return chunk, 0.5
+
+
+def _first_component(actor: EpisodeActor, steps: int, instruction: str = "go") -> list[float]:
+    # the scripted values over the normaliser's std 0.01: value v acts as 0.01 v (clipped at 1)
+    return [float(actor(OBS, instruction).action[0]) / 0.01 for _ in range(steps)]
+
+
+def test_temporal_ensembling_averages_every_chunk_that_predicted_this_step_oldest_weighted_most():
+    policy = ScriptedPolicy(ModelConfig(chunk=3, ensemble_decay=0.5))
+    acted = _first_component(EpisodeActor(policy, "robosuite"), 4)
+    w = np.exp(-0.5 * np.arange(3))
+    # step 0: call 0's position 0; step 1: call 0's pos 1 and call 1's pos 0; from step 2 three chunks
+    expected = [0.0, (w[0] * 1 + w[1] * 10) / w[:2].sum(), (w[0] * 2 + w[1] * 11 + w[2] * 20) / w.sum(),
+                (w[0] * 12 + w[1] * 21 + w[2] * 30) / w.sum()]
+    np.testing.assert_allclose(acted, expected, rtol=1e-5)
+    assert policy.calls == 4  # a prediction every step
+    assert temporal_ensemble([np.ones(2), 3 * np.ones(2)], 0.0).tolist() == [2.0, 2.0]
+
+
+def test_receding_horizon_executes_part_of_each_chunk_then_predicts_again():
+    policy = ScriptedPolicy(ModelConfig(chunk=4, execution="receding", execute_steps=3))
+    acted = _first_component(EpisodeActor(policy, "robosuite"), 7)
+    np.testing.assert_allclose(acted, [0, 1, 2, 10, 11, 12, 20], atol=1e-4)
+    assert policy.calls == 3
+    assert ModelConfig(chunk=8, execution="receding").steps_per_prediction == 4  # default: half the chunk
+    with pytest.raises(ValueError, match="execute_steps: expected at most chunk"):
+        ModelConfig(chunk=2, execute_steps=3)
+
+
+def test_a_new_instruction_or_episode_starts_from_no_chunk():
+    policy = ScriptedPolicy(ModelConfig(chunk=3, ensemble_decay=0.0))
+    actor = EpisodeActor(policy, "robosuite")
+    _first_component(actor, 2)
+    # the next sub-goal: only the chunk predicted now speaks for this step
+    np.testing.assert_allclose(_first_component(actor, 1, "next goal"), [20.0], atol=1e-4)
+    np.testing.assert_allclose(_first_component(EpisodeActor(policy, "robosuite"), 1), [30.0], atol=1e-4)
+
+
+def test_a_chunked_model_acts_through_its_episode_and_its_checkpoint_round_trips(tmp_path: Path):
+    torch.manual_seed(0)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=4), DIMS)
+    path = tmp_path / "policy.pt"
+    save_atomically(path, policy_state([model], IDENTITY, Normaliser(np.zeros(9, np.float32), np.ones(9, np.float32))))
+    policy = Policy.load(path, {"go": np.ones(384, np.float32)})
+    chunk, _ = policy.predict(OBS, "go", "robosuite")
+    assert chunk.shape == (4, 7)
+    actor = policy.episode("robosuite")
+    first = actor(OBS, "go").action
+    np.testing.assert_allclose(first, np.clip(chunk[0], -1, 1), atol=1e-6)  # step 0: the first chunk alone
+    assert policy.act(OBS, "go", "robosuite").action.shape == (7,)
+    probabilities, _ = policy.predict(OBS, "go", "navigation")
+    assert probabilities.shape == (4, 4) and np.allclose(probabilities.sum(-1), 1.0, atol=1e-5)
+
+
+def test_masked_chunk_positions_do_not_move_the_loss():
+    torch.manual_seed(0)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=3), DIMS)
+    image, language, proprio = torch.rand(4, 3, 84, 84), torch.randn(4, 384), torch.randn(4, 9)
+    action, index = torch.randn(4, 3, 7), torch.full((4, 3), -1)
+    mask = torch.tensor([[1.0, 1.0, 0.0]] * 4)
+    changed = action.clone()
+    changed[:, 2] += 5.0  # past the episodes' end: masked
+    a = vla_loss(model, image, language, proprio, action, index, 0.0, 0.1, action_mask=mask)
+    b = vla_loss(model, image, language, proprio, changed, index, 0.0, 0.1, action_mask=mask)
+    assert a.terms["bc"].item() == pytest.approx(b.terms["bc"].item())
+    c = vla_loss(model, image, language, proprio, changed, index, 0.0, 0.1)
+    assert c.terms["bc"].item() > a.terms["bc"].item() + 1.0
+    assert a.terms["action_mse"].item() == pytest.approx(((model(image, language, proprio).mu - action[:, 0]) ** 2)
+                                                          .mean().item(), rel=1e-4)
+
+
+def test_the_moving_average_warms_up_then_trails_the_weights():
+    assert decay_at(0, 0.999) == pytest.approx(0.1) and decay_at(10_000, 0.999) == 0.999
+    model = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))
+    average = WeightAverage(model, 0.5)
+    start = model[0].weight.detach().clone()
+    with torch.no_grad():
+        model[0].weight.add_(1.0)
+    average.update(model, 1)  # decay 0.1 at the first step: mostly the new weights
+    np.testing.assert_allclose(average.weights["0.weight"], start + 0.9, atol=1e-6)
+    model(torch.randn(8, 2))  # the batch-norm counter moves: copied, not averaged
+    average.update(model, 100)  # decay 0.5 from here
+    np.testing.assert_allclose(average.weights["0.weight"], start + 0.95, atol=1e-6)
+    assert int(average.weights["1.num_batches_tracked"]) == 1
+
+
+def test_a_checkpoint_registers_the_average_and_keeps_the_last_weights(tmp_path: Path):
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1), DIMS)
+    average = {name: torch.zeros_like(value) for name, value in model.state_dict().items()}
+    path = tmp_path / "policy.pt"
+    proprio = Normaliser(np.zeros(9, np.float32), np.ones(9, np.float32))
+    save_atomically(path, policy_state([model], IDENTITY, proprio, [average], 0.999))
+    registered, final = Policy.load(path), Policy.load(path, weights="final")
+    assert registered.weights == "ema 0.999" and final.weights == "final"
+    assert float(registered.members[0].mu.weight.detach().abs().sum()) == 0.0
+    assert torch.equal(final.members[0].mu.weight, model.mu.weight)
+    with pytest.raises(ValueError, match="weights: expected one of registered, final"):
+        Policy.load(path, weights="best")
