@@ -86,7 +86,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     from flows.bootstrap import bootstrap
 
     bootstrap(config=config, workspace=str(workspace.root), continue_campaign=args.continue_campaign)
+    from stages.report import campaign_summary
+
+    same = _same_campaign_flags(args)
+    print("\n" + campaign_summary(Catalog(workspace.catalog), config.name, [
+        f"the results table (iterations, per spec, baselines):  sim2act report {same}",
+        f"dashboard (episodes, videos, SQL panels), MLflow UI:  sim2act up {same}",
+        f"the warehouse in SQL:  sim2act sql \"SELECT * FROM task_success\" --workspace {workspace.root}",
+        f"the champion on any split or task file:  sim2act eval --model champion {same}",
+    ]), flush=True)
     return 0
+
+
+def _same_campaign_flags(args: argparse.Namespace) -> str:
+    """The flags that name this campaign again, as the user gave them."""
+    flags = [f"--preset {args.preset}"] + ([f"--config {args.config}"] if args.config else [])
+    flags += [f"--set {setting}" for setting in args.set] + [f"--workspace {args.workspace}"]
+    return " ".join(flags)
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -161,7 +177,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         run_id = tracking.evaluation_run(model_key, suite, model.label)
         print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}, "
               f"{weights_of_checkpoint(model.checkpoint, args.weights)} weights) on {len(cases)} case(s) of {suite}, "
-              f"{config.evaluate.episodes_per_task} episodes each; MLflow run {run_id}", flush=True)
+              f"{_episodes_per_case(config, cases)} episodes each; MLflow run {run_id}", flush=True)
         evaluations, skipped = evaluate_model(workspace, config, model.iteration, model_key,
                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
                                               cases, embeddings, suite)
@@ -178,6 +194,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
         for figure in protocol_success(by_model):
             print(f"{figure.group:<24} {figure.describe()}")
     return 0
+
+
+def _episodes_per_case(config, cases) -> str:
+    from collections import Counter
+
+    per_split = Counter(split for _, split, _ in cases)
+    return "/".join(str(n) for n in sorted({config.evaluate.episodes_per_case(k) for k in per_split.values()}))
 
 
 def weights_of_checkpoint(path: str, weights: str) -> str:

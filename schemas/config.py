@@ -291,8 +291,19 @@ class TrainConfig(_Strict):
 
 class EvaluateConfig(_Strict):
     episodes_per_task: PositiveInt = 3
+    episodes_per_split: PositiveInt | None = Field(
+        default=None, description="at least this many episodes in each split's cell: a split of n cases gets "
+        "max(episodes_per_task, ceil(episodes_per_split / n)) per case (45 bounds a Wilson 95% interval to about "
+        "+-15 points at any rate); None: episodes_per_task for every case",
+    )
     workers: PositiveInt = 2
     videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
+
+    def episodes_per_case(self, cases_in_split: int) -> int:
+        """Episodes for each case of a split of `cases_in_split` cases."""
+        if self.episodes_per_split is None:
+            return self.episodes_per_task
+        return max(self.episodes_per_task, -(-self.episodes_per_split // cases_in_split))
 
 
 class RedeployConfig(_Strict):

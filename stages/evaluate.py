@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
@@ -276,20 +277,25 @@ def evaluate_model(
     Seeds derive from (campaign, task, episode): every model meets the same episodes."""
     catalog = Catalog(workspace.catalog)
     units = []
-    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers"}), "render": config.render,
-             "randomise": config.randomise, "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
+    # a unit reads its own episode count, not the split's size: the same case evaluated in a smaller task
+    # set (sim2act eval --split) finds the same unit
+    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task"}),
+             "render": config.render, "randomise": config.randomise,
+             "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
+    per_split = Counter(split for _, split, _ in cases)
     for task, split, instruction in cases:
+        episodes = config.evaluate.episodes_per_case(per_split[split])
+        reads["evaluate"]["episodes_per_task"] = episodes  # where it was before the split's count existed: old keys hold
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
-        seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e)
-                 for e in range(config.evaluate.episodes_per_task)]
+        seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
                               randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None))
     done = catalog.registered_keys([u.unit_key for u in units])
     todo = [u for u in units if u.unit_key not in done]
-    log.info("evaluate it%d: %d cases (%d already evaluated), %d episodes each",
-             iteration, len(units), len(done), config.evaluate.episodes_per_task)
+    log.info("evaluate it%d: %d cases (%d already evaluated), %s episodes each", iteration, len(units), len(done),
+             "/".join(str(n) for n in sorted({len(u.seeds) for u in units})))
     progress = Progress(log, f"evaluate it{iteration}", len(todo), "cases", "episodes")
     try:
         for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):

@@ -59,3 +59,28 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
     plt.close(figure)
     tmp.replace(path)
     return path
+
+
+SUMMARY_SPLITS = ("seen", "unseen", "unseen_paraphrase", "held_out_wording")
+
+
+def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -> str:
+    """The few lines a person reads when a campaign ends: success per iteration and split (successes,
+    rate, Wilson 95%), which iteration holds the champion, and the commands to look further."""
+    by_iteration = success_by_iteration(catalog, campaign)
+    champions = dict(catalog.query("SELECT iteration, promoted FROM deployments WHERE campaign = ?", [campaign]))
+    splits = [s for s in SUMMARY_SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
+    lines = [f"campaign {campaign!r}: success per iteration (successes/episodes, rate, Wilson 95%)",
+             f"  {'iteration':<10}" + "".join(f"{split:<28}" for split in splits)]
+    for iteration, groups in sorted(by_iteration.items()):
+        cells = {g.group: g for g in groups}
+        row = "".join(
+            f"{cells[s].successes:>3}/{cells[s].episodes:<3} {cells[s].success_rate:>4.0%} "
+            f"[{cells[s].ci_low:.0%}, {cells[s].ci_high:.0%}]".ljust(28) if s in cells else " " * 28
+            for s in splits)
+        mark = "  promoted" if champions.get(iteration) else ""
+        lines.append(f"  {iteration:<10}{row}{mark}".rstrip())
+    if not by_iteration:
+        lines.append("  (no iteration was evaluated)")
+    lines += ["look further:", *(f"  {command}" for command in look_further)]
+    return "\n".join(lines)

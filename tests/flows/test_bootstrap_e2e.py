@@ -28,6 +28,19 @@ from warehouse.catalog import Catalog
 pytestmark = pytest.mark.timeout(900)
 
 
+def test_the_run_ends_with_a_summary_a_person_reads(finished_campaign):
+    workspace, output, _ = finished_campaign
+    summary = output[output.index("campaign 'smoke': success per iteration"):]
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    for iteration in (0, 1):  # each iteration's seen figure, as the warehouse has it
+        [(successes, episodes)] = catalog.query(
+            "SELECT sum(v.successes), sum(v.episodes) FROM evaluations v JOIN deployments d USING (campaign, iteration, "
+            "model_key) WHERE v.iteration = ? AND v.split = 'seen' AND v.suite = 'campaign'", [iteration])
+        assert re.search(rf"\n  {iteration} +{successes}/{episodes} ", summary), summary
+    assert "unseen_paraphrase" in summary and "look further:" in summary
+    assert f"sim2act report --preset smoke --workspace {workspace}" in summary
+
+
 def test_campaign_fills_the_warehouse(finished_campaign):
     workspace, output, _ = finished_campaign
     catalog = Catalog(Workspace.at(workspace).catalog)

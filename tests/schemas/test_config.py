@@ -99,3 +99,11 @@ def test_every_preset_loads_and_yields_its_tasks(preset):
     assert tasks and any(t.split == "seen" for t in tasks)
     if config.explore.curriculum:  # a curriculum needs a long-horizon task whose sub-tasks it can chain
         assert curriculum_subgoals(config, tasks)
+
+
+def test_each_split_gets_at_least_its_episodes_per_split():
+    from schemas.config import EvaluateConfig
+
+    assert EvaluateConfig(episodes_per_task=3).episodes_per_case(7) == 3  # off: every case alike
+    bounded = EvaluateConfig(episodes_per_task=3, episodes_per_split=45)
+    assert [bounded.episodes_per_case(n) for n in (1, 3, 7, 15, 30)] == [45, 15, 7, 3, 3]
