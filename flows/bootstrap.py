@@ -21,6 +21,7 @@ from flows.run_lock import exclusive_run
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE, Split
+from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.adapt import AdaptResult, run_adapt
 from stages.baselines import BaselinesResult, run_baselines
@@ -40,7 +41,7 @@ log = logging.getLogger("sim2act.flows")
 logging.getLogger("sim2act").setLevel(logging.INFO)
 # The catalog, not Prefect's result cache, decides what is done: one source of truth.
 stage_task = task(cache_policy=NO_CACHE, persist_result=False)
-SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE)
+SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE, HELD_OUT_WORDING)
 
 
 class IterationOutcome(BaseModel):
@@ -203,7 +204,7 @@ def iteration_flow(
                            deployment, run_id),
         evaluation, tracking.experiment_id, run_id,
     )
-    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split != UNSEEN_PARAPHRASE}
+    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split in get_args(Split)}  # canonical wording
     stages_run = sum([
         not tasks.skipped, explore.skipped_units < len(explore.unit_keys), filtered.skipped_units < len(filtered.unit_keys),
         not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,

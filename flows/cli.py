@@ -548,7 +548,8 @@ def build_parser() -> argparse.ArgumentParser:
                                "final: its last weights")
     which = evaluate.add_mutually_exclusive_group()
     which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
-    which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase"), help="only this split's cases")
+    which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
+                       help="only this split's cases (held_out_wording: seen tasks in words the generator never uses)")
     evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
 
     campaign_parser("report", "the results table: success per iteration beside the baselines, dataset, compute",

@@ -12,6 +12,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
 from schemas.tasks import UNSEEN_PARAPHRASE
+from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, group_success
 
@@ -77,7 +78,8 @@ class Tracking:
         intervals, mean episode lengths, and the cases' videos."""
         metrics = {}
         for t in evaluations:
-            name = f"success.{t.task_id}" + (".paraphrase" if t.split == UNSEEN_PARAPHRASE else "")
+            name = f"success.{t.task_id}" + {UNSEEN_PARAPHRASE: ".paraphrase", HELD_OUT_WORDING: ".held_out_wording"}.get(
+                t.split, "")
             metrics.update({name: t.success_rate, f"{name}.ci_low": t.ci_low, f"{name}.ci_high": t.ci_high,
                             f"length.{t.task_id}": t.mean_length})
         for g in group_success(evaluations):

@@ -263,6 +263,12 @@ class TrainConfig(_Strict):
         "episode recorded one (expert explorers, DAgger labels), else the executed action; or always the "
         "executed action (exploration noise included)",
     )
+    language_augment: float = Field(
+        default=0.0, ge=0.0, le=1.0,
+        description="share of training samples whose instruction is replaced by a rewording (other colour words, "
+        "verbs, sentence shapes: schemas/wordings.py TRAINING_LEXICON, disjoint from the held-out wordings "
+        "evaluation uses); 0: the generator's wordings only",
+    )
     where: str | None = Field(
         default=None, min_length=1,
         description="SQL condition over the steps columns narrowing the iteration's kept steps, e.g. "
@@ -296,6 +302,9 @@ class EvaluateConfig(_Strict):
         "max(episodes_per_task, ceil(episodes_per_split / n)) per case (45 bounds a Wilson 95% interval to about "
         "+-15 points at any rate); None: episodes_per_task for every case",
     )
+    held_out_wordings: bool = Field(
+        default=False, description="also evaluate every seen task said in words the generator never uses "
+        "(split held_out_wording: schemas/wordings.py), on the canonical wording's seeds")
     workers: PositiveInt = 2
     videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
 

@@ -20,6 +20,7 @@ from envs.observation import Observation
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
+from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
 from stages.explore import rollout, worker_env
 from stages.pool import Progress, run_in_pool
@@ -252,12 +253,15 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     )
 
 
-def evaluation_cases(tasks: list[TaskRecord]) -> list[tuple[TaskRecord, str, str]]:
-    """(task, split, instruction): every task said canonically, and every seen task that has
-    held-out paraphrases said with the first of them (same seeds, so only the words differ)."""
+def evaluation_cases(tasks: list[TaskRecord], held_out_wordings: bool = False) -> list[tuple[TaskRecord, str, str]]:
+    """(task, split, instruction): every task said canonically, every seen task that has held-out
+    paraphrases said with the first of them, and with `held_out_wordings` every seen task in words
+    the generator never uses (schemas/wordings.py); same seeds, so only the words differ."""
     cases = [(task, task.split, task.instruction) for task in tasks]
     cases += [(task, UNSEEN_PARAPHRASE, task.unseen_instructions[0])
               for task in tasks if task.split == "seen" and task.unseen_instructions]
+    if held_out_wordings:
+        cases += [(task, HELD_OUT_WORDING, held_out_wording(task.instruction)) for task in tasks if task.split == "seen"]
     return cases
 
 
@@ -277,9 +281,15 @@ def evaluate_model(
     Seeds derive from (campaign, task, episode): every model meets the same episodes."""
     catalog = Catalog(workspace.catalog)
     units = []
+    missing = sorted({instruction for _, _, instruction in cases} - set(embeddings))
+    if missing:  # wordings the generator never made (held_out_wording): encoded now by the frozen encoder
+        from policies.language import encode
+
+        embeddings = {**embeddings, **dict(zip(missing, encode(config.train.model.language_encoder, missing)))}
     # a unit reads its own episode count, not the split's size: the same case evaluated in a smaller task
     # set (sim2act eval --split) finds the same unit
-    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task"}),
+    reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task",
+                                                             "held_out_wordings"}),
              "render": config.render, "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
     per_split = Counter(split for _, split, _ in cases)
@@ -328,7 +338,8 @@ def run_evaluate(
 ) -> EvaluateResult:
     """The flow's stage: every evaluation case of the campaign's tasks, then the promotion decision."""
     evaluations, skipped = evaluate_model(workspace, config, iteration, model_key,
-                                          Agent(kind="sim2act", path=checkpoint), evaluation_cases(tasks), embeddings)
+                                          Agent(kind="sim2act", path=checkpoint),
+                                          evaluation_cases(tasks, config.evaluate.held_out_wordings), embeddings)
     catalog = Catalog(workspace.catalog)
     promotion = decide_promotion(catalog, config.name, model_key, evaluations)
     log.info("evaluate it%d: %s: %s", iteration, "promote" if promotion.promote else "keep the champion", promotion.reason)

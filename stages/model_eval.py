@@ -16,6 +16,7 @@ from mlflow.exceptions import MlflowException
 
 from policies.model import ModelDims
 from schemas.config import CampaignConfig, ConfigError
+from schemas.wordings import HELD_OUT_WORDING
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.workspace import Workspace
 from stages.evaluate import evaluation_cases
@@ -125,7 +126,9 @@ def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | 
         explored = {task_id for (task_id,) in Catalog(workspace.catalog).query(
             "SELECT DISTINCT task_id FROM episodes WHERE campaign = ?", [config.name])}
         return f"file:{tasks_file.name}", evaluation_cases(file_tasks(tasks_file, config, explored))
-    cases = evaluation_cases(campaign_tasks(workspace, config))
+    # --split held_out_wording asks for that split whether or not the campaign evaluates it
+    cases = evaluation_cases(campaign_tasks(workspace, config),
+                             config.evaluate.held_out_wordings or split == HELD_OUT_WORDING)
     if split:
         cases = [case for case in cases if case[1] == split]
         if not cases:

@@ -6,6 +6,7 @@ optimiser, schedule, step and data position) to the same result."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -27,6 +28,7 @@ from policies.ema import WeightAverage
 from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
+from schemas.wordings import training_variants
 from schemas.workspace import Workspace
 from stages.index import IndexResult
 from stages.pool import Progress
@@ -40,7 +42,7 @@ WARMUP_FRACTION = 0.05
 EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
-LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 0, "ema": None,
+LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 0, "ema": None, "language_augment": 0.0,
                  "model": {"chunk": 1, "execution": "temporal_ensemble", "execute_steps": None, "ensemble_decay": 0.01}}
 log = logging.getLogger("sim2act.stages.train")
 
@@ -136,12 +138,27 @@ class TrainingCollate:
     For a chunked model (`chunk` > 1) the targets are (B, chunk, ...) with `action_mask` (chunk_targets)."""
 
     def __init__(self, action: Normaliser, proprio: Normaliser, embeddings: dict[str, np.ndarray] | None,
-                 targets: str, state: Normaliser | None = None, chunk: int = 1):
+                 targets: str, state: Normaliser | None = None, chunk: int = 1,
+                 rewordings: dict[str, list[str]] | None = None, augment: float = 0.0):
         self.action, self.proprio, self.embeddings, self.targets = action, proprio, embeddings, targets
         self.state, self.chunk = state, chunk
+        self.rewordings, self.augment = rewordings or {}, augment  # train.language_augment
+
+    def _reworded(self, rows: list[dict], instructions: list[str]) -> list[str]:
+        """Each instruction, replaced by one of its rewordings with probability `augment`. The draws are
+        seeded by the batch's own rows, so a resumed training draws the same."""
+        seed = hashlib.blake2b(b"".join(r["image"] for r in rows), digest_size=8).digest()
+        rng = np.random.default_rng(int.from_bytes(seed, "little"))
+        said = []
+        for text in instructions:
+            options = self.rewordings.get(text)
+            said.append(options[rng.integers(len(options))] if options and rng.random() < self.augment else text)
+        return said
 
     def __call__(self, rows: list[dict]) -> dict:
         batch = decode_rows(rows)
+        if self.augment > 0:
+            batch["instruction"] = self._reworded(rows, batch["instruction"])
         if self.chunk > 1:
             batch.pop("action"), batch.pop("expert_action")
             continuous, index, batch["action_mask"] = chunk_targets(
@@ -179,6 +196,22 @@ def normalisers(catalog: Catalog, dataset: IndexResult,
         qpos = table["qpos"].to_pylist()
         state = Normaliser.fit(padded_states(qpos, max(map(len, qpos))), 0)
     return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM), state
+
+
+REWORDINGS_PER_INSTRUCTION = 8
+
+
+def reworded_instructions(embeddings: dict[str, np.ndarray], encoder: str,
+                          encode_them: bool) -> tuple[dict[str, list[str]], dict[str, np.ndarray]]:
+    """(instruction -> its rewordings for augmentation, the embeddings with theirs added where the
+    frozen encoder's are read)."""
+    rewordings = {text: training_variants(text, REWORDINGS_PER_INSTRUCTION) for text in embeddings}
+    if not encode_them:
+        return rewordings, embeddings
+    from policies.language import encode
+
+    new = sorted({v for options in rewordings.values() for v in options} - set(embeddings))
+    return rewordings, {**embeddings, **dict(zip(new, encode(encoder, new)))} if new else embeddings
 
 
 def initial_policy(catalog: Catalog, workspace: Workspace, model_key: str | None) -> dict | None:
@@ -433,10 +466,13 @@ def run_train(
         action_norm, proprio_norm = Normaliser(*source["action"]), Normaliser(*source["proprio"])
     shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
     frozen_language = not cfg.model.language_trainable
+    rewordings = None
+    if cfg.language_augment > 0:
+        rewordings, embeddings = reworded_instructions(embeddings, cfg.model.language_encoder, frozen_language)
     batches = StepBatches(
         rows, cfg.batch_size, cfg.shuffle_buffer, 0, 1, cfg.loader_workers,  # seeded per member; epochs set below
         TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm,
-                        cfg.model.chunk),
+                        cfg.model.chunk, rewordings, cfg.language_augment),
         chunk=cfg.model.chunk,
     )
     batches.epochs = training_epochs(cfg, batches.batches_per_epoch)

@@ -267,7 +267,7 @@ def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the
     legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
     dataset = latest_index(workspace, legacy.name)
-    added = {name: True for name in EXECUTION_FIELDS | {"state_weight", "init_from", "steps", "seed", "ema"}}
+    added = {name: True for name in EXECUTION_FIELDS | {"state_weight", "init_from", "steps", "seed", "ema", "language_augment"}}
     added["model"] = {"chunk": True, "execution": True, "execute_steps": True, "ensemble_decay": True}
     before = {"train": legacy.train.model_dump(exclude=added), "seed": legacy.seed,
               "image": legacy.render.image_size, "depth": legacy.render.depth}
@@ -294,3 +294,24 @@ def test_random_shift_moves_whole_frames_by_at_most_the_pad():
     assert len(moves) > 4  # frames of one batch move independently
     torch.rand(3)  # the global generator moves (as the DataLoader's start moves it): the shifts do not
     assert torch.equal(random_shift(frames, 2, torch.Generator().manual_seed(0)), shifted)
+
+
+def test_language_augmentation_rewords_instructions_reproducibly_and_brings_their_embeddings():
+    from stages.train import reworded_instructions
+
+    identity = Normaliser(np.zeros(9, np.float32), np.ones(9, np.float32))
+    frame = lambda value: encode_frame(np.full((8, 8, 3), value, np.uint8))  # noqa: E731
+    rows = [{"instruction": "pick up the red block", "image": frame(i), "depth": None, "proprio": [0.0] * 9,
+             "action": [0.0] * 7, "expert_action": None, "qpos": []} for i in range(40)]
+    rewordings, embeddings = reworded_instructions({"pick up the red block": np.zeros(384, np.float32)},
+                                                   "all-MiniLM-L6-v2", encode_them=True)
+    options = rewordings["pick up the red block"]
+    assert len(options) == 8 and all(text in embeddings and embeddings[text].shape == (384,) for text in options)
+    half = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, embeddings, "expert",
+                           rewordings=rewordings, augment=0.5)
+    said = half(rows)["instruction"]
+    assert said == half(rows)["instruction"]  # the same rows draw the same rewordings (a resume reads alike)
+    assert 8 < sum(text != "pick up the red block" for text in said) < 32 and set(said) - {"pick up the red block"} <= set(options)
+    assert half(rows[::-1])["instruction"] != said[::-1]  # another batch, other draws
+    none = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, embeddings, "expert")
+    assert set(none(rows)["instruction"]) == {"pick up the red block"}
