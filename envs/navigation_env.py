@@ -175,6 +175,24 @@ class NavigationEnv:
             return self.room_colours[room_of(x)] == colour and abs(x % ROOM_SIZE - ROOM_SIZE / 2) < ROOM_SIZE / 2 - 0.4
         return float(np.hypot(*(self.objects[(kind, colour)] - [x, y]))) < REACH
 
+    def achieved(self, tasks: list[TaskRecord]) -> TaskRecord | None:
+        """The first of `tasks` (this environment's, one goal each) whose goal the agent is at now:
+        hindsight relabelling (explore.relabel). A goal the scene does not hold is not achieved."""
+        task, stage = self.task, self.stage
+        try:
+            for candidate in tasks:
+                if candidate.env_name != self.env_name or len(candidate.object_colours) != 1:
+                    continue
+                goals = [(self.roles[role], colour) for role, colour in candidate.object_colours.items()]
+                kind, colour = goals[0]
+                present = colour in self.room_colours if kind == "room" else (kind, colour) in self.objects
+                self.task, self.stage = candidate, 0
+                if present and self._reached():
+                    return candidate
+        finally:
+            self.task, self.stage = task, stage
+        return None
+
     # -- stepping ---------------------------------------------------------------------------
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:

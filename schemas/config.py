@@ -148,6 +148,12 @@ class ExploreConfig(_Strict):
         "sub-task's instruction in turn (the environment says which goal is next), recorded under the task's own "
         "instruction; iteration 0 leaves them out"
     )
+    relabel: bool = Field(
+        default=False, description="hindsight relabelling (SOAR): a failed episode that ended satisfying another "
+        "seen task of its environment (the navigation agent in another room, at another ball or box) is recorded "
+        "as a success of that task, said with its words, its actions as executed (the expert's labels pointed "
+        "at the first goal: dropped); explorer_stats names the task it set out to do",
+    )
     workers: PositiveInt = Field(default=2, description="local worker processes (one core each)")
     dask_address: str | None = Field(
         default=None, pattern=r"^(tcp|tls|inproc|ucx)://", description="run shards on this Dask scheduler instead"

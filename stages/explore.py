@@ -36,7 +36,7 @@ STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a 
 EXPERT, VLM = "expert", "vlm"
 CHAINED = "via subtasks"  # suffix of the champion's name on the episodes it explores by chaining sub-tasks
 # Fields added after VERSION, at the value that does what the stage did before them (stages/train.py)
-LEGACY_VALUES = {"curriculum": False}
+LEGACY_VALUES = {"curriculum": False, "relabel": False}
 log = logging.getLogger("sim2act.stages.explore")
 
 
@@ -72,6 +72,7 @@ class ExploreUnit(BaseModel):
     vlm: VlmExplorerConfig | None
     # instruction -> embedding, only the few this unit's episodes say (small vectors)
     embeddings: dict[str, list[float]]
+    relabel_to: list[TaskRecord] = []  # explore.relabel: the seen tasks a failed episode may have done instead
 
 
 class ExploreResult(BaseModel):
@@ -147,6 +148,9 @@ def plan_explore(
                     policy=policy, vlm=explore.vlm,
                     # a sub-task the campaign does not hold has no cached embedding: the policy encodes it
                     embeddings={text: embeddings[text].tolist() for text in said if text in embeddings},
+                    # seen tasks only: a held-out task is never trained on, relabelled or not
+                    relabel_to=[t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
+                                and t.task_id != task.task_id],
                 )
             )
     return units
@@ -253,6 +257,21 @@ def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
     return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if labelled else None
 
 
+def relabel(rows: list[dict], achieved: TaskRecord, plan: EpisodePlan, intended: TaskRecord,
+            stats: dict | None) -> tuple[dict, dict, bool]:
+    """Hindsight relabelling of a failed episode that ended doing `achieved` instead: -> (the task and
+    instruction its rows are recorded under, its explorer_stats naming what it set out to do, success).
+    The instruction is one of the achieved task's, drawn from the episode's seed; the rows' expert labels
+    are dropped (they led to the intended goal: the executed actions are what reached this one) and the
+    last step succeeds."""
+    instruction = achieved.instructions[np.random.default_rng([plan.seed, 2]).integers(len(achieved.instructions))]
+    for row in rows:
+        row["expert_action"] = None
+    rows[-1]["success"] = True
+    return ({"task_id": achieved.task_id, "instruction": instruction},
+            {**(stats or {}), "relabelled_from": intended.task_id, "intended_instruction": plan.instruction}, True)
+
+
 def _depth_bytes(depth: np.ndarray | None) -> bytes | None:
     return None if depth is None else encode_depth(depth)
 
@@ -280,20 +299,27 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             )
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
+        done = {**common, "instruction": plan.instruction}
+        stats = explorer.stats() if explorer.stats else None
+        if rows and not success and unit.relabel_to and hasattr(env, "achieved"):
+            achieved = env.achieved(unit.relabel_to)
+            if achieved is not None:
+                recorded_as, stats, success = relabel(rows, achieved, plan, unit.task, stats)
+                done.update(recorded_as)
         for row in rows:
-            row.update(common, episode_id=plan.episode_id, instruction=plan.instruction, image=encode_frame(row["image"]),
+            row.update(done, episode_id=plan.episode_id, image=encode_frame(row["image"]),
                        depth=_depth_bytes(row["depth"]), next_image=None, next_depth=None)
         if rows:
             rows[-1].update(next_image=encode_frame(final.image), next_depth=_depth_bytes(final.depth))
         step_rows.extend(rows)
         episode_rows.append(
             {
-                **common, "episode_id": plan.episode_id, "instruction": plan.instruction, "explorer": plan.explorer,
+                **done, "episode_id": plan.episode_id, "explorer": plan.explorer,
                 "seed": plan.seed, "shard_key": unit.unit_key, "num_steps": len(rows),
                 "episode_return": float(sum(r["reward"] for r in rows)), "success": success, "error": error,
                 "randomisation": randomisation.model_dump() if randomisation else None,
                 "render": unit.render.model_dump(),
-                "explorer_stats": json.dumps(explorer.stats()) if explorer.stats else None,
+                "explorer_stats": json.dumps(stats) if stats is not None else None,
             }
         )
     workspace = Workspace.at(unit.workspace)

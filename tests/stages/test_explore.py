@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from envs.navigation_env import ACTIONS
+from envs.navigation_env import ACTIONS, ROOM_SIZE
 from envs.observation import ACTION_DIM, PROPRIO_DIM
 from policies.model import ModelDims, VLAModel
 from policies.policy import Normaliser, Policy, policy_state
@@ -185,8 +185,59 @@ def test_without_a_curriculum_long_tasks_are_the_experts_and_keys_stay_as_before
     units = _plan_curriculum(config, tasks, tmp_path, None)
     assert {u.task.task_id for u in units} == {t.task_id for t in tasks}
     assert all(e.explorer == EXPERT and not e.subgoals for u in units for e in u.episodes)
-    explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum"})
+    explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum", "relabel"})  # added later
     reads = {"campaign": config.name, "seed": config.seed, "iteration": 0, "render": config.render,
              "randomise": config.randomise, "explore": explore, "policy": None}
     assert [u.unit_key for u in units] == [
         unit_key(STAGE, VERSION, reads, [u.task.model_dump_json(), str(u.shard), "2"]) for u in units]
+
+
+def test_a_failed_episode_that_did_another_seen_task_is_relabelled_as_it(tmp_path):
+    """Hindsight relabelling: 6-step navigation episodes never reach their room; those that end inside
+    another seen task's room are recorded as that task's successes, in its words, without the expert's
+    labels (they led elsewhere); the rest stay failures of their own task."""
+    config = CampaignConfig(
+        name="relabel-test",
+        tasks=TasksConfig(specs=["nav-room"], colours=["red", "green", "blue", "yellow"], unseen_colours=["yellow"],
+                          horizon={"nav-room": 6}),
+        explore=ExploreConfig(episodes_per_task=6, episodes_per_shard=6, workers=1, relabel=True),
+    )
+    units = _plan(config, tmp_path)
+    tasks = {t.task_id: t for t in generate_tasks(config.tasks, config.seed)}
+    assert all(sorted(t.task_id for t in u.relabel_to) == sorted(t for t in tasks if t != u.task.task_id
+                                                                 and tasks[t].split == "seen") for u in units)
+    relabelled = 0
+    for unit in units:
+        episodes, steps = _shards(unit)
+        for episode in episodes:
+            stats = json.loads(episode["explorer_stats"])
+            rows = [s for s in steps if s["episode_id"] == episode["episode_id"]]
+            if "relabelled_from" not in stats:
+                assert episode["task_id"] == unit.task.task_id and not episode["success"]
+                assert all(s["expert_action"] is not None for s in rows)
+                continue
+            relabelled += 1
+            achieved = tasks[episode["task_id"]]
+            assert stats["relabelled_from"] == unit.task.task_id != achieved.task_id and achieved.split == "seen"
+            assert episode["success"] and rows[-1]["success"] and episode["instruction"] in achieved.instructions
+            assert all(s["task_id"] == achieved.task_id and s["instruction"] == episode["instruction"]
+                       and s["expert_action"] is None for s in rows)
+    assert relabelled > 0
+    # off by default: the same plan without it relabels nothing, and keeps its keys
+    plain = _plan(CampaignConfig(**{**config.model_dump(), "explore": {**config.explore.model_dump(), "relabel": False}}),
+                  tmp_path / "plain")
+    assert all(u.relabel_to == [] for u in plain)
+
+
+def test_the_navigation_scene_says_which_task_the_agent_is_doing_now():
+    config = TasksConfig(specs=["nav-room", "nav-ball"], colours=["red", "green", "blue"])
+    tasks = {t.task_id: t for t in generate_tasks(config, 0)}
+    env = worker_env(tasks["nav-room-red"], None)
+    env.reset(tasks["nav-room-red"], seed=3)
+    rooms = env.room_colours
+    for index, colour in enumerate(rooms):  # stand in the middle of each room in turn
+        env.data.qpos[:2] = [(index + 0.5) * ROOM_SIZE, ROOM_SIZE / 2]
+        wanted = f"nav-room-{colour}"
+        found = env.achieved([t for t in tasks.values() if t.env_name == "GoToRoom"])
+        assert (found.task_id if found else None) == (wanted if wanted in tasks else None)
+    assert env.achieved([tasks["nav-ball-red"]]) is None  # another environment's task
