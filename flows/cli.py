@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+from flows.lifetime import watch
 from schemas.config import PRESETS, ConfigError, load_config, parse_settings
 from schemas.service import HOST, ServiceConfig
 from schemas.tasks import FAMILIES
@@ -79,6 +80,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     Catalog(workspace.catalog).check_version()
     configure_environment(workspace)
     workspace.create()
+    watch()  # the temporary Prefect server and the workers end with this command, however it ends
     print(
         f"sim2act: campaign {config.name!r}, {config.iterations} iteration(s), workspace {workspace.root}",
         flush=True,
@@ -128,6 +130,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
     configure_environment(workspace)
     log_stages_to_stderr()
+    watch()  # the loader workers end with this command, however it ends
     tracking = Tracking(workspace, config)
     run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
     print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
@@ -169,6 +172,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for model in models:
         check_model_fits(config, model)
     embeddings = instruction_embeddings(workspace, config, cases)
+    watch()  # the rollout workers end with this command, however it ends
     tracking = Tracking(workspace, config)
     by_model = []
     for model in models:
