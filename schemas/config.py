@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
-PRESETS = ("smoke", "default", "headline", "curriculum")
+PRESETS = ("smoke", "default", "headline", "curriculum", "hard-mix")
 
 PositiveInt = Annotated[int, Field(gt=0)]
 
