@@ -47,7 +47,7 @@ class InstructedTasksEnv(gym.Env):
         families = {task.family for task in tasks}
         if len(families) != 1:
             raise ValueError(f"one family per environment, got {sorted(families)}")
-        from stages.explore import worker_env
+        from envs.rollout import worker_env
 
         self.tasks, self.embeddings, self.randomise = tasks, embeddings, randomise
         self.family = families.pop()

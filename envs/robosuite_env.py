@@ -192,7 +192,7 @@ class RobosuiteEnv:
             control_freq=20,
             horizon=10_000,  # episodes end by our horizon; robosuite's own is never reached
             ignore_done=True,
-            hard_reset=False,  # 0.26 s -> 0.002 s per reset (ANCHORS.md); colours are re-applied anyway
+            hard_reset=False,  # 0.26 s -> 0.002 s per reset (measured here); colours are re-applied anyway
             reward_shaping=True,
             # robosuite samples object sizes when it builds the model, from env.rng: a fixed seed
             # makes every worker's model identical, so an episode depends on its own seed only.

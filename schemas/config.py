@@ -78,8 +78,8 @@ class RenderConfig(_Strict):
 
     camera: CameraName = "agentview"
     image_size: int = Field(default=84, ge=32, le=256)
-    # Shadows, reflections and multisampling cost 3-4x render time on CPU (ANCHORS.md) and add
-    # little a policy needs at 84 px.
+    # Shadows, reflections and multisampling cost 3-4x render time on CPU (docs/rollouts.md: 4x MSAA
+    # alone took raw rendering from 48 to 27 frames/s) and add little a policy needs at 84 px.
     shadows: bool = False
     reflections: bool = False
     multisamples: int = Field(default=0, ge=0, le=16)

@@ -1,4 +1,4 @@
-"""Unit keys and seeds: the stage contract's hashes (see ARCHITECTURE.md)."""
+"""Unit keys and seeds: the stage contract's hashes (docs/architecture.md)."""
 
 from __future__ import annotations
 

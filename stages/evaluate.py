@@ -22,7 +22,7 @@ from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
-from stages.explore import rollout, worker_env
+from envs.rollout import rollout, worker_env
 from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 

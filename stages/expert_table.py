@@ -13,7 +13,7 @@ from schemas.config import RandomiseConfig
 from schemas.experts import TARGET, ExpertRow, ExpertTable
 from schemas.keys import derive_seed
 from schemas.tasks import TaskRecord
-from stages.explore import rollout, worker_env
+from envs.rollout import rollout, worker_env
 from stages.pool import run_in_pool
 
 

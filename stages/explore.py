@@ -8,12 +8,10 @@ shards; this process registers them.
 
 from __future__ import annotations
 
-import atexit
 import json
 import logging
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +19,7 @@ import pyarrow as pa
 from pydantic import BaseModel
 
 from envs.observation import Observation
+from envs.rollout import Act, Explorer, rollout, worker_env
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, key_fields, unit_key
@@ -157,73 +156,6 @@ def plan_explore(
 
 
 # -- worker side ------------------------------------------------------------------------------
-
-_ENVS: dict[tuple[str, str, str], object] = {}
-
-
-def _close_envs() -> None:
-    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown).
-    Registered after the first environment, so after the GL libraries' own exit hooks, which then
-    run after it (last registered, first run). Another library's hook may still have terminated
-    the EGL display first (MetaWorld's glfw): then the contexts are gone with it, and the process
-    is ending anyway."""
-    for env in _ENVS.values():
-        try:
-            env.close()
-        except Exception:
-            pass
-
-
-def worker_env(task: TaskRecord, render: RenderConfig | None):
-    """One environment per (family, env, render settings) per worker process, reused across units."""
-    from envs.registry import make_env
-
-    key = (task.family, task.env_name, render.model_dump_json() if render else "no camera")
-    if key not in _ENVS:
-        _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
-        if len(_ENVS) == 1:
-            atexit.register(_close_envs)
-    return _ENVS[key]
-
-
-Act = Callable[[Observation], np.ndarray]
-
-
-def rollout(
-    env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None
-) -> tuple[list[dict], Observation, bool]:
-    """Run one episode until success or the horizon. -> (step rows, final observation, success).
-    `label`, if given, is asked for its action at every state the explorer visits (DAgger)."""
-    obs = env.reset(task, seed, randomisation)
-    rows, success = [], False
-    for step in range(task.horizon):
-        state = env.mujoco_state()
-        action = np.asarray(act(obs), dtype=np.float32)
-        expert_action = None if label is None else np.asarray(label(obs), dtype=np.float32).tolist()
-        next_obs, reward, success = env.step(action)
-        done = success or step == task.horizon - 1
-        rows.append(
-            {
-                "step": step, "image": obs.image, "depth": obs.depth, "proprio": obs.proprio.tolist(), "action": action.tolist(),
-                "reward": reward, "done": done, "success": success,
-                "qpos": state.qpos.tolist(), "qvel": state.qvel.tolist(), "act": state.act.tolist(),
-                "mocap": state.mocap.tolist(), "sim_time": state.time, "expert_action": expert_action,
-            }
-        )
-        obs = next_obs
-        if done:
-            break
-    return rows, obs, success
-
-
-@dataclass(frozen=True)
-class Explorer:
-    """Who acts in one episode, and what it reports about it (the expert its noise level, a VLM
-    its counters): the episode's explorer_stats."""
-
-    act: Act
-    stats: Callable[[], dict[str, float]] | None = None
-
 
 def _explorer(unit: ExploreUnit, plan: EpisodePlan, policy) -> Explorer:
     from envs.registry import make_expert

@@ -106,7 +106,7 @@ def replay_frames(episode: StoredEpisode, render: RenderConfig) -> Iterator[np.n
     """One frame per step: the episode reset as explored, then each step's state drawn."""
     # explore's cache: one env per render settings per process, kept open (closing a MetaWorld
     # env breaks the GL contexts of envs made after it in the process)
-    from stages.explore import worker_env
+    from envs.rollout import worker_env
 
     env = worker_env(episode.task, render)
     env.reset(episode.task, episode.seed, episode.randomisation)

@@ -9,7 +9,8 @@ from envs.observation import ACTION_DIM, PROPRIO_DIM
 from envs.registry import make_expert
 from schemas.config import CampaignConfig, RenderConfig
 from schemas.workspace import Workspace
-from stages.explore import plan_explore, rollout, run_explore_unit
+from envs.rollout import rollout
+from stages.explore import plan_explore, run_explore_unit
 from stages.generate_tasks import generate_tasks
 from schemas.config import TasksConfig
 

@@ -6,7 +6,7 @@ import pytest
 
 from envs.navigation_env import ACTIONS, ROOM_SIZE, NavigationEnv, NavigationExpert
 from schemas.config import RenderConfig, TasksConfig
-from stages.explore import rollout
+from envs.rollout import rollout
 from stages.generate_tasks import generate_tasks
 
 

@@ -13,7 +13,8 @@ from schemas.config import CampaignConfig, ConfigError, RandomiseConfig, RenderC
 from schemas.tables import RANDOMISATION
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from stages.explore import plan_explore, rollout, run_explore_unit
+from envs.rollout import rollout
+from stages.explore import plan_explore, run_explore_unit
 from stages.generate_tasks import generate_tasks
 
 LIFT = TaskRecord(task_id="lift-red", spec="lift", family="robosuite", env_name="Lift", object_colours={"target": "red"},

@@ -11,7 +11,8 @@ from schemas.config import CampaignConfig, RenderConfig
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from stages.explore import plan_explore, rollout, run_explore_unit
+from envs.rollout import rollout
+from stages.explore import plan_explore, run_explore_unit
 from stages.generate_tasks import generate_tasks
 from schemas.frames import decode_frame
 

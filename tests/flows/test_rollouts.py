@@ -97,7 +97,7 @@ def test_a_dask_cluster_of_two_processes_writes_the_same_bytes(reference, tmp_pa
             update={"dask_address": cluster.scheduler_address})})
         result, flow_run_id = explore(tmp_path, config)
         with Client(cluster) as client:
-            envs_per_worker = client.run(lambda: len(__import__("stages.explore").explore._ENVS))
+            envs_per_worker = client.run(lambda: len(__import__("envs.rollout").rollout._ENVS))
     assert result.episodes == 8
     assert sum(1 for count in envs_per_worker.values() if count) == 2  # both worker processes rolled out
     assert all(states[-1] == "Completed" for _, states in shard_task_runs(flow_run_id))

@@ -18,7 +18,7 @@ from envs.registry import action_bounds, make_env
 from policies.openai_chat import ChatUnavailable
 from policies.vlm_explorer import TooManyInvalidAnswers, VlmExplorer
 from schemas.config import RenderConfig, TasksConfig, VlmExplorerConfig
-from stages.explore import rollout
+from envs.rollout import rollout
 from stages.generate_tasks import generate_tasks
 from tests.chat_server import closed_port
 
