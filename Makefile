@@ -3,7 +3,7 @@ VENV ?= .venv
 STAMP := $(VENV)/.sim2act-installed
 PRESET ?= default
 
-.PHONY: setup run test
+.PHONY: setup run test check
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml scripts/setup.sh
@@ -15,3 +15,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest
+
+# the fast tier for the inner loop: everything but the end-to-end tests (see tests/conftest.py)
+check: $(STAMP)
+	$(VENV)/bin/python -m pytest -m "not e2e"

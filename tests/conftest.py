@@ -29,6 +29,21 @@ SIM2ACT = str(Path(sys.executable).with_name("sim2act"))
 CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
 
 
+# The end-to-end tier (`pytest -m e2e`; `make check` runs the rest): tests that start servers, browsers or the
+# `sim2act` command, run benchmarks or whole campaigns. Marked by the fixtures they use, or by module.
+E2E_FIXTURES = {"prefect_api", "finished_campaign", "browser"}
+E2E_MODULES = {"tests.flows.test_drills", "tests.flows.test_lifetime", "tests.flows.test_service",
+               "tests.flows.test_run_lock", "tests.stages.test_train", "tests.bench.test_bench_envs",
+               "tests.bench.test_bench_rollout", "tests.bench.test_bench_train", "tests.bench.test_bench_warehouse",
+               "tests.dashboards.test_dashboard"}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if E2E_FIXTURES & set(getattr(item, "fixturenames", ())) or item.module.__name__ in E2E_MODULES:
+            item.add_marker(pytest.mark.e2e)
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
