@@ -35,7 +35,7 @@ E2E_FIXTURES = {"prefect_api", "finished_campaign", "browser"}
 E2E_MODULES = {"tests.flows.test_drills", "tests.flows.test_lifetime", "tests.flows.test_service",
                "tests.flows.test_run_lock", "tests.stages.test_train", "tests.bench.test_bench_envs",
                "tests.bench.test_bench_rollout", "tests.bench.test_bench_train", "tests.bench.test_bench_warehouse",
-               "tests.dashboards.test_dashboard"}
+               "tests.dashboards.test_dashboard", "tests.stages.test_adapt"}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
