@@ -62,3 +62,56 @@ def protocol_success(by_seed: list[list[TaskEvaluation]]) -> list[SeedsSuccess]:
             spread=statistics.stdev(rates) if len(rates) > 1 else 0.0, ci_low=low, ci_high=high,
         ))
     return figures
+
+
+# what a training's summary says that is not its recipe: the seed, and what it measured
+NOT_RECIPE = {"seed", "final_loss", "resumed_at_step"}
+
+
+class SeedGroup(BaseModel):
+    """Trainings of one dataset with one recipe, differing only in train.seed, evaluated alike."""
+
+    recipe: dict  # the training summary's recipe fields (chunk, weights, steps, ...)
+    weights: str  # which weights were evaluated: registered (the training's own choice) or final
+    model_keys: list[str]  # one per seed, in seed order
+    seeds: list[int]
+    figures: list[SeedsSuccess]
+
+
+def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
+    """Every group of two or more trainings of the same dataset and recipe (their registered summaries
+    less the seed) whose models were all evaluated on the same cases of `suite`, once per weights."""
+    import json
+
+    from stages.evaluate import read_evaluations
+
+    trainings: dict[str, list[tuple[int, str]]] = {}
+    recipes: dict[str, dict] = {}
+    for model_key, summary, digest in catalog.query(
+            "SELECT s.unit_key, s.summary, m.dataset_digest FROM stage_runs s JOIN models m ON m.model_key = s.unit_key "
+            "WHERE s.stage = 'train' AND s.campaign = ? ORDER BY s.unit_key", [campaign]):
+        fields = json.loads(summary)
+        recipe = {k: v for k, v in sorted(fields.items()) if k not in NOT_RECIPE}
+        group = json.dumps([digest, recipe], sort_keys=True)
+        recipes[group] = recipe
+        trainings.setdefault(group, []).append((int(fields.get("seed", 0)), model_key))
+    evaluated: dict[str, list] = {}
+    for model_key, evaluation in read_evaluations(catalog, "v.model_key", "WHERE v.campaign = ? AND v.suite = ?",
+                                                  [campaign, suite]):
+        evaluated.setdefault(model_key, []).append(evaluation)
+    groups = []
+    for group, members in trainings.items():
+        members = sorted(set(members))
+        if len({seed for seed, _ in members}) < 2:
+            continue
+        for weights, suffix in (("registered", ""), ("final", ":final")):
+            runs = [evaluated.get(key + suffix) for _, key in members]
+            if any(run is None for run in runs):
+                continue
+            try:
+                figures = protocol_success(runs)
+            except ValueError:  # seeds evaluated on different cases: no comparison
+                continue
+            groups.append(SeedGroup(recipe=recipes[group], weights=weights, model_keys=[k for _, k in members],
+                                    seeds=[s for s, _ in members], figures=figures))
+    return groups

@@ -11,9 +11,11 @@ import os
 import platform
 
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
+from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from stages.protocol import seed_groups
 from stages.report import evaluations_by_iteration, success_by_iteration
 from warehouse.catalog import Catalog
 
@@ -107,6 +109,29 @@ def spec_markdown(catalog: Catalog, campaign: str) -> list[str]:
     return _split_table("Per task spec (Sim2Act)", by_iteration, specs)
 
 
+def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
+    """Trainings of one dataset and recipe over several seeds (`sim2act train --set train.seed=N`),
+    evaluated alike (`sim2act eval --model ...`): per split, the mean over seeds, their spread and each
+    seed's rate, and the pooled Wilson interval."""
+    groups = seed_groups(catalog, campaign, CAMPAIGN_SUITE)
+    if not groups:
+        return ["No dataset of this campaign was trained with several seeds and evaluated on its cases "
+                "(`sim2act train --set train.seed=N`, then `sim2act eval --model ...`; docs/evaluation.md)."]
+    lines = ["Each row: trainings of one dataset with one recipe, differing only in `train.seed`, every one "
+             "evaluated on the campaign's cases; the mean over seeds ± their standard deviation (each seed's "
+             "rate), and the pooled episodes with their Wilson 95% interval.", ""]
+    splits = [s for s in SPLIT_COLUMNS + (HELD_OUT_WORDING,)
+              if any(f.group == s for g in groups for f in g.figures)]
+    rows = []
+    for group in groups:
+        recipe = ", ".join(f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
+                                                                                "where") and v is not None)
+        by_split = {f.group: f for f in group.figures}
+        rows.append([recipe, group.weights, ", ".join(map(str, group.seeds)),
+                     *(by_split[s].describe() if s in by_split else "–" for s in splits)])
+    return lines + _table(["recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
+
+
 def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
     by_iteration = success_by_iteration(catalog, campaign)
     if not by_iteration:
@@ -138,6 +163,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         lines += _split_table("Per family (Sim2Act)", by_iteration, families)
 
     lines += spec_markdown(catalog, campaign)
+
+    lines += ["", "## Training seeds (the results protocol)", "", *protocol_markdown(catalog, campaign)]
 
     lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
 

@@ -61,3 +61,46 @@ def test_success_per_spec_and_split_per_iteration(tmp_path):
     catalog_one_spec = Catalog(Workspace.at(tmp_path / "one").create().catalog)
     catalog_one_spec.initialise()
     assert spec_markdown(catalog_one_spec, CAMPAIGN) == []  # one spec: the split table says it all
+
+
+def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "d0") -> None:
+    catalog.register_unit(unit_key=key, stage="train", campaign=CAMPAIGN, iteration=0,
+                          summary={"final_loss": -seed, "steps": 2400, "members": 1, "resumed_at_step": 0, "where": None,
+                                   "weights": "ema 0.999", "chunk": chunk, "seed": seed},
+                          rows={"models": [{"model_key": key, "campaign": CAMPAIGN, "iteration": 0, "checkpoint_path": "x",
+                                            "dataset_digest": digest, "dataset_shards": [], "train_samples": 1,
+                                            "final_loss": 0.0, "unit_key": key}]})
+
+
+def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10) -> None:
+    low, high = wilson_interval(won, episodes)
+    row = {"unit_key": f"evaluate-{model}", "campaign": CAMPAIGN, "iteration": 0, "suite": CAMPAIGN_SUITE,
+           "model_key": model, "task_id": "nav-room-red", "family": "navigation", "split": "seen",
+           "instruction": "nav-room-red", "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
+           "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
+           "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
+           "failure_video": None, "success_rate": won / episodes}
+    catalog.register_unit(unit_key=f"evaluate-{model}", stage="evaluate", campaign=CAMPAIGN, iteration=0, summary={},
+                          rows={"evaluations": [row]})
+
+
+def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
+    from stages.results import protocol_markdown
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    assert protocol_markdown(catalog, CAMPAIGN)[0].startswith("No dataset of this campaign was trained with several")
+    for seed, won in enumerate((9, 7, 8)):  # one recipe, three seeds, evaluated with both weights
+        _training(catalog, f"train-c8-s{seed}", seed, 8)
+        _evaluated(catalog, f"train-c8-s{seed}", won)
+        _evaluated(catalog, f"train-c8-s{seed}:final", won - 1)
+    _training(catalog, "train-c1-s0", 0, 1)  # another recipe, one seed: no row
+    _evaluated(catalog, "train-c1-s0", 10)
+    _training(catalog, "train-c8-s1-other-data", 1, 8, digest="d1")  # another dataset: no row
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| chunk")]
+    assert rows == [
+        ["chunk 8, members 1, steps 2400, weights ema 0.999", "registered", "0, 1, 2",
+         "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"],
+        ["chunk 8, members 1, steps 2400, weights ema 0.999", "final", "0, 1, 2",
+         "70% ± 10 (80, 60, 70) over 3 seeds, 21/30 pooled [52%, 83%]"]]
