@@ -20,7 +20,7 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
     for row in rows.values():
         assert row["episodes"] == bench["episodes"] == 2  # the same episodes in every case
         assert 0 < row["steps"] <= bench["episodes"] * bench["horizon"]
-        assert row["wall_s"] > 0 and row["cpu_s"] > 0 and row["other_load"] >= 0
+        assert row["wall_s"] > 0 and row["cpu_s"] > 0
         assert row["steps_per_s"] == pytest.approx(row["steps"] / row["wall_s"])
         assert row["steps_per_s_per_core"] == pytest.approx(row["steps_per_s"] / row["workers"])
     ratios = {r["name"]: r for r in bench["ratios"]}
