@@ -46,7 +46,7 @@ def protocol_success(by_seed: list[list[TaskEvaluation]]) -> list[SeedsSuccess]:
     """
     if not by_seed:
         raise ValueError("the results protocol needs at least one training seed's evaluations, got none")
-    cases = [sorted((t.task_id, t.split, t.instruction, t.episodes) for t in evaluations) for evaluations in by_seed]
+    cases = [sorted(_case(t) for t in evaluations) for evaluations in by_seed]
     if any(c != cases[0] for c in cases[1:]):
         raise ValueError("the results protocol compares seeds on the same cases: expected every seed evaluated on "
                          f"{len(cases[0])} identical cases, got case lists that differ")
@@ -78,9 +78,14 @@ class SeedGroup(BaseModel):
     figures: list[SeedsSuccess]
 
 
+def _case(evaluation: TaskEvaluation) -> tuple:
+    return evaluation.task_id, evaluation.split, evaluation.instruction, evaluation.episodes
+
+
 def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
     """Every group of two or more trainings of the same dataset and recipe (their registered summaries
-    less the seed) whose models were all evaluated on the same cases of `suite`, once per weights."""
+    less the seed) whose models were all evaluated on `suite`, once per weights, over the cases every
+    seed met."""
     import json
 
     from stages.evaluate import read_evaluations
@@ -108,10 +113,12 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
             runs = [evaluated.get(key + suffix) for _, key in members]
             if any(run is None for run in runs):
                 continue
-            try:
-                figures = protocol_success(runs)
-            except ValueError:  # seeds evaluated on different cases: no comparison
+            # the cases every seed was evaluated on (one may have met an extra split: sim2act eval --split)
+            shared = set.intersection(*({_case(t) for t in run} for run in runs))
+            runs = [[t for t in run if _case(t) in shared] for run in runs]
+            if not shared:
                 continue
+            figures = protocol_success(runs)
             groups.append(SeedGroup(recipe=recipes[group], weights=weights, model_keys=[k for _, k in members],
                                     seeds=[s for s, _ in members], figures=figures))
     return groups

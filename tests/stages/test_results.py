@@ -94,6 +94,14 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
         _training(catalog, f"train-c8-s{seed}", seed, 8)
         _evaluated(catalog, f"train-c8-s{seed}", won)
         _evaluated(catalog, f"train-c8-s{seed}:final", won - 1)
+    extra = {"unit_key": "evaluate-extra", "campaign": CAMPAIGN, "iteration": 0, "suite": CAMPAIGN_SUITE,
+             "model_key": "train-c8-s0", "task_id": "nav-room-red", "family": "navigation", "split": "held_out_wording",
+             "instruction": "proceed to the crimson chamber", "episodes": 10, "successes": 0, "ci_low": 0.0,
+             "ci_high": 0.3, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * 10,
+             "episode_successes": [False] * 10, "uncertainty": 0.0, "success_video": None, "failure_video": None,
+             "success_rate": 0.0}  # a split only seed 0 met (sim2act eval --split): left out of the pooling
+    catalog.register_unit(unit_key="evaluate-extra", stage="evaluate", campaign=CAMPAIGN, iteration=0, summary={},
+                          rows={"evaluations": [extra]})
     _training(catalog, "train-c1-s0", 0, 1)  # another recipe, one seed: no row
     _evaluated(catalog, "train-c1-s0", 10)
     _training(catalog, "train-c8-s1-other-data", 1, 8, digest="d1")  # another dataset: no row
