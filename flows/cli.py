@@ -164,7 +164,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     configure_environment(workspace)
     log_stages_to_stderr()
     from flows.tracking import Tracking
-    from stages.evaluate import Agent, evaluate_model
+    from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
     from stages.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
 
     suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
@@ -177,11 +177,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     by_model = []
     for model in models:
         # the last weights are another agent than the registered (averaged) ones: their own evaluation units
-        model_key = model.model_key if args.weights == "registered" else f"{model.model_key}:{args.weights}"
+        model_key = evaluated_key(model.model_key, args.weights)
         run_id = tracking.evaluation_run(model_key, suite, model.label)
         print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}, "
               f"{weights_of_checkpoint(model.checkpoint, args.weights)} weights) on {len(cases)} case(s) of {suite}, "
-              f"{_episodes_per_case(config, cases)} episodes each; MLflow run {run_id}", flush=True)
+              f"{'/'.join(map(str, sorted(set(episodes_per_split(config, cases).values()))))} episodes each; "
+              f"MLflow run {run_id}", flush=True)
         evaluations, skipped = evaluate_model(workspace, config, model.iteration, model_key,
                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
                                               cases, embeddings, suite)
@@ -198,13 +199,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         for figure in protocol_success(by_model):
             print(f"{figure.group:<24} {figure.describe()}")
     return 0
-
-
-def _episodes_per_case(config, cases) -> str:
-    from collections import Counter
-
-    per_split = Counter(split for _, split, _ in cases)
-    return "/".join(str(n) for n in sorted({config.evaluate.episodes_per_case(k) for k in per_split.values()}))
 
 
 def weights_of_checkpoint(path: str, weights: str) -> str:

@@ -17,12 +17,12 @@ import numpy as np
 from pydantic import BaseModel
 
 from envs.observation import Observation
+from envs.rollout import rollout, worker_env
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
-from envs.rollout import rollout, worker_env
 from stages.pool import Progress, run_in_pool
 from warehouse.catalog import Catalog
 
@@ -253,6 +253,17 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     )
 
 
+def evaluated_key(model_key: str, weights: str) -> str:
+    """Whom an evaluation names: the model with its registered weights, or `<key>:final` for its last
+    weights (another agent: its own evaluation units)."""
+    return model_key if weights == "registered" else f"{model_key}:{weights}"
+
+
+def episodes_per_split(config: CampaignConfig, cases: list[tuple[TaskRecord, str, str]]) -> dict[str, int]:
+    """Split -> episodes for each of its cases (evaluate.episodes_per_split over the split's case count)."""
+    return {split: config.evaluate.episodes_per_case(n) for split, n in Counter(s for _, s, _ in cases).items()}
+
+
 def evaluation_cases(tasks: list[TaskRecord], held_out_wordings: bool = False) -> list[tuple[TaskRecord, str, str]]:
     """(task, split, instruction): every task said canonically, every seen task that has held-out
     paraphrases said with the first of them, and with `held_out_wordings` every seen task in words
@@ -292,9 +303,9 @@ def evaluate_model(
                                                              "held_out_wordings"}),
              "render": config.render, "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
-    per_split = Counter(split for _, split, _ in cases)
+    per_split = episodes_per_split(config, cases)
     for task, split, instruction in cases:
-        episodes = config.evaluate.episodes_per_case(per_split[split])
+        episodes = per_split[split]
         reads["evaluate"]["episodes_per_task"] = episodes  # where it was before the split's count existed: old keys hold
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]

@@ -138,18 +138,12 @@ def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | 
 
 def instruction_embeddings(workspace: Workspace, config: CampaignConfig,
                            cases: list[tuple[TaskRecord, str, str]]) -> dict[str, np.ndarray]:
-    """The frozen encoder's embedding of every instruction the cases say: cached in the warehouse
-    where the campaign has it, else encoded now."""
-    from policies.language import encode
-
+    """The frozen encoder's embeddings of the instructions the cases say that the warehouse caches
+    (evaluate_model encodes the others)."""
     encoder = config.train.model.language_encoder
     texts = sorted({instruction for _, _, instruction in cases})
     table = Catalog(workspace.catalog).query_arrow(
         "SELECT DISTINCT instruction, embedding FROM instructions WHERE encoder = ? AND list_contains(?, instruction)",
         [encoder, texts])
-    cached = {text: np.asarray(vector, dtype=np.float32)
-              for text, vector in zip(table["instruction"].to_pylist(), table["embedding"].to_pylist())}
-    missing = [text for text in texts if text not in cached]
-    if missing:
-        cached.update(zip(missing, encode(encoder, missing)))
-    return cached
+    return {text: np.asarray(vector, dtype=np.float32)
+            for text, vector in zip(table["instruction"].to_pylist(), table["embedding"].to_pylist())}

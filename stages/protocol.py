@@ -9,10 +9,7 @@ import statistics
 
 from pydantic import BaseModel
 
-from stages.evaluate import TaskEvaluation, group_success, wilson_interval
-
-RESULTS_SEEDS, RESULTS_EPISODES = 3, 50  # the protocol's defaults for anything in docs/results*.md
-
+from stages.evaluate import TaskEvaluation, evaluated_key, group_success, wilson_interval
 
 class SeedsSuccess(BaseModel):
     """Success over a group of cases (a split, a family, a split within a family), per training seed and pooled."""
@@ -109,8 +106,8 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
         members = sorted(set(members))
         if len({seed for seed, _ in members}) < 2:
             continue
-        for weights, suffix in (("registered", ""), ("final", ":final")):
-            runs = [evaluated.get(key + suffix) for _, key in members]
+        for weights in ("registered", "final"):
+            runs = [evaluated.get(evaluated_key(key, weights)) for _, key in members]
             if any(run is None for run in runs):
                 continue
             # the cases every seed was evaluated on (one may have met an extra split: sim2act eval --split)

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schemas.tasks import CAMPAIGN_SUITE
+from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
+from schemas.wordings import HELD_OUT_WORDING
 from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
 
@@ -61,7 +62,8 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
     return path
 
 
-SUMMARY_SPLITS = ("seen", "unseen", "unseen_paraphrase", "held_out_wording")
+# every split an evaluation can have, in the order tables show them
+SPLITS = ("seen", "unseen", UNSEEN_PARAPHRASE, HELD_OUT_WORDING)
 
 
 def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -> str:
@@ -69,7 +71,7 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
     rate, Wilson 95%), which iteration holds the champion, and the commands to look further."""
     by_iteration = success_by_iteration(catalog, campaign)
     champions = dict(catalog.query("SELECT iteration, promoted FROM deployments WHERE campaign = ?", [campaign]))
-    splits = [s for s in SUMMARY_SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
+    splits = [s for s in SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
     lines = [f"campaign {campaign!r}: success per iteration (successes/episodes, rate, Wilson 95%)",
              f"  {'iteration':<10}" + "".join(f"{split:<28}" for split in splits)]
     for iteration, groups in sorted(by_iteration.items()):

@@ -11,12 +11,11 @@ import os
 import platform
 
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
-from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from stages.protocol import seed_groups
-from stages.report import evaluations_by_iteration, success_by_iteration
+from stages.report import SPLITS, evaluations_by_iteration, success_by_iteration
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
@@ -120,8 +119,7 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
     lines = ["Each row: trainings of one dataset with one recipe, differing only in `train.seed`, every one "
              "evaluated on the campaign's cases; the mean over seeds ± their standard deviation (each seed's "
              "rate), and the pooled episodes with their Wilson 95% interval.", ""]
-    splits = [s for s in SPLIT_COLUMNS + (HELD_OUT_WORDING,)
-              if any(f.group == s for g in groups for f in g.figures)]
+    splits = [s for s in SPLITS if any(f.group == s for g in groups for f in g.figures)]
     rows = []
     for group in groups:
         recipe = ", ".join(f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
