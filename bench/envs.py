@@ -17,8 +17,8 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel
 
+from envs.pool import run_in_pool
 from schemas.config import RenderConfig, TasksConfig
-from stages.pool import run_in_pool
 
 # one representative task per family
 BENCH_SPECS = {"robosuite": "lift", "metaworld": "mw-pick-place", "navigation": "nav-room-sequence"}
@@ -57,7 +57,7 @@ def _rate(step: Callable[[int], None], reset: Callable[[], None], steps: int) ->
 def measure_family(case: BenchCase) -> list[BenchRow]:
     """Worker: every layer of one family, the same actions for each."""
     from envs.registry import make_env
-    from stages.generate_tasks import generate_tasks
+    from envs.suite import generate_tasks
 
     task = generate_tasks(TasksConfig(specs=[BENCH_SPECS[case.family]]), seed=0)[0]
     rng = np.random.default_rng(0)

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
+from envs.pool import run_in_pool
 from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, TasksConfig
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from stages.pool import run_in_pool
 
 POLICY = "scripted expert"
 
@@ -199,8 +199,8 @@ def _ratio(name: str, value: float, target: float | None = None) -> Ratio:
 
 
 def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBench:
+    from envs.suite import generate_tasks
     from stages.explore import plan_explore
-    from stages.generate_tasks import generate_tasks
 
     task = next(t for t in generate_tasks(_tasks_config(sizes), seed=0) if t.split == "seen")
     config = _config(sizes, workers=1)

@@ -11,6 +11,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from dashboards.reads import Rows, read_rows
+from schemas.errors import Sim2ActError
 from warehouse.catalog import Catalog
 from warehouse.sql import check_read_only
 
@@ -19,7 +20,7 @@ PANELS_FILE = Path(__file__).with_name("panels.yaml")
 PARAMETERS = frozenset({"campaign"})
 
 
-class PanelError(ValueError):
+class PanelError(Sim2ActError, ValueError):
     """A panel that cannot be used; the message names the file, the panel and the reason."""
 
 

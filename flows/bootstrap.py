@@ -8,32 +8,31 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import get_args
 
 from prefect import flow, task
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.cache_policies import NO_CACHE
 from pydantic import BaseModel
 
+from dashboards.report import plot_success_by_iteration, success_by_iteration
 from flows.artifacts import iteration_markdown, publish_iteration_artifacts
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.run_lock import exclusive_run
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
-from schemas.tasks import UNSEEN_PARAPHRASE, Split
-from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.adapt import AdaptResult, run_adapt
 from stages.baselines import BaselinesResult, run_baselines
-from stages.evaluate import EvaluateResult, group_success, run_evaluate
+from stages import StageResult
+from stages.evaluate import SPLITS, EvaluateResult, group_success, run_evaluate
 from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
-from stages.generate_tasks import TasksResult, load_embeddings, load_tasks, run_generate_tasks
+from stages.generate_tasks import TasksResult, run_generate_tasks
 from stages.index import IndexResult, run_index
 from stages.redeploy import RedeployResult, finished_iterations, run_redeploy
-from stages.report import plot_success_by_iteration, success_by_iteration
 from stages.train import TrainResult, run_train
 from warehouse.catalog import Catalog
+from warehouse.tasks import load_embeddings, load_tasks
 
 log = logging.getLogger("sim2act.flows")
 # Prefect sends the "sim2act" loggers to the API (PREFECT_LOGGING_EXTRA_LOGGERS); they reach the
@@ -41,7 +40,6 @@ log = logging.getLogger("sim2act.flows")
 logging.getLogger("sim2act").setLevel(logging.INFO)
 # The catalog, not Prefect's result cache, decides what is done: one source of truth.
 stage_task = task(cache_policy=NO_CACHE, persist_result=False)
-SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE, HELD_OUT_WORDING)
 
 
 class IterationOutcome(BaseModel):
@@ -97,9 +95,13 @@ def train_task(
     workspace: str, config: CampaignConfig, iteration: int, dataset: IndexResult, tasks_key: str, mlflow_run_id: str
 ) -> TrainResult:
     ws = Workspace.at(workspace)
+    tracking = Tracking(ws, config)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
-    return run_train(ws, config, iteration, dataset, tasks_key, embeddings,
-                     on_metrics=Tracking(ws, config).step_logger(mlflow_run_id, "train."))
+    model = run_train(ws, config, iteration, dataset, tasks_key, embeddings,
+                      on_metrics=tracking.step_logger(mlflow_run_id, "train."))
+    if not model.skipped:  # its losses, lr and samples/s went to the run as it trained; now the data it read
+        tracking.log_training_dataset(mlflow_run_id, model.dataset_digest, model.dataset_shards, model.samples)
+    return model
 
 
 @stage_task(name="evaluate")
@@ -124,17 +126,6 @@ def adapt_task(workspace: str, config: CampaignConfig, source: PolicyExplorer) -
     return run_adapt(Workspace.at(workspace), config, source.model_key, source.checkpoint)
 
 
-def _adapt_metrics(result: AdaptResult) -> dict[str, float]:
-    """adapt.<start>.success.<episodes>: success in the shifted domain after that many target episodes."""
-    return {f"adapt.{p.start}.success.{p.episodes}": p.success_rate for p in result.points}
-
-
-def _baseline_metrics(result: BaselinesResult) -> dict[str, float]:
-    """baseline.<agent>[.<family>].success.<split>, for the campaign run beside its own success.<split>."""
-    return {f"baseline.{b.agent}{'.' + b.family if b.family else ''}.success.{g.group}": g.success_rate
-            for b in result.baselines for g in group_success(b.evaluations) if g.group in SPLITS}
-
-
 @stage_task(name="redeploy")
 def redeploy_task(
     workspace: str, config: CampaignConfig, iteration: int, model: TrainResult, mlflow_run_id: str,
@@ -144,29 +135,15 @@ def redeploy_task(
                         evaluation.promotion)
 
 
-def _log_stage(tracking: Tracking, run_id: str, stage: str, result: BaseModel) -> None:
-    """Log what a stage did, right after it, and only when it did work (a re-run adds no points)."""
-    if stage == "generate_tasks" and not result.skipped:
-        tracking.log_metrics(run_id, {"tasks.count": len(result.task_ids), "tasks.proposals_valid": result.proposals_valid,
-                                      **{f"tasks.proposals_rejected.{k}": v for k, v in result.proposals_rejected.items()}})
-    elif stage == "explore" and result.episodes:
-        tracking.log_metrics(run_id, {"explore.episodes": result.episodes, "explore.triplets": result.steps,
-                                      **{f"explore.episodes.{p.task_id}": p.episodes for p in result.priorities},
-                                      **{f"explore.priority.{p.task_id}": p.score for p in result.priorities}})
-    elif stage == "filter" and result.reasons:
-        total = sum(result.reasons.values())
-        tracking.log_metrics(
-            run_id,
-            {"filter.pass_rate": result.reasons.get("kept", 0) / total,
-             **{f"filter.{reason}": count for reason, count in result.reasons.items()}},
-        )
-    elif stage == "index" and not result.skipped:
-        tracking.log_metrics(run_id, {f"dataset.{k}": getattr(result, k) for k in ("episodes", "kept_episodes", "triplets")})
-        tracking.set_tags(run_id, {"sim2act.dataset_digest": result.dataset_digest})
-    elif stage == "train" and not result.skipped:  # its losses, lr and samples/s went to the run as it trained
-        tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
-    elif stage == "evaluate" and result.skipped_units < len(result.tasks):
-        tracking.log_evaluation(run_id, result.tasks)
+def _log_stage(tracking: Tracking, run_id: str, result: StageResult) -> None:
+    """Log what a stage did, right after it: its metrics, tags and files (none when it did no work:
+    a re-run adds no points)."""
+    if metrics := result.metrics():
+        tracking.log_metrics(run_id, metrics)
+    if tags := result.tags():
+        tracking.set_tags(run_id, tags)
+    for path, folder in result.artifacts():
+        tracking.log_artifact(run_id, path, folder)
 
 
 @flow(name="bootstrap-iteration", flow_run_name="{config.name}-iteration-{iteration}")
@@ -181,19 +158,19 @@ def iteration_flow(
     tracking = Tracking(Workspace.at(workspace), config)
     run_id = tracking.iteration_run(campaign_run_id, iteration)
     tasks = generate_tasks_task(workspace, config)
-    _log_stage(tracking, run_id, "generate_tasks", tasks)
+    _log_stage(tracking, run_id, tasks)
     explore = explore_flow.with_options(task_runner=rollout_task_runner(config.explore))(
         workspace, config, iteration, tasks.unit_key, explorer
     )
-    _log_stage(tracking, run_id, "explore", explore)
+    _log_stage(tracking, run_id, explore)
     filtered = filter_task(workspace, config, iteration, explore.unit_keys)
-    _log_stage(tracking, run_id, "filter", filtered)
+    _log_stage(tracking, run_id, filtered)
     index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
-    _log_stage(tracking, run_id, "index", index)
+    _log_stage(tracking, run_id, index)
     model = train_task(workspace, config, iteration, index, tasks.unit_key, run_id)
-    _log_stage(tracking, run_id, "train", model)
+    _log_stage(tracking, run_id, model)
     evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
-    _log_stage(tracking, run_id, "evaluate", evaluation)
+    _log_stage(tracking, run_id, evaluation)
     deployment = redeploy_task(workspace, config, iteration, model, run_id, evaluation)
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
@@ -204,11 +181,8 @@ def iteration_flow(
                            deployment, run_id),
         evaluation, tracking.experiment_id, run_id,
     )
-    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split in get_args(Split)}  # canonical wording
-    stages_run = sum([
-        not tasks.skipped, explore.skipped_units < len(explore.unit_keys), filtered.skipped_units < len(filtered.unit_keys),
-        not index.skipped, not model.skipped, evaluation.skipped_units < len(evaluation.tasks), not deployment.skipped,
-    ])
+    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split in ("seen", "unseen")}  # canonical wording
+    stages_run = sum(result.did_work() for result in (tasks, explore, filtered, index, model, evaluation, deployment))
     return IterationOutcome(
         iteration=iteration, tasks_key=tasks.unit_key, dataset=index, model_key=model.model_key,
         champion=deployment.champion, success=success, split_success=_split_success(evaluation), stages_run=stages_run,
@@ -258,10 +232,10 @@ def _run_campaign(config: CampaignConfig, ws: Workspace, continue_campaign: bool
     if config.baselines.agents:
         last = outcomes[-1]  # its dataset aggregates every iteration's explore units
         baselines = baselines_task(str(ws.root), config, last.iteration, last.tasks_key, last.dataset.explore_units)
-        tracking.log_metrics(campaign_run_id, _baseline_metrics(baselines))
+        _log_stage(tracking, campaign_run_id, baselines)
     if config.adapt.episodes_per_task:
         adapted = adapt_task(str(ws.root), config, outcomes[-1].champion)
-        tracking.log_metrics(campaign_run_id, _adapt_metrics(adapted))
+        _log_stage(tracking, campaign_run_id, adapted)
     plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
                                      f"{config.name}: success per iteration (Wilson 95%)",
                                      ws.media / f"{config.name}-success-by-iteration.png")

@@ -17,9 +17,9 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
+from envs.pool import RETRIES, WorkerLost, WorkerPool
 from schemas.config import ExploreConfig
 from stages.explore import Completed, Execute, ExploreUnit, run_explore_unit, unit_label
-from stages.pool import RETRIES, WorkerLost, WorkerPool
 from warehouse.shard_writer import ShardFile
 
 # The local worker pools of the explore flows running in this process, by id: a task run finds

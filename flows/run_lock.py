@@ -14,10 +14,11 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
 
 
-class WorkspaceBusy(RuntimeError):
+class WorkspaceBusy(Sim2ActError, RuntimeError):
     pass
 
 

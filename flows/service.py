@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schemas.config import CampaignConfig
+from schemas.errors import Sim2ActError
 from schemas.service import HOST, ServiceConfig
 from schemas.workspace import Workspace, write_text_atomically
 
@@ -30,7 +31,7 @@ STOP_TIMEOUT_S = 20.0
 PREFECT_API_ENV, MLFLOW_UI_ENV = "PREFECT_API_URL", "SIM2ACT_MLFLOW_UI"
 
 
-class ServiceError(RuntimeError):
+class ServiceError(Sim2ActError, RuntimeError):
     pass
 
 

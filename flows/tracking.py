@@ -11,10 +11,8 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunT
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
-from schemas.tasks import UNSEEN_PARAPHRASE
-from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
-from stages.evaluate import TaskEvaluation, group_success
+from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
 
 EXPERIMENT = "sim2act"
 
@@ -76,19 +74,9 @@ class Tracking:
     def log_evaluation(self, run_id: str, evaluations: list[TaskEvaluation]) -> None:
         """Success per case and per group (split, family, split within family) with their Wilson
         intervals, mean episode lengths, and the cases' videos."""
-        metrics = {}
-        for t in evaluations:
-            name = f"success.{t.task_id}" + {UNSEEN_PARAPHRASE: ".paraphrase", HELD_OUT_WORDING: ".held_out_wording"}.get(
-                t.split, "")
-            metrics.update({name: t.success_rate, f"{name}.ci_low": t.ci_low, f"{name}.ci_high": t.ci_high,
-                            f"length.{t.task_id}": t.mean_length})
-        for g in group_success(evaluations):
-            metrics.update({f"success.{g.group}": g.success_rate, f"success.{g.group}.ci_low": g.ci_low,
-                            f"success.{g.group}.ci_high": g.ci_high, f"length.{g.group}": g.mean_length})
-        self.log_metrics(run_id, metrics)
-        for t in evaluations:
-            for video in filter(None, (t.success_video, t.failure_video)):
-                self.log_artifact(run_id, video, f"evaluation/{t.task_id}/{t.split}")
+        self.log_metrics(run_id, evaluation_metrics(evaluations))
+        for video, folder in evaluation_videos(evaluations):
+            self.log_artifact(run_id, video, folder)
 
     def log_metrics(self, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
         import time

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from schemas.errors import Sim2ActError
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
@@ -130,7 +131,7 @@ class ExploreConfig(_Strict):
     )
     prioritise: bool = Field(
         default=True, description="iteration >= 1: share the episode budget among the seen tasks by the champion's "
-        "evaluation, low success and high uncertainty first (stages/priority.py)"
+        "evaluation, low success and high uncertainty first (warehouse/priority.py)"
     )
     priority_floor: float = Field(
         default=0.25, ge=0.0, le=1.0, description="each task keeps at least this share of episodes_per_task"
@@ -388,8 +389,10 @@ class CampaignConfig(_Strict):
         return self.redeploy.registered_model or f"sim2act-{self.name}"
 
 
-class ConfigError(ValueError):
+class ConfigError(Sim2ActError, ValueError):
     """A config that cannot run; its message is one line naming the field."""
+
+    label = "config error: "
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -21,11 +21,13 @@ from pydantic import BaseModel
 from schemas.config import AdaptConfig, BaselinesConfig, CampaignConfig, RandomiseConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
+from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
 from stages.explore import run_explore
 from stages.filter import run_filter
-from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
+from stages.generate_tasks import run_generate_tasks
 from warehouse.catalog import Catalog
+from warehouse.tasks import load_embeddings, load_tasks
 
 STAGE, VERSION = "adapt", 1
 SUITE = "adapt"
@@ -46,7 +48,7 @@ class AdaptPoint(BaseModel):
         return self.successes / self.trials
 
 
-class AdaptResult(BaseModel):
+class AdaptResult(StageResult):
     """Registered as the target campaign's `adapt` unit: what `sim2act report` tabulates."""
 
     campaign: str
@@ -54,6 +56,13 @@ class AdaptResult(BaseModel):
     domain: RandomiseConfig
     target_success: float
     points: list[AdaptPoint]
+
+    def did_work(self) -> bool:  # its parts are the other stages' units
+        return True
+
+    def metrics(self) -> dict[str, float]:
+        """adapt.<start>.success.<episodes>: success in the shifted domain after that many target episodes."""
+        return {f"adapt.{p.start}.success.{p.episodes}": p.success_rate for p in self.points}
 
 
 def target_campaign(config: CampaignConfig) -> CampaignConfig:
@@ -88,6 +97,11 @@ def _score(evaluations: list[TaskEvaluation]) -> tuple[int, int]:
 
 
 def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, source_checkpoint: str) -> AdaptResult:
+    """The shifted domain's campaign (target_campaign) runs its own stages, each with its units, then
+    fine-tuned and from-scratch models are trained and evaluated per `adapt.episodes_per_task`.
+
+    Unit of work: the adaptation's summary, keyed by the adapt settings, the source model and the
+    target dataset (its parts are the other stages' units). Registers an `adapt` unit holding the result."""
     # torch comes with these: here, so `sim2act report` reads an adaptation's results without it
     from stages.index import run_index
     from stages.train import run_train
@@ -123,9 +137,9 @@ def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, s
     result = AdaptResult(campaign=target.name, source_model=source_model, domain=target.randomise,
                          target_success=config.adapt.target_success, points=points)
     key = unit_key(STAGE, VERSION, {"adapt": config.adapt}, [source_model, dataset.unit_key])
-    if not catalog.is_registered(key):
-        catalog.register_unit(unit_key=key, stage=STAGE, campaign=target.name, iteration=0,
-                              summary=result.model_dump(mode="json"), wall_s=time.monotonic() - started)
+    units = StageUnits(catalog, STAGE, target.name, 0)
+    if units.pending([key]):  # its parts are units of their own: only the summary is registered here
+        units.register(key, UnitOutput(result.model_dump(mode="json")), time.monotonic() - started)
     return result
 
 

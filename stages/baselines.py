@@ -16,12 +16,13 @@ import logging
 import numpy as np
 from pydantic import BaseModel
 
+from envs.pool import run_in_pool
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
-from stages.pool import run_in_pool
+from stages import StageResult, StageUnits, UnitOutput
+from stages.evaluate import SPLITS, Agent, TaskEvaluation, evaluate_model, evaluation_cases, group_success
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
@@ -60,8 +61,16 @@ class Baseline(BaseModel):
     evaluations: list[TaskEvaluation]
 
 
-class BaselinesResult(BaseModel):
+class BaselinesResult(StageResult):
     baselines: list[Baseline]
+
+    def did_work(self) -> bool:  # its units are its agents' trainings and the evaluate stage's cases
+        return True
+
+    def metrics(self) -> dict[str, float]:
+        """baseline.<agent>[.<family>].success.<split>, for the campaign run beside its own success.<split>."""
+        return {f"baseline.{b.agent}{'.' + b.family if b.family else ''}.success.{g.group}": g.success_rate
+                for b in self.baselines for g in group_success(b.evaluations) if g.group in SPLITS}
 
 
 def exploration_steps(catalog: Catalog, explore_units: list[str]) -> dict[str, int]:
@@ -122,16 +131,20 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
                   tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], explore_units: list[str]) -> BaselinesResult:
     """Train the RL agents not trained yet, with the steps `explore_units` (the campaign's, every
     iteration) took per family, then evaluate every configured baseline on the campaign's
-    evaluation cases (an RL agent on its family's), rows under `iteration`."""
+    evaluation cases (an RL agent on its family's), rows under `iteration`.
+
+    Unit of work: one RL agent (an algorithm on a family), keyed by the render and randomise settings,
+    the campaign seed, the algorithm, the family, its step budget and the tasks' instructions.
+    Registers the agent's summary; its evaluations are the evaluate stage's units."""
     catalog = Catalog(workspace.catalog)
     units = rl_units(workspace, config, tasks_key, tasks, embeddings, exploration_steps(catalog, explore_units))
-    done = catalog.registered_keys([u.unit_key for u in units])
-    todo = [u for u in units if u.unit_key not in done]
-    log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(done))
+    ledger = StageUnits(catalog, STAGE, config.name, iteration)
+    pending = set(ledger.pending(u.unit_key for u in units))
+    todo = [u for u in units if u.unit_key in pending]
+    log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}"):
-        catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                              summary=trained.model_dump(), wall_s=seconds)
+        ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
     cases = evaluation_cases(tasks)

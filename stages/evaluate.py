@@ -11,23 +11,25 @@ import math
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 from pydantic import BaseModel
 
 from envs.observation import Observation
+from envs.pool import Progress, run_in_pool
 from envs.rollout import rollout, worker_env
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig
 from schemas.keys import derive_seed, unit_key
-from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, TaskRecord
+from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, Split, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
-from stages.pool import Progress, run_in_pool
+from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "evaluate", 4
 log = logging.getLogger("sim2act.stages.evaluate")
+SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE, HELD_OUT_WORDING)  # the evaluation's splits, in report order
 
 
 class Agent(BaseModel):
@@ -136,11 +138,41 @@ class Promotion(BaseModel):
     champion_success: float | None  # the current champion's over the same cases; None without one
 
 
-class EvaluateResult(BaseModel):
+class EvaluateResult(StageResult):
     model_key: str
     tasks: list[TaskEvaluation]
     skipped_units: int
     promotion: Promotion
+
+    def did_work(self) -> bool:
+        return self.skipped_units < len(self.tasks)
+
+    def metrics(self) -> dict[str, float]:
+        return evaluation_metrics(self.tasks) if self.did_work() else {}
+
+    def artifacts(self) -> list[tuple[str, str]]:
+        return evaluation_videos(self.tasks) if self.did_work() else []
+
+
+def evaluation_metrics(evaluations: list[TaskEvaluation]) -> dict[str, float]:
+    """Success per case and per group (split, family, split within family) with their Wilson
+    intervals, and mean episode lengths: MLflow metric names."""
+    metrics = {}
+    for t in evaluations:
+        name = f"success.{t.task_id}" + {UNSEEN_PARAPHRASE: ".paraphrase", HELD_OUT_WORDING: ".held_out_wording"}.get(
+            t.split, "")
+        metrics.update({name: t.success_rate, f"{name}.ci_low": t.ci_low, f"{name}.ci_high": t.ci_high,
+                        f"length.{t.task_id}": t.mean_length})
+    for g in group_success(evaluations):
+        metrics.update({f"success.{g.group}": g.success_rate, f"success.{g.group}.ci_low": g.ci_low,
+                        f"success.{g.group}.ci_high": g.ci_high, f"length.{g.group}": g.mean_length})
+    return metrics
+
+
+def evaluation_videos(evaluations: list[TaskEvaluation]) -> list[tuple[str, str]]:
+    """(video, folder) for every case's success and failure videos."""
+    return [(video, f"evaluation/{t.task_id}/{t.split}") for t in evaluations
+            for video in (t.success_video, t.failure_video) if video]
 
 
 def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluations: list[TaskEvaluation]) -> Promotion:
@@ -313,9 +345,11 @@ def evaluate_model(
                               randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None))
-    done = catalog.registered_keys([u.unit_key for u in units])
-    todo = [u for u in units if u.unit_key not in done]
-    log.info("evaluate it%d: %d cases (%d already evaluated), %s episodes each", iteration, len(units), len(done),
+    ledger = StageUnits(catalog, STAGE, config.name, iteration)
+    pending = set(ledger.pending(u.unit_key for u in units))
+    todo = [u for u in units if u.unit_key in pending]
+    done = len(units) - len(todo)
+    log.info("evaluate it%d: %d cases (%d already evaluated), %s episodes each", iteration, len(units), done,
              "/".join(str(n) for n in sorted({len(u.seeds) for u in units})))
     progress = Progress(log, f"evaluate it{iteration}", len(todo), "cases", "episodes")
     try:
@@ -323,10 +357,8 @@ def evaluate_model(
             row = {"unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "suite": suite,
                    "model_key": model_key,
                    **result.model_dump(), "success_rate": result.success_rate}
-            catalog.register_unit(unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                                  summary={"model_key": model_key,
-                                           **result.model_dump(exclude={"episode_lengths", "episode_successes"})},
-                                  wall_s=seconds, rows={"evaluations": [row]})
+            summary = {"model_key": model_key, **result.model_dump(exclude={"episode_lengths", "episode_successes"})}
+            ledger.register(unit.unit_key, UnitOutput(summary, rows={"evaluations": [row]}), seconds)
             progress.advance(1, result.episodes)
             log.info("evaluate it%d: %s (%s, %r) success %d/%d [%.0f%%, %.0f%%]", iteration, result.task_id,
                      result.split, result.instruction, result.successes, result.episodes, 100 * result.ci_low,
@@ -335,7 +367,7 @@ def evaluate_model(
         progress.close()
     by_key = dict(read_evaluations(catalog, "v.unit_key", "WHERE list_contains(?, v.unit_key)",
                                    [[u.unit_key for u in units]]))
-    return [by_key[u.unit_key] for u in units], len(done)
+    return [by_key[u.unit_key] for u in units], done
 
 
 def run_evaluate(
@@ -347,7 +379,11 @@ def run_evaluate(
     tasks: list[TaskRecord],
     embeddings: dict[str, np.ndarray],
 ) -> EvaluateResult:
-    """The flow's stage: every evaluation case of the campaign's tasks, then the promotion decision."""
+    """The flow's stage: every evaluation case of the campaign's tasks, then the promotion decision.
+
+    Unit of work: one case (a task, a split, an instruction), keyed by the evaluate, render and
+    randomise settings, the model, the suite, the task, the split and the instruction (evaluate_model).
+    Registers an `evaluations` row per case: successes, episode lengths, Wilson interval, videos."""
     evaluations, skipped = evaluate_model(workspace, config, iteration, model_key,
                                           Agent(kind="sim2act", path=checkpoint),
                                           evaluation_cases(tasks, config.evaluate.held_out_wordings), embeddings)

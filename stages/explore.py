@@ -19,6 +19,7 @@ import pyarrow as pa
 from pydantic import BaseModel
 
 from envs.observation import Observation
+from envs.pool import Progress, run_in_pool
 from envs.rollout import Act, Explorer, rollout, worker_env
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_depth, encode_frame
@@ -26,9 +27,9 @@ from schemas.keys import derive_seed, key_fields, unit_key
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from stages.pool import Progress, run_in_pool
-from stages.priority import TaskPriority, plan_priorities
+from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
+from warehouse.priority import TaskPriority, plan_priorities
 from warehouse.shard_writer import ShardFile, write_shard
 
 STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a hand already at the object
@@ -74,12 +75,22 @@ class ExploreUnit(BaseModel):
     relabel_to: list[TaskRecord] = []  # explore.relabel: the seen tasks a failed episode may have done instead
 
 
-class ExploreResult(BaseModel):
+class ExploreResult(StageResult):
     unit_keys: list[str]
-    episodes: int
+    episodes: int  # explored by this run (0 when every shard was registered)
     steps: int
     skipped_units: int
     priorities: list[TaskPriority]  # how the budget was shared (empty: equal shares, no champion to rank by)
+
+    def did_work(self) -> bool:
+        return self.skipped_units < len(self.unit_keys)
+
+    def metrics(self) -> dict[str, float]:
+        if not self.episodes:
+            return {}
+        return {"explore.episodes": self.episodes, "explore.triplets": self.steps,
+                **{f"explore.episodes.{p.task_id}": p.episodes for p in self.priorities},
+                **{f"explore.priority.{p.task_id}": p.score for p in self.priorities}}
 
 
 def _explorers(config: CampaignConfig, iteration: int, task: TaskRecord, policy: PolicyExplorer | None,
@@ -284,8 +295,8 @@ def curriculum_subgoals(config: CampaignConfig, tasks: list[TaskRecord]) -> dict
     """task id -> its sub-tasks' instructions, for the long-horizon tasks a curriculum chains."""
     if not config.explore.curriculum:
         return {}
+    from envs.suite import subtask_instructions
     from schemas.task_spec import load_specs
-    from stages.generate_tasks import subtask_instructions
 
     suite = load_specs(config.tasks.spec_files)
     return {t.task_id: chain for t in tasks if (chain := subtask_instructions(t, suite))}
@@ -302,7 +313,11 @@ def run_explore(
     on_progress: Callable[[float], None] | None = None,
 ) -> ExploreResult:
     """Plan the iteration's shards, run the unregistered ones through `execute` (default: local
-    worker processes) and register each as it completes: a kill loses only shards in flight."""
+    worker processes) and register each as it completes: a kill loses only shards in flight.
+
+    Unit of work: one shard of a task's episodes (explore.episodes_per_shard), keyed by the explore,
+    render and randomise settings, the explorer, the task, the shard's index and the task's episode
+    count. Registers its `episodes` and `steps` shards."""
     catalog = Catalog(workspace.catalog)
     priorities = []
     if policy is not None and config.explore.prioritise:
@@ -314,11 +329,12 @@ def run_explore(
     episodes_of = {p.task_id: p.episodes for p in priorities} if priorities else None
     units = plan_explore(config, iteration, tasks, policy, embeddings, workspace, episodes_of, curriculum_subgoals(config, tasks))
     keys = [u.unit_key for u in units]
-    done = catalog.registered_keys(keys)
-    todo = [u for u in units if u.unit_key not in done]
+    ledger = StageUnits(catalog, STAGE, config.name, iteration)
+    pending = set(ledger.pending(keys))
+    todo = [u for u in units if u.unit_key in pending]
     explorers = dict(Counter(e.explorer for u in units for e in u.episodes))
     log.info("explore it%d: %d shards (%d already registered), episodes by explorer: %s",
-             iteration, len(units), len(done), explorers)
+             iteration, len(units), len(units) - len(todo), explorers)
     execute = execute or on_local_workers(config.explore.workers)
     progress = Progress(log, f"explore it{iteration}", sum(len(u.episodes) for u in todo), "episodes", "triplets",
                         on_progress)
@@ -327,13 +343,11 @@ def run_explore(
         for unit, shards, seconds in execute(todo):
             by_table = {s.table: s for s in shards}
             summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
-            catalog.register_unit(
-                unit_key=unit.unit_key, stage=STAGE, campaign=config.name, iteration=iteration,
-                summary=summary, wall_s=seconds, shards=shards,
-            )
+            ledger.register(unit.unit_key, UnitOutput(summary, shards), seconds)
             episodes += summary["episodes"]
             steps += summary["steps"]
             progress.advance(summary["episodes"], summary["steps"])
     finally:
         progress.close()
-    return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(done), priorities=priorities)
+    return ExploreResult(unit_keys=keys, episodes=episodes, steps=steps, skipped_units=len(units) - len(todo),
+                         priorities=priorities)

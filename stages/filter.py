@@ -12,7 +12,6 @@ from collections import Counter
 from dataclasses import dataclass
 
 import pyarrow as pa
-from pydantic import BaseModel
 
 from envs.registry import action_bounds
 from schemas.config import CampaignConfig, FilterConfig
@@ -20,6 +19,7 @@ from schemas.frames import depth_side, frame_side
 from schemas.keys import unit_key
 from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
+from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import read_shard, write_shard
 
@@ -28,10 +28,19 @@ STEP_COLUMNS = ["episode_id", "image", "depth", "proprio", "action", "reward"]
 log = logging.getLogger("sim2act.stages.filter")
 
 
-class FilterResult(BaseModel):
+class FilterResult(StageResult):
     unit_keys: list[str]
     reasons: dict[str, int]  # counts of this run's decisions by reason (empty when all skipped)
     skipped_units: int
+
+    def did_work(self) -> bool:
+        return self.skipped_units < len(self.unit_keys)
+
+    def metrics(self) -> dict[str, float]:
+        if not self.reasons:
+            return {}
+        return {"filter.pass_rate": self.reasons.get("kept", 0) / sum(self.reasons.values()),
+                **{f"filter.{reason}": count for reason, count in self.reasons.items()}}
 
 
 @dataclass(frozen=True)
@@ -93,10 +102,13 @@ def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
 
 
 def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
+    """Unit of work: one explore shard's episodes, keyed by the filter settings, the frame size and
+    the explore unit. Registers one `filter_decisions` shard: each episode kept or rejected, why."""
     catalog = Catalog(workspace.catalog)
+    units = StageUnits(catalog, STAGE, config.name, iteration)
     reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth}
     keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
-    done = catalog.registered_keys(list(keys.values()))
+    pending = set(units.pending(keys.values()))
     families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
     # Units are decided in a fixed order, so a resumed run dedupes exactly as an uninterrupted one.
     kept_digests = dict(catalog.query(
@@ -105,7 +117,7 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
     ))
     reasons: Counter[str] = Counter()
     for explore_key, key in keys.items():
-        if key in done:
+        if key not in pending:
             continue
         started = time.monotonic()
         [(episodes_path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
@@ -132,14 +144,12 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
             "filter_decisions", pa.Table.from_pylist(decisions, schema=FILTER_DECISIONS),
             workspace.shard_path("filter_decisions", iteration, key),
         )
-        catalog.register_unit(
-            unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-            summary=dict(Counter(d["reason"] for d in decisions)), wall_s=time.monotonic() - started, shards=[shard],
-        )
+        units.register(key, UnitOutput(dict(Counter(d["reason"] for d in decisions)), [shard]),
+                       time.monotonic() - started)
     kept = reasons.get("kept", 0)
     total = sum(reasons.values())
     log.info(
         "filter it%d: %d shards (%d already registered); this run kept %d/%d episodes %s",
-        iteration, len(keys), len(done), kept, total, dict(reasons),
+        iteration, len(keys), len(keys) - len(pending), kept, total, dict(reasons),
     )
-    return FilterResult(unit_keys=list(keys.values()), reasons=dict(reasons), skipped_units=len(done))
+    return FilterResult(unit_keys=list(keys.values()), reasons=dict(reasons), skipped_units=len(keys) - len(pending))

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import logging
 
-from pydantic import BaseModel
-
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
+from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
 from warehouse.datasets import Selection
 
@@ -17,7 +16,7 @@ STAGE, VERSION = "index", 1
 log = logging.getLogger("sim2act.stages.index")
 
 
-class IndexResult(BaseModel):
+class IndexResult(StageResult):
     unit_key: str
     iteration: int
     dataset_digest: str
@@ -27,6 +26,15 @@ class IndexResult(BaseModel):
     kept_episodes: int
     triplets: int
     skipped: bool
+
+    def did_work(self) -> bool:
+        return not self.skipped
+
+    def metrics(self) -> dict[str, float]:
+        return {} if self.skipped else {f"dataset.{k}": getattr(self, k) for k in ("episodes", "kept_episodes", "triplets")}
+
+    def tags(self) -> dict[str, str]:
+        return {} if self.skipped else {"sim2act.dataset_digest": self.dataset_digest}
 
     @property
     def selection(self) -> Selection:
@@ -56,6 +64,8 @@ def run_index(
     filter_keys: list[str],
     previous: IndexResult | None,
 ) -> IndexResult:
+    """Unit of work: the iteration's dataset, keyed by every explore and filter unit of iterations
+    0..`iteration`. Registers an `iterations` row: the selection, its digest and its counts."""
     catalog = Catalog(workspace.catalog)
     explore_units = sorted(set(explore_keys) | set(previous.explore_units if previous else ()))
     filter_units = sorted(set(filter_keys) | set(previous.filter_units if previous else ()))
@@ -67,18 +77,16 @@ def run_index(
         digest, episodes, kept, triplets = existing[0]
         skipped = True
     else:
-        selection = Selection(tuple(explore_units), tuple(filter_units))
-        digest = selection.digest(catalog)
-        counts = selection.counts(catalog)
-        episodes, kept, triplets = counts["episodes"], counts["kept_episodes"], counts["triplets"]
-        row = {
-            "unit_key": key, "campaign": config.name, "iteration": iteration, "dataset_digest": digest,
-            "explore_units": explore_units, "filter_units": filter_units, **counts,
-        }
-        catalog.register_unit(
-            unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-            summary={"dataset_digest": digest, **counts}, rows={"iterations": [row]},
-        )
+        def work() -> UnitOutput:
+            selection = Selection(tuple(explore_units), tuple(filter_units))
+            digest, counts = selection.digest(catalog), selection.counts(catalog)
+            row = {"unit_key": key, "campaign": config.name, "iteration": iteration, "dataset_digest": digest,
+                   "explore_units": explore_units, "filter_units": filter_units, **counts}
+            return UnitOutput({"dataset_digest": digest, **counts}, rows={"iterations": [row]})
+
+        summary = StageUnits(catalog, STAGE, config.name, iteration).run(key, work).summary
+        digest = summary["dataset_digest"]
+        episodes, kept, triplets = summary["episodes"], summary["kept_episodes"], summary["triplets"]
         skipped = False
     log.info(
         "index it%d: dataset %s: %d triplets from %d kept of %d episodes (iterations 0..%d)%s",

@@ -5,15 +5,14 @@ the explorer the next iteration uses: the champion, new or kept."""
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 
 from mlflow import MlflowClient
-from pydantic import BaseModel
 
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
+from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Promotion
 from stages.explore import PolicyExplorer
 from warehouse.catalog import Catalog
@@ -23,12 +22,15 @@ MODEL_KEY_TAG = "sim2act.model_key"
 log = logging.getLogger("sim2act.stages.redeploy")
 
 
-class RedeployResult(BaseModel):
+class RedeployResult(StageResult):
     registered_model: str
     version: int
     alias: str
     champion: PolicyExplorer
     skipped: bool
+
+    def did_work(self) -> bool:
+        return not self.skipped
 
 
 def finished_iterations(workspace: Workspace, campaign: str) -> int:
@@ -101,6 +103,9 @@ def run_redeploy(
     workspace: Workspace, config: CampaignConfig, iteration: int, model_key: str, checkpoint: str,
     mlflow_run_id: str, promotion: Promotion,
 ) -> RedeployResult:
+    """Unit of work: one trained model, keyed by the redeploy settings and its model key. Registers it
+    in the MLflow registry (once per model key), moves the champion alias when `promotion` says so,
+    and registers a `deployments` row."""
     catalog = Catalog(workspace.catalog)
     name, alias = config.registered_model_name, config.redeploy.alias
     key = unit_key(STAGE, VERSION, config.redeploy, [model_key])
@@ -112,25 +117,27 @@ def run_redeploy(
         return RedeployResult(registered_model=name, version=version, alias=alias, skipped=True,
                               champion=champion_explorer(workspace, client, name, champion))
 
-    started = time.monotonic()
-    version = _registered_version(client, name, model_key)
-    if version is None:
-        version = _register(workspace, catalog, config, model_key, checkpoint, mlflow_run_id)
-    if promotion.promote:
-        client.set_registered_model_alias(name, alias, str(version))
-    champion = int(client.get_model_version_by_alias(name, alias).version)
-    champion_key = client.get_model_version(name, str(champion)).tags[MODEL_KEY_TAG]
-    catalog.register_unit(
-        unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
-        summary={"registered_model": name, "version": version, "alias": alias, "champion_version": champion,
-                 "decision": promotion.reason}, wall_s=time.monotonic() - started,
-        rows={"deployments": [{
-            "unit_key": key, "model_key": model_key, "campaign": config.name, "iteration": iteration,
-            "registered_model": name, "version": version, "alias": alias, "champion_version": champion,
-            "champion_model_key": champion_key, "promoted": promotion.promote, "decision": promotion.reason,
-            "mlflow_run_id": mlflow_run_id,
-        }]},
-    )
+    def work() -> UnitOutput:
+        version = _registered_version(client, name, model_key)
+        if version is None:
+            version = _register(workspace, catalog, config, model_key, checkpoint, mlflow_run_id)
+        if promotion.promote:
+            client.set_registered_model_alias(name, alias, str(version))
+        champion = int(client.get_model_version_by_alias(name, alias).version)
+        champion_key = client.get_model_version(name, str(champion)).tags[MODEL_KEY_TAG]
+        return UnitOutput(
+            {"registered_model": name, "version": version, "alias": alias, "champion_version": champion,
+             "decision": promotion.reason},
+            rows={"deployments": [{
+                "unit_key": key, "model_key": model_key, "campaign": config.name, "iteration": iteration,
+                "registered_model": name, "version": version, "alias": alias, "champion_version": champion,
+                "champion_model_key": champion_key, "promoted": promotion.promote, "decision": promotion.reason,
+                "mlflow_run_id": mlflow_run_id,
+            }]},
+            value=(version, champion),
+        )
+
+    version, champion = StageUnits(catalog, STAGE, config.name, iteration).run(key, work).value
     log.info("redeploy it%d: registered %s version %d; %s -> v%d (%s)", iteration, name, version, alias, champion,
              promotion.reason)
     return RedeployResult(registered_model=name, version=version, alias=alias, skipped=False,

@@ -17,21 +17,21 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel
 from torch.utils.data import DataLoader
 
 from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
+from envs.pool import Progress
+from policies.ema import WeightAverage
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, pixels, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
-from policies.ema import WeightAverage
 from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
 from schemas.config import CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.wordings import training_variants
 from schemas.workspace import Workspace
+from stages import StageResult, StageUnits, UnitOutput
 from stages.index import IndexResult
-from stages.pool import Progress
 from warehouse.catalog import Catalog
 from warehouse.training_reader import SelectionError, StepBatches, check_where, decode_rows
 
@@ -49,7 +49,7 @@ log = logging.getLogger("sim2act.stages.train")
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
 
 
-class TrainResult(BaseModel):
+class TrainResult(StageResult):
     model_key: str
     checkpoint: str
     dataset_digest: str  # of the training selection: the iteration's dataset narrowed by train.where
@@ -58,6 +58,9 @@ class TrainResult(BaseModel):
     history: list[dict[str, float]]  # one entry per epoch (empty when skipped)
     resumed_at_step: int  # 0: trained from the start
     skipped: bool
+
+    def did_work(self) -> bool:
+        return not self.skipped
 
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
@@ -441,6 +444,10 @@ def run_train(
     embeddings: dict[str, np.ndarray],
     on_metrics: OnMetrics | None = None,
 ) -> TrainResult:
+    """Unit of work: one model, keyed by the train settings that change what it computes
+    (train_unit_key: the train config less its execution fields, the campaign seed, the frame size,
+    depth, the dataset digest and the tasks unit). Trains it (resuming from its last train state),
+    writes models/<key>/policy.pt and registers a `models` row."""
     catalog = Catalog(workspace.catalog)
     cfg = config.train
     key = train_unit_key(config, dataset, tasks_key)
@@ -494,20 +501,19 @@ def run_train(
     resumed_at = max((i * steps_per_member + m.resumed_at_step for i, m in enumerate(members) if m.resumed_at_step), default=0)
     averages = None if cfg.ema is None else [m.average.weights for m in members]
     save_atomically(checkpoint, policy_state([m.model for m in members], action_norm, proprio_norm, averages, cfg.ema))
-    catalog.register_unit(
-        unit_key=key, stage=STAGE, campaign=config.name, iteration=iteration,
+    StageUnits(catalog, STAGE, config.name, iteration).register(key, UnitOutput(
         summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
                  "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where,
                  "weights": "final" if cfg.ema is None else f"ema {cfg.ema}", "chunk": cfg.model.chunk,
                  "seed": cfg.seed},
-        wall_s=time.monotonic() - started + sum(m.earlier_wall_s for m in members),
+        earlier_wall_s=sum(m.earlier_wall_s for m in members),
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,
             "checkpoint_path": str(checkpoint.relative_to(workspace.root)), "dataset_digest": digest,
             "dataset_shards": shards_read, "train_samples": samples,
             "final_loss": history[-1]["loss"], "unit_key": key,
         }]},
-    )
+    ), time.monotonic() - started)
     for member in range(cfg.ensemble):
         workspace.train_state(key, member).unlink(missing_ok=True)
     return TrainResult(model_key=key, checkpoint=str(checkpoint), dataset_digest=digest, samples=samples,

@@ -21,6 +21,7 @@ from typing import Any
 import duckdb
 import pyarrow as pa
 
+from schemas.errors import Sim2ActError
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
 from schemas.version import SCHEMA_VERSION
 from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, sha256_of
@@ -28,11 +29,11 @@ from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, i
 LOCK_WAIT_S = 120.0
 
 
-class CatalogMissing(FileNotFoundError):
+class CatalogMissing(Sim2ActError, FileNotFoundError):
     pass
 
 
-class CatalogVersionError(RuntimeError):
+class CatalogVersionError(Sim2ActError, RuntimeError):
     """The warehouse was written by another layout version; nothing is touched."""
 
 

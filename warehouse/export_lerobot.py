@@ -28,6 +28,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
+from schemas.errors import Sim2ActError
 from schemas.frames import decode_frame
 from warehouse.catalog import Catalog
 from warehouse.video import CONTROL_FPS, VIDEO_CODEC, video_writer
@@ -44,7 +45,7 @@ ROBOT_TYPES = {"robosuite": "panda", "metaworld": "sawyer"}
 STEP_COLUMNS = "episode_id, step, instruction, image, proprio, action, reward, done, success"
 
 
-class ExportError(ValueError):
+class ExportError(Sim2ActError, ValueError):
     """An export refused before writing: a bad --where, an empty or mixed selection, a used folder."""
 
 

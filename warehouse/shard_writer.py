@@ -12,6 +12,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from schemas.errors import Sim2ActError
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
 
@@ -35,7 +36,7 @@ class ShardConflict(FileExistsError):
     """Another writer already put different bytes at this shard's path."""
 
 
-class DiskFull(OSError):
+class DiskFull(Sim2ActError, OSError):
     """No space left on the device a shard is written to; the message is one line naming the
     shard, its unit and what to do. An OSError, so a worker pool hands it back as itself."""
 

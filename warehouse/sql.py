@@ -11,6 +11,7 @@ from typing import Literal
 import duckdb
 import pyarrow as pa
 
+from schemas.errors import Sim2ActError
 from warehouse.catalog import Catalog
 
 OutputFormat = Literal["table", "csv", "json"]
@@ -18,7 +19,7 @@ _READ_STATEMENTS = {duckdb.StatementType.SELECT, duckdb.StatementType.EXPLAIN}
 log = logging.getLogger("sim2act.warehouse")
 
 
-class ReadOnlyViolation(ValueError):
+class ReadOnlyViolation(Sim2ActError, ValueError):
     pass
 
 

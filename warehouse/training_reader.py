@@ -28,6 +28,7 @@ import numpy as np
 import pyarrow.parquet as pq
 from torch.utils.data import IterableDataset, get_worker_info
 
+from schemas.errors import Sim2ActError
 from schemas.frames import decode_depth, decode_frame
 from warehouse.catalog import Catalog
 
@@ -35,7 +36,7 @@ COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action"
 LOOKAHEAD_COLUMNS = ["episode_id", "action", "expert_action"]  # what a chunk's later steps are read for
 
 
-class SelectionError(ValueError):
+class SelectionError(Sim2ActError, ValueError):
     """A training selection that does not parse, bind, or match anything."""
 
 

@@ -6,8 +6,8 @@ from gymnasium.utils.env_checker import check_env
 from stable_baselines3.common.env_checker import check_env as check_sb3_env
 
 from envs.gym_env import InstructedTasksEnv
+from envs.suite import generate_tasks
 from schemas.config import RandomiseConfig, RenderConfig, TasksConfig
-from stages.generate_tasks import generate_tasks
 
 
 def _env(specs: list[str], colours: list[str]) -> InstructedTasksEnv:

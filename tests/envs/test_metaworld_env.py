@@ -7,12 +7,12 @@ import pytest
 from envs.metaworld_env import MetaWorldEnv
 from envs.observation import ACTION_DIM, PROPRIO_DIM
 from envs.registry import make_expert
-from schemas.config import CampaignConfig, RenderConfig
-from schemas.workspace import Workspace
 from envs.rollout import rollout
-from stages.explore import plan_explore, run_explore_unit
-from stages.generate_tasks import generate_tasks
+from envs.suite import generate_tasks
+from schemas.config import CampaignConfig, RenderConfig
 from schemas.config import TasksConfig
+from schemas.workspace import Workspace
+from stages.explore import plan_explore, run_explore_unit
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from envs.navigation_env import ACTIONS, ROOM_SIZE, NavigationEnv, NavigationExpert
-from schemas.config import RenderConfig, TasksConfig
 from envs.rollout import rollout
-from stages.generate_tasks import generate_tasks
+from envs.suite import generate_tasks
+from schemas.config import RenderConfig, TasksConfig
 
 
 def _task(task_id: str):

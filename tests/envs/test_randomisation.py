@@ -9,13 +9,13 @@ from envs.experts import PickPlaceExpert
 from envs.navigation_env import NavigationEnv
 from envs.randomisation import ASPECTS, Randomisation, sample_randomisation
 from envs.robosuite_env import RobosuiteEnv
+from envs.rollout import rollout
+from envs.suite import generate_tasks
 from schemas.config import CampaignConfig, ConfigError, RandomiseConfig, RenderConfig, TasksConfig, load_config
 from schemas.tables import RANDOMISATION
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from envs.rollout import rollout
 from stages.explore import plan_explore, run_explore_unit
-from stages.generate_tasks import generate_tasks
 
 LIFT = TaskRecord(task_id="lift-red", spec="lift", family="robosuite", env_name="Lift", object_colours={"target": "red"},
                   instructions=["pick up the red block", "b", "c"], split="seen", horizon=60)

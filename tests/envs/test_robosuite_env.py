@@ -7,14 +7,14 @@ import pytest
 from envs.experts import CLOSED, Phase, PickPlaceExpert
 from envs.observation import PROPRIO_DIM
 from envs.robosuite_env import RobosuiteEnv
+from envs.rollout import rollout
+from envs.suite import generate_tasks
 from schemas.config import CampaignConfig, RenderConfig
+from schemas.frames import decode_frame
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
-from envs.rollout import rollout
 from stages.explore import plan_explore, run_explore_unit
-from stages.generate_tasks import generate_tasks
-from schemas.frames import decode_frame
 
 
 def _lift(colour: str) -> TaskRecord:

@@ -19,11 +19,11 @@ from mlflow import MlflowClient
 from schemas.config import load_config
 from schemas.workspace import Workspace
 from stages.baselines import exploration_steps, rl_units
-from stages.generate_tasks import load_embeddings, load_tasks
-from stages.priority import plan_priorities
 from tests.campaign import run_campaign, snapshot
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
+from warehouse.priority import plan_priorities
+from warehouse.tasks import load_embeddings, load_tasks
 
 pytestmark = pytest.mark.timeout(900)
 

@@ -16,11 +16,11 @@ from prefect import flow, get_client
 from prefect.settings import PREFECT_API_URL, temporary_settings
 
 import flows.rollouts
+from envs.suite import generate_tasks
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from schemas.config import CampaignConfig, ExploreConfig, TasksConfig
 from schemas.workspace import Workspace
 from stages.explore import ExploreResult, run_explore
-from stages.generate_tasks import generate_tasks
 from warehouse.catalog import Catalog
 
 pytestmark = pytest.mark.timeout(600)
@@ -126,8 +126,8 @@ def test_a_worker_killed_mid_run_costs_one_retried_shard_and_the_same_bytes(refe
 def test_only_a_dead_worker_earns_a_shard_a_retry():
     from prefect.states import Failed
 
+    from envs.pool import PoolClosed, UnitFailed, WorkerLost
     from flows.rollouts import _worker_died
-    from stages.pool import PoolClosed, UnitFailed, WorkerLost
 
     assert _worker_died(None, None, Failed(data=WorkerLost("worker 1 died (killed by SIGKILL)")))
     assert not _worker_died(None, None, Failed(data=UnitFailed("lift-red shard 0 failed: OSError: disk full")))

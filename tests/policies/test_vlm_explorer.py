@@ -15,11 +15,11 @@ from PIL import Image
 from envs.navigation_env import ACTIONS
 from envs.observation import PROPRIO_DIM, Observation
 from envs.registry import action_bounds, make_env
+from envs.rollout import rollout
+from envs.suite import generate_tasks
 from policies.openai_chat import ChatUnavailable
 from policies.vlm_explorer import TooManyInvalidAnswers, VlmExplorer
 from schemas.config import RenderConfig, TasksConfig, VlmExplorerConfig
-from envs.rollout import rollout
-from stages.generate_tasks import generate_tasks
 from tests.chat_server import closed_port
 
 INSTRUCTION = "go to the red room"

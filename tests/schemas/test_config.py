@@ -2,10 +2,10 @@ import subprocess
 
 import pytest
 
+from envs.suite import generate_tasks
 from schemas.config import PRESETS, CampaignConfig, ConfigError, load_config
 from schemas.keys import derive_seed, unit_key
 from stages.explore import curriculum_subgoals
-from stages.generate_tasks import generate_tasks
 from tests.conftest import SIM2ACT
 
 
@@ -107,3 +107,33 @@ def test_each_split_gets_at_least_its_episodes_per_split():
     assert EvaluateConfig(episodes_per_task=3).episodes_per_case(7) == 3  # off: every case alike
     bounded = EvaluateConfig(episodes_per_task=3, episodes_per_split=45)
     assert [bounded.episodes_per_case(n) for n in (1, 3, 7, 15, 30)] == [45, 15, 7, 3, 3]
+
+
+def test_every_error_the_cli_turns_into_one_line_is_a_sim2act_error():
+    from dashboards.panels import PanelError
+    from envs.replay import ReplayError
+    from flows.run_lock import WorkspaceBusy
+    from flows.service import ServiceError
+    from schemas.errors import Sim2ActError
+    from warehouse.catalog import CatalogMissing, CatalogVersionError
+    from warehouse.export_lerobot import ExportError
+    from warehouse.shard_writer import DiskFull
+    from warehouse.sql import ReadOnlyViolation
+    from warehouse.training_reader import SelectionError
+
+    for error in (ConfigError, PanelError, ReplayError, WorkspaceBusy, ServiceError, CatalogMissing,
+                  CatalogVersionError, ExportError, DiskFull, ReadOnlyViolation, SelectionError):
+        assert issubclass(error, Sim2ActError), error
+
+
+def test_up_takes_one_flag_per_service_setting_and_refuses_a_bad_one_in_one_line(capsys, tmp_path):
+    from flows.cli import build_parser, main
+    from schemas.service import ServiceConfig
+
+    up = build_parser()._subparsers._group_actions[0].choices["up"]
+    flags = {option for action in up._actions for option in action.option_strings}
+    assert {f"--{name.replace('_', '-')}" for name in ServiceConfig.model_fields} <= flags
+    assert main(["up", "--prefect-port", "80", "--workspace", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("sim2act: config error:") and "prefect_port" in err[0]
+    assert not (tmp_path / "ws").exists()  # refused before anything was written

@@ -9,8 +9,8 @@ import schemas
 from schemas.config import TasksConfig
 from schemas.wordings import (HELD_OUT_COLOURS, HELD_OUT_NOUNS, HELD_OUT_PHRASES, TRAINING_LEXICON, held_out_wording,
                               training_variants)
+from envs.suite import generate_tasks, suite_tasks
 from stages.evaluate import evaluation_cases
-from stages.generate_tasks import generate_tasks, suite_tasks
 
 
 SPEC_TEXT = " ".join(p.read_text() for p in (Path(schemas.__file__).parent / "task_specs").glob("*.yaml"))

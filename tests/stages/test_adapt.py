@@ -6,16 +6,18 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dashboards.results import adaptation_markdown
+from envs.suite import generate_tasks
 from policies.policy import checkpoint_members
 from schemas.config import CampaignConfig
 from schemas.workspace import Workspace
 from stages.adapt import AdaptPoint, episodes_to_reach, run_adapt, target_campaign
-from stages.generate_tasks import generate_tasks, load_embeddings, tasks_unit_key
+from stages.generate_tasks import tasks_unit_key
 from stages.index import latest_index
-from stages.results import adaptation_markdown
 from stages.train import run_train
 from tests.stages.test_train import _iteration_zero_dataset
 from warehouse.catalog import Catalog
+from warehouse.tasks import load_embeddings
 from warehouse.training_reader import SelectionError
 
 CAMPAIGN = {

@@ -2,9 +2,9 @@
 
 import pytest
 
+from flows.model_eval import parse_registry_ref
 from schemas.config import ConfigError
 from stages.evaluate import TaskEvaluation, group_success, wilson_interval
-from stages.model_eval import parse_registry_ref
 
 
 @pytest.mark.parametrize(("successes", "episodes", "low", "high"), [

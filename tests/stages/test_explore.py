@@ -15,15 +15,15 @@ import torch
 
 from envs.navigation_env import ACTIONS, ROOM_SIZE
 from envs.observation import ACTION_DIM, PROPRIO_DIM
+from envs.rollout import worker_env
 from policies.model import ModelDims, VLAModel
 from policies.policy import Normaliser, Policy, policy_state
 from schemas.config import CampaignConfig, ExploreConfig, ModelConfig, TasksConfig, VlmExplorerConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
-from envs.rollout import worker_env
 from stages.explore import (CHAINED, EXPERT, STAGE, VERSION, PolicyExplorer, _explorer, curriculum_subgoals,
                             plan_explore, run_explore_unit)
-from stages.generate_tasks import generate_tasks
+from envs.suite import generate_tasks
 from tests.chat_server import closed_port
 from warehouse.shard_writer import read_shard
 

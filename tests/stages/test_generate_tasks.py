@@ -1,8 +1,8 @@
 import pytest
 
+from envs.suite import generate_tasks, subtask_instructions
 from schemas.config import ConfigError, TasksConfig
 from schemas.task_spec import load_specs, parse_spec_file
-from stages.generate_tasks import generate_tasks, subtask_instructions
 
 
 def test_the_suite_has_over_100_tasks_in_three_families_each_said_three_ways():

@@ -27,8 +27,9 @@ from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages.explore import run_explore
 from stages.filter import run_filter
-from stages.generate_tasks import load_embeddings, load_tasks, run_generate_tasks
+from stages.generate_tasks import run_generate_tasks
 from stages.index import IndexResult, latest_index, run_index
+from warehouse.tasks import load_embeddings, load_tasks
 from stages.train import (EXECUTION_FIELDS, STAGE, VERSION, TrainingCollate, action_targets, random_shift, run_train,
                           train_unit_key)
 from tests.conftest import SIM2ACT

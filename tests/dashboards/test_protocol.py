@@ -2,8 +2,8 @@
 
 import pytest
 
+from dashboards.protocol import protocol_success
 from stages.evaluate import TaskEvaluation, wilson_interval
-from stages.protocol import protocol_success
 
 
 def _case(task: str, split: str, successes: int, episodes: int = 10) -> TaskEvaluation:

@@ -21,6 +21,7 @@ from pydantic import ValidationError
 from envs.observation import MujocoState
 from envs.randomisation import Randomisation
 from schemas.config import RenderConfig
+from schemas.errors import Sim2ActError
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
@@ -28,7 +29,7 @@ from warehouse.video import CONTROL_FPS
 
 
 
-class ReplayError(ValueError):
+class ReplayError(Sim2ActError, ValueError):
     """A replay refused before anything is rendered; its message is one line."""
 
 
@@ -51,7 +52,7 @@ class ReplayResult:
 
 def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     """An episode's row, task, render settings and step states, read from the catalog (read-only)."""
-    from stages.generate_tasks import find_task
+    from warehouse.tasks import find_task
 
     rows = catalog.query(
         "SELECT campaign, task_id, seed, randomisation, render, error FROM episodes WHERE episode_id = ?", [episode_id]

@@ -7,10 +7,10 @@ import json
 
 import pytest
 
+from envs.suite import generate_tasks
+from policies.llm_proposer import ProposerUnavailable, chat, propose
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import load_specs
-from stages.generate_tasks import generate_tasks
-from stages.llm_proposer import ProposerUnavailable, chat, propose
 from tests.chat_server import closed_port
 
 ANSWER = {"tasks": [

@@ -1,10 +1,10 @@
 import pytest
 
+from bench.expert_table import markdown, measure_experts
+from envs import suite as suite_module
+from envs.suite import generate_tasks
 from schemas.config import ConfigError, RandomiseConfig, TasksConfig
 from schemas.experts import ExpertRow, ExpertTable, load_expert_table, save_expert_table
-from stages import generate_tasks as generate_module
-from stages.expert_table import markdown, measure_experts
-from stages.generate_tasks import generate_tasks
 
 
 def _row(task_id: str, successes: int, command: str = "sim2act tasks experts") -> ExpertRow:
@@ -35,7 +35,7 @@ def test_a_partial_run_replaces_only_its_rows_and_the_table_names_every_command(
 
 def test_campaigns_leave_out_tasks_whose_expert_is_below_target(monkeypatch):
     flagged = ExpertTable().merged([_row("lift-green", 6)])
-    monkeypatch.setattr(generate_module, "load_expert_table", lambda: flagged)
+    monkeypatch.setattr(suite_module, "load_expert_table", lambda: flagged)
     config = TasksConfig(specs=["lift"], colours=["red", "green", "blue"], max_tasks_per_spec=2)
     assert [t.task_id for t in generate_tasks(config, 0)] == ["lift-red", "lift-blue"]  # still two
     kept = config.model_copy(update={"weak_experts": "keep"})

@@ -11,14 +11,14 @@ from collections import Counter
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from envs.suite import bind_task, task_id_of
 from policies.openai_chat import ChatUnavailable as ProposerUnavailable
 from policies.openai_chat import complete
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import Colour, TaskRecord
-from stages.generate_tasks import bind_task, task_id_of
 
-log = logging.getLogger("sim2act.stages.llm_proposer")
+log = logging.getLogger("sim2act.policies.llm_proposer")
 
 
 class Proposal(BaseModel):

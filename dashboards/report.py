@@ -6,9 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
-from schemas.wordings import HELD_OUT_WORDING
-from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from schemas.tasks import CAMPAIGN_SUITE
+from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
 
 
@@ -63,7 +62,6 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
 
 
 # every split an evaluation can have, in the order tables show them
-SPLITS = ("seen", "unseen", UNSEEN_PARAPHRASE, HELD_OUT_WORDING)
 
 
 def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -> str:

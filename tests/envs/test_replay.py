@@ -5,14 +5,15 @@ import imageio.v2 as iio
 import numpy as np
 import pytest
 
+from envs.replay import load_episode, replay_frames, replay_render
+from envs.suite import generate_tasks
 from flows.cli import main
 from schemas.config import CampaignConfig
 from schemas.frames import decode_frame
 from schemas.workspace import Workspace
 from stages.explore import plan_explore, run_explore_unit
-from stages.generate_tasks import generate_tasks, task_rows
-from stages.replay import load_episode, replay_frames, replay_render
 from warehouse.catalog import Catalog
+from warehouse.tasks import task_rows
 
 STEPS = 8
 TASKS = {"robosuite": "lift-red", "navigation": "nav-ball-blue", "metaworld": "mw-reach"}
@@ -117,7 +118,7 @@ def test_a_bad_request_is_one_line_before_anything_is_rendered(workspace, tmp_pa
     def must_not_render(*_):
         raise AssertionError("rendered before every check passed")
 
-    monkeypatch.setattr("stages.replay.replay_frames", must_not_render)
+    monkeypatch.setattr("envs.replay.replay_frames", must_not_render)
     args = [a.format(**{family: _episode_id(workspace, family) for family in TASKS}) for a in args]
     out = tmp_path / "x.mp4"
     assert main(["replay", *args, "--workspace", str(workspace.root), "--out", str(out)]) == 2

@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 
 Unit = TypeVar("Unit")
 Result = TypeVar("Result")
-log = logging.getLogger("sim2act.stages.pool")
+log = logging.getLogger("sim2act.envs.pool")
 RETRIES = 2  # a unit whose worker died is run again this many times before the stage fails
 
 

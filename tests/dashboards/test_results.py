@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 
+from dashboards.results import spec_markdown
 from schemas.tasks import CAMPAIGN_SUITE
 from schemas.workspace import Workspace
 from stages.evaluate import wilson_interval
-from stages.results import spec_markdown
 from warehouse.catalog import Catalog
 
 CAMPAIGN = "specs"
@@ -85,7 +85,7 @@ def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10) -> No
 
 
 def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
-    from stages.results import protocol_markdown
+    from dashboards.results import protocol_markdown
 
     catalog = Catalog(Workspace.at(tmp_path).create().catalog)
     catalog.initialise()

@@ -3,7 +3,7 @@
 import pytest
 
 from schemas.tasks import TaskRecord
-from stages.priority import allocate, priority_scores
+from warehouse.priority import allocate, priority_scores
 
 
 def _task(task_id: str, family: str = "robosuite") -> TaskRecord:

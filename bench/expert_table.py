@@ -9,12 +9,12 @@ import datetime
 import numpy as np
 from pydantic import BaseModel
 
+from envs.pool import run_in_pool
+from envs.rollout import rollout, worker_env
 from schemas.config import RandomiseConfig
 from schemas.experts import TARGET, ExpertRow, ExpertTable
 from schemas.keys import derive_seed
 from schemas.tasks import TaskRecord
-from envs.rollout import rollout, worker_env
-from stages.pool import run_in_pool
 
 
 class ExpertCheck(BaseModel):

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from pydantic import BaseModel
 
-from stages.pool import UnitFailed, WorkerLost, WorkerPool, run_in_pool
+from envs.pool import UnitFailed, WorkerLost, WorkerPool, run_in_pool
 
 
 class Job(BaseModel):

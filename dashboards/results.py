@@ -10,12 +10,12 @@ import json
 import os
 import platform
 
+from dashboards.protocol import seed_groups
+from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
-from stages.evaluate import GroupSuccess, TaskEvaluation, group_success, read_evaluations
-from stages.protocol import seed_groups
-from stages.report import SPLITS, evaluations_by_iteration, success_by_iteration
+from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)

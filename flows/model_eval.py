@@ -14,16 +14,18 @@ import torch
 from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
 
+from envs.suite import generate_tasks
 from policies.model import ModelDims
 from schemas.config import CampaignConfig, ConfigError
-from schemas.wordings import HELD_OUT_WORDING
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
+from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import evaluation_cases
-from stages.generate_tasks import generate_tasks, load_tasks, tasks_unit_key
+from stages.generate_tasks import tasks_unit_key
 from stages.redeploy import MODEL_KEY_TAG, champion_explorer
 from stages.train import model_dims
 from warehouse.catalog import Catalog
+from warehouse.tasks import load_tasks
 
 _NAME, _ALIAS, _VERSION = re.compile(r"^[A-Za-z0-9_.-]+$"), re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$"), re.compile(r"^v?(\d+)$")
 

@@ -1,0 +1,41 @@
+"""`sim2act`: a thin front over the flows and the warehouse, one module per command group
+(campaign, stack, tasks, bench, data; common: what they share).
+
+argparse, not Typer: the commands are plain functions of a Namespace already, nested sub-commands
+and mutually exclusive options are argparse's own, and a bad flag stays one line of usage on stderr
+(exit 2) rather than a rich panel. Configs are validated before anything is imported or written:
+bad input costs one line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from flows.cli import bench, campaign, data, stack, tasks
+from schemas.errors import Sim2ActError
+
+GROUPS = (campaign, stack, tasks, bench, data)  # in the order `sim2act --help` lists their commands
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="sim2act", description=__doc__.splitlines()[0].replace("`", ""))
+    commands = parser.add_subparsers(dest="command", required=True)
+    for group in GROUPS:
+        group.register(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command. A known failure (any Sim2ActError) is one line on stderr and exit status 2."""
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    args.command_line = " ".join(["sim2act", *argv])  # reports say the command that made them
+    try:
+        return args.handler(args)
+    except Sim2ActError as exc:
+        print(f"sim2act: {exc.label}{exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("sim2act: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130

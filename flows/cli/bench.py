@@ -1,0 +1,88 @@
+"""Benchmarks: `sim2act bench envs | warehouse | rollout | train`, each side by side with its reference."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from flows.cli.common import Commands, print_or_write
+from schemas.config import ConfigError
+from schemas.tasks import FAMILIES
+from schemas.workspace import write_text_atomically
+
+
+def cmd_bench_envs(args: argparse.Namespace) -> int:
+    from bench.envs import bench_envs, markdown
+
+    if args.steps < 1:
+        raise ConfigError(f"bench envs: --steps must be at least 1, got {args.steps}")
+    rows = bench_envs(args.family or list(FAMILIES), args.steps)
+    table = markdown(rows, args.command_line)
+    print(table)
+    if args.out:
+        write_text_atomically(args.out, table)
+        print(f"written to {args.out}")
+    return 0
+
+
+def cmd_bench_warehouse(args: argparse.Namespace) -> int:
+    from bench.warehouse import QUICK, BenchSizes, bench_warehouse, markdown
+
+    sizes = QUICK if args.quick else BenchSizes()
+    if args.sql_steps:
+        if min(args.sql_steps) < 1:
+            raise ConfigError(f"bench warehouse: --sql-steps must be positive, got {args.sql_steps}")
+        sizes = sizes.model_copy(update={"sql_steps": args.sql_steps})
+    measures = bench_warehouse(sizes, args.scratch)
+    return print_or_write(args, json.dumps([m.model_dump() for m in measures], indent=1), markdown(measures, args.command_line))
+
+
+def cmd_bench_rollout(args: argparse.Namespace) -> int:
+    from bench.rollout import QUICK, RolloutSizes, bench_rollout, markdown
+
+    bench = bench_rollout(QUICK if args.quick else RolloutSizes(), args.scratch)
+    return print_or_write(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
+
+
+def cmd_bench_train(args: argparse.Namespace) -> int:
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")  # the fine-tuned encoder case loads MiniLM from disk
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    from bench.train import QUICK, TrainSizes, bench_train, markdown
+
+    sizes = QUICK if args.quick else TrainSizes()
+    if args.cases:
+        sizes = sizes.model_copy(update={"cases": args.cases.split(",")})
+    bench = bench_train(sizes, args.scratch)
+    return print_or_write(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
+
+
+def register(commands: Commands) -> None:
+    bench = commands.add_parser("bench", help="benchmarks: speed side by side, as ratios")
+    bench_commands = bench.add_subparsers(dest="bench_command", required=True)
+    bench_env = bench_commands.add_parser("envs", help="env steps/s per family: raw physics, env, adapter, render")
+    bench_env.add_argument("--steps", type=int, default=500, help="timed control steps per layer")
+    bench_env.add_argument("--family", choices=FAMILIES, action="append", help="default: every family")
+    bench_env.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_env.set_defaults(handler=cmd_bench_envs)
+
+    def bench_parser(name: str, help: str, quick: str, handler) -> argparse.ArgumentParser:
+        """A benchmark command with the options every side-by-side bench takes."""
+        command = bench_commands.add_parser(name, help=help)
+        command.add_argument("--json", action="store_true", help="print the figures as JSON")
+        command.add_argument("--quick", action="store_true", help=quick)
+        command.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
+        command.add_argument("--out", type=Path, help="also write the table as markdown here")
+        command.set_defaults(handler=handler)
+        return command
+
+    bench_parser("warehouse", "ingest, SQL and training-read speed vs bare references",
+                 "small sizes (seconds, for a smoke check)", cmd_bench_warehouse
+                 ).add_argument("--sql-steps", type=int, nargs="+", help="warehouse sizes for the SQL measure")
+    bench_parser("rollout", "explore stage vs plain robosuite loops, steps/s",
+                 "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout)
+    bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
+                 "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
+                 ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
+                                "stage, memory, precision (fp32 vs bf16, CPU), workers0, resnet18, vit, minilm, cuda, act")

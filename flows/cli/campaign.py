@@ -1,0 +1,202 @@
+"""Campaign commands: run a campaign, train or evaluate a model on it, report its results."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from flows.cli.common import (Commands, add_campaign_options, campaign_config, configure_environment,
+                              log_stages_to_stderr, open_catalog, same_campaign_flags)
+from flows.lifetime import watch
+from schemas.config import ConfigError
+from schemas.workspace import write_text_atomically
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    config = campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
+    from envs.suite import generate_tasks
+    from warehouse.training_reader import check_where
+
+    generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
+    check_where(config.train.where)
+    workspace, catalog = open_catalog(args)
+    configure_environment(workspace)
+    workspace.create()
+    watch()  # the temporary Prefect server and the workers end with this command, however it ends
+    print(
+        f"sim2act: campaign {config.name!r}, {config.iterations} iteration(s), workspace {workspace.root}",
+        flush=True,
+    )
+    from flows.bootstrap import bootstrap
+
+    bootstrap(config=config, workspace=str(workspace.root), continue_campaign=args.continue_campaign)
+    from dashboards.report import campaign_summary
+
+    same = same_campaign_flags(args)
+    print("\n" + campaign_summary(catalog, config.name, [
+        f"the results table (iterations, per spec, baselines):  sim2act report {same}",
+        f"dashboard (episodes, videos, SQL panels), MLflow UI:  sim2act up {same}",
+        f"the warehouse in SQL:  sim2act sql \"SELECT * FROM task_success\" --workspace {workspace.root}",
+        f"the champion on any split or task file:  sim2act eval --model champion {same}",
+    ]), flush=True)
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    config = campaign_config(args)
+    from envs.suite import generate_tasks
+    from flows.tracking import Tracking
+    from stages.generate_tasks import tasks_unit_key
+    from stages.index import latest_index
+    from stages.train import run_train
+    from warehouse.tasks import load_embeddings
+    from warehouse.training_reader import check_where
+
+    check_where(config.train.where)
+    workspace, catalog = open_catalog(args)
+    dataset = latest_index(workspace, config.name, args.iteration)
+    if dataset is None:
+        which = f"iteration {args.iteration}" if args.iteration is not None else "any iteration"
+        raise ConfigError(f"--iteration: campaign {config.name!r} has no dataset for {which} in {workspace.root} "
+                          "(run `sim2act run` with this config first)")
+    tasks_key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
+    if not catalog.is_registered(tasks_key):
+        raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
+    configure_environment(workspace)
+    log_stages_to_stderr()
+    watch()  # the loader workers end with this command, however it ends
+    tracking = Tracking(workspace, config)
+    run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
+    print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
+          f"({dataset.triplets:,} triplets), MLflow run {run_id}", flush=True)
+    result = run_train(
+        workspace, config, dataset.iteration, dataset, tasks_key,
+        load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
+        on_metrics=tracking.step_logger(run_id, "train."),
+    )
+    if result.skipped:
+        state = "already trained"
+    else:
+        tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
+        resumed = f"resumed at step {result.resumed_at_step}, " if result.resumed_at_step else ""
+        state = f"{resumed}final loss {result.history[-1]['loss']:.4f}"
+    print(f"model {result.model_key}: {state}; checkpoint {result.checkpoint}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes: at least 1, got {args.episodes}")
+    config = campaign_config(args, {} if args.episodes is None else {"evaluate": {"episodes_per_task": args.episodes}})
+    workspace, _ = open_catalog(args)
+    configure_environment(workspace)
+    log_stages_to_stderr()
+    from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+    from flows.tracking import Tracking
+    from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
+
+    suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
+    models = [resolve_model(workspace, config, ref) for ref in args.model]
+    for model in models:
+        check_model_fits(config, model)
+    embeddings = instruction_embeddings(workspace, config, cases)
+    watch()  # the rollout workers end with this command, however it ends
+    tracking = Tracking(workspace, config)
+    by_model = []
+    for model in models:
+        # the last weights are another agent than the registered (averaged) ones: their own evaluation units
+        model_key = evaluated_key(model.model_key, args.weights)
+        run_id = tracking.evaluation_run(model_key, suite, model.label)
+        print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}, "
+              f"{weights_of_checkpoint(model.checkpoint, args.weights)} weights) on {len(cases)} case(s) of {suite}, "
+              f"{'/'.join(map(str, sorted(set(episodes_per_split(config, cases).values()))))} episodes each; "
+              f"MLflow run {run_id}", flush=True)
+        evaluations, skipped = evaluate_model(workspace, config, model.iteration, model_key,
+                                              Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
+                                              cases, embeddings, suite)
+        if skipped < len(evaluations):
+            tracking.log_evaluation(run_id, evaluations)
+        tracking.finish(run_id)
+        _print_evaluations(evaluations)
+        by_model.append(evaluations)
+    if len(models) > 1:
+        from dashboards.protocol import protocol_success
+
+        print(f"\nover the {len(models)} models (training seeds): mean ± spread across them (each one's rate), "
+              "pooled episodes [Wilson 95%]")
+        for figure in protocol_success(by_model):
+            print(f"{figure.group:<24} {figure.describe()}")
+    return 0
+
+
+def weights_of_checkpoint(path: str, weights: str) -> str:
+    import torch
+
+    from policies.policy import weights_of
+
+    return weights_of(torch.load(path, map_location="cpu", weights_only=False), weights)
+
+
+def _print_evaluations(evaluations) -> None:
+    from stages.evaluate import group_success
+
+    def interval(low: float, high: float) -> str:
+        return f"[{low:4.0%}, {high:4.0%}]"
+
+    print(f"\n{'task':<34} {'split':<18} {'success':>9} {'':>5}  Wilson 95%    length  instruction")
+    for t in evaluations:
+        print(f"{t.task_id:<34} {t.split:<18} {t.successes:>4}/{t.episodes:<4} {t.success_rate:>5.0%}  "
+              f"{interval(t.ci_low, t.ci_high)}  {t.mean_length:6.1f}  {t.instruction}")
+    print()
+    for g in group_success(evaluations):
+        print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
+              f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    config = campaign_config(args)
+    from dashboards.results import results_markdown
+
+    _, catalog = open_catalog(args)
+    try:
+        text = results_markdown(catalog, config.name, args.command_line)
+    except ValueError as exc:
+        raise ConfigError(f"report: {exc}") from None
+    if args.out is None:
+        print(text, end="")
+        return 0
+    write_text_atomically(args.out, text)
+    print(f"sim2act: wrote {args.out}")
+    return 0
+
+
+def register(commands: Commands) -> None:
+    def campaign_command(name: str, help: str, handler) -> argparse.ArgumentParser:
+        command = add_campaign_options(commands.add_parser(name, help=help))
+        command.set_defaults(handler=handler)
+        return command
+
+    run = campaign_command("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run)
+    run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    run.add_argument("--continue", dest="continue_campaign", action="store_true",
+                     help="one iteration past the campaign's latest finished one (what the nightly deployment runs)")
+    campaign_command("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train
+                     ).add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
+
+    evaluate = campaign_command("eval", "evaluate any model on the campaign's tasks, one split, or a task file",
+                                cmd_eval)
+    evaluate.add_argument("--model", required=True, action="append", metavar="REF",
+                          help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...; "
+                               "repeat it for several trainings (seeds): each is evaluated, then the results "
+                               "protocol's mean, spread and pooled interval over them")
+    evaluate.add_argument("--weights", choices=("registered", "final"), default="registered",
+                          help="registered: the weights the training registers (its moving average, train.ema); "
+                               "final: its last weights")
+    which = evaluate.add_mutually_exclusive_group()
+    which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
+    which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
+                       help="only this split's cases (held_out_wording: seen tasks in words the generator never uses)")
+    evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
+
+    campaign_command("report", "the results table: success per iteration beside the baselines, dataset, compute",
+                     cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")

@@ -1,0 +1,113 @@
+"""What every `sim2act` command shares: the workspace option and its catalog, the campaign options
+(preset, config file, --set), the process environment, and how a report is printed or written."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from schemas.config import PRESETS, CampaignConfig, load_config, parse_settings
+from schemas.workspace import Workspace, write_text_atomically
+
+Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
+
+
+def default_workspace() -> str:
+    return os.environ.get("SIM2ACT_WORKSPACE", "workspace")
+
+
+def add_workspace_option(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    command.add_argument("--workspace", default=default_workspace(), help="default: $SIM2ACT_WORKSPACE or ./workspace")
+    return command
+
+
+def add_campaign_options(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """A command that reads a campaign config (preset, file, --set) and a workspace, as `run` does."""
+    command.add_argument("--preset", choices=PRESETS, default="default")
+    command.add_argument("--config", type=Path, help="YAML file whose fields override the preset's")
+    command.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                         help="override one config field, e.g. --set train.contrastive_weight=0 (repeatable)")
+    return add_workspace_option(command)
+
+
+def campaign_config(args: argparse.Namespace, overrides: dict | None = None) -> CampaignConfig:
+    """The campaign the options name, with a command's own `overrides` (nested dicts, over --set's),
+    validated: a bad field costs one line, before any work."""
+    settings = parse_settings(args.set)
+
+    def merge(into: dict, extra: dict) -> None:
+        for key, value in extra.items():
+            if isinstance(value, dict) and isinstance(into.get(key), dict):
+                merge(into[key], value)
+            else:
+                into[key] = value
+
+    merge(settings, overrides or {})
+    return load_config(args.preset, args.config, settings)
+
+
+def open_catalog(args: argparse.Namespace):
+    """The workspace the options name and its catalog, checked to be of this code's layout (one line
+    otherwise): every command that reads a warehouse opens it here."""
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(args.workspace)
+    catalog = Catalog(workspace.catalog)
+    catalog.check_version()
+    return workspace, catalog
+
+
+def same_campaign_flags(args: argparse.Namespace) -> str:
+    """The flags that name this campaign again, as the user gave them."""
+    flags = [f"--preset {args.preset}"] + ([f"--config {args.config}"] if args.config else [])
+    flags += [f"--set {setting}" for setting in args.set] + [f"--workspace {args.workspace}"]
+    return " ".join(flags)
+
+
+def configure_environment(workspace: Workspace) -> None:
+    """Embedded defaults: Prefect's ephemeral API with its home in the workspace, MLflow on SQLite
+    in the workspace, no telemetry, no hub downloads (the env modules choose the renderer)."""
+    defaults = {
+        "PREFECT_HOME": str(workspace.prefect_home),
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "DO_NOT_TRACK": "1",
+        "PREFECT_LOGGING_EXTRA_LOGGERS": "sim2act",
+        "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "90",
+        "MLFLOW_DISABLE_TELEMETRY": "true",
+        "MLFLOW_TRACKING_URI": workspace.tracking_uri,
+        "HF_HUB_OFFLINE": "1",
+        "TOKENIZERS_PARALLELISM": "false",
+        "PYTHONWARNINGS": "ignore::DeprecationWarning,ignore::FutureWarning",
+        "TRANSFORMERS_VERBOSITY": "error",
+        "HF_HUB_DISABLE_PROGRESS_BARS": "1",
+        "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR": "false",
+    }
+    for key, value in defaults.items():
+        os.environ.setdefault(key, value)
+    from flows.service import running_urls
+
+    # While `sim2act up` runs on this workspace, runs report to its servers and show in its UIs.
+    for key, value in running_urls(workspace).items():
+        os.environ.setdefault(key, value)
+
+
+def log_stages_to_stderr() -> None:
+    """Outside a flow (`sim2act train`, `eval`) no Prefect handler takes the stages' log lines, and
+    the progress bar is drawn only on a terminal: without this, a run piped to a file is silent."""
+    logger = logging.getLogger("sim2act")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+
+
+def print_or_write(args: argparse.Namespace, as_json: str, table: str) -> int:
+    """A bench's result: its table (or its JSON with --json) printed, the table written to --out."""
+    print(as_json if args.json else table)
+    if args.out:
+        write_text_atomically(args.out, table)
+    return 0

@@ -1,0 +1,97 @@
+"""The warehouse: `sim2act sql`, `export lerobot`, `replay`, `warehouse verify`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from flows.cli.common import Commands, add_workspace_option, open_catalog
+from schemas.config import ConfigError
+from schemas.workspace import Workspace
+from warehouse.video import CONTROL_FPS
+
+
+def cmd_sql(args: argparse.Namespace) -> int:
+    import duckdb
+
+    from warehouse.catalog import Catalog
+    from warehouse.sql import run_sql
+
+    if args.as_of_iteration is not None and args.as_of_iteration < 0:
+        raise ConfigError(f"sql: --as-of-iteration must be 0 or more, got {args.as_of_iteration}")
+    try:
+        print(run_sql(Catalog(Workspace.at(args.workspace).catalog), args.query, args.format, args.as_of_iteration))
+    except duckdb.Error as exc:
+        print(f"sim2act: SQL error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def cmd_export_lerobot(args: argparse.Namespace) -> int:
+    from warehouse.export_lerobot import export_lerobot
+
+    if args.fps < 1:
+        raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
+    _, catalog = open_catalog(args)
+
+    def report(done: int, total: int) -> None:
+        print(f"\r[{done}/{total}] episodes", end="" if done < total else "\n", flush=True)
+
+    summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
+                             repo_id=args.repo_id, progress=report)
+    print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
+          f"{summary.bytes / 1e6:.1f} MB: LeRobotDataset v3.0 at {summary.out_dir}")
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from envs.replay import replay
+
+    result = replay(Workspace.at(args.workspace), args.episode_id, args.camera, args.size, args.out, args.fps)
+    print(f"{result.frames} frames of {args.episode_id} ({result.render.camera}, {result.render.image_size} px, "
+          f"one per step) written to {result.path}")
+    return 0
+
+
+def cmd_warehouse_verify(args: argparse.Namespace) -> int:
+    _, catalog = open_catalog(args)
+    bad = catalog.verify(full=args.full)
+    for path, reason in bad:
+        print(f"quarantined {path}: {reason}")
+    [(shards,)] = catalog.query("SELECT count(*) FROM shards")
+    print(f"{shards} registered shard(s) verified{' (sha256 too)' if args.full else ''}, {len(bad)} quarantined "
+          f"to {catalog.quarantine_folder}; the next `sim2act run` redoes their units")
+    return 1 if bad else 0
+
+
+def register(commands: Commands) -> None:
+    sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
+    sql.add_argument("query")
+    sql.add_argument("--format", choices=("table", "csv", "json"), default="table")
+    sql.add_argument("--as-of-iteration", type=int, metavar="K", help="see the warehouse as it was after iteration K")
+    add_workspace_option(sql).set_defaults(handler=cmd_sql)
+
+    export = commands.add_parser("export", help="write a warehouse selection in another project's format")
+    export_commands = export.add_subparsers(dest="export_command", required=True)
+    lerobot = export_commands.add_parser("lerobot", help="a LeRobotDataset v3.0 (Parquet + MP4), kept episodes")
+    lerobot.add_argument("out_dir", type=Path, help="a new or empty folder")
+    lerobot.add_argument("--where", help="SQL over the steps columns; whole episodes with a matching step go out")
+    lerobot.add_argument("--include-rejected", action="store_true", help="also episodes the filter rejected")
+    lerobot.add_argument("--fps", type=int, default=CONTROL_FPS, help="control rate of the episodes (robosuite: 20)")
+    lerobot.add_argument("--repo-id", default="sim2act/export")
+    add_workspace_option(lerobot).set_defaults(handler=cmd_export_lerobot)
+
+    replay = commands.add_parser("replay", help="re-render a stored episode from its MuJoCo states into an MP4")
+    replay.add_argument("episode_id")
+    replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
+    replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
+    replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
+    replay.add_argument("--fps", type=int, default=None, help=f"frames per second (one frame per step; default {CONTROL_FPS})")
+    add_workspace_option(replay).set_defaults(handler=cmd_replay)
+
+    warehouse = commands.add_parser("warehouse", help="warehouse upkeep")
+    warehouse_commands = warehouse.add_subparsers(dest="warehouse_command", required=True)
+    verify = warehouse_commands.add_parser("verify", help="check every registered shard, quarantine bad ones")
+    verify.add_argument("--full", action="store_true", help="also compare each file's sha256 with the catalog's")
+    add_workspace_option(verify).set_defaults(handler=cmd_warehouse_verify)
