@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel
 
+from bench.tables import table
 from envs.pool import run_in_pool
 from schemas.config import RenderConfig, TasksConfig
 
@@ -99,9 +100,8 @@ def markdown(rows: list[BenchRow], command: str) -> str:
         f"Made by `{command}` on {datetime.date.today().isoformat()}: one process, one core per family, "
         "random actions, resets off the clock. A step is one control step (one action).",
         "",
-        "| family | env | layer | steps/s | × raw |",
-        "|---|---|---|---|---|",
+        *table(["family", "env", "layer", "steps/s", "× raw"],
+               [[r.family, r.env, r.layer, f"{r.steps_per_s:,.0f}", f"{r.relative_to_raw:.3f}"] for r in rows]),
     ]
-    lines += [f"| {r.family} | {r.env} | {r.layer} | {r.steps_per_s:,.0f} | {r.relative_to_raw:.3f} |" for r in rows]
     return "\n".join(lines) + "\n"
 

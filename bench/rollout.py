@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
+from bench.tables import Ratio, ratio_table, table
 from envs.pool import run_in_pool
 from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, TasksConfig
 from schemas.tasks import TaskRecord
@@ -71,13 +72,6 @@ class RolloutRow(BaseModel):
     steps_per_s_per_core: float  # steps/s over the worker processes (one core each)
     other_load: float  # cores other processes of the machine kept busy meanwhile: above ~0.1 the figures suffer
     note: str = ""
-
-
-class Ratio(BaseModel):
-    name: str
-    value: float
-    target: float | None = None
-    met: bool | None = None
 
 
 class RolloutBench(BaseModel):
@@ -195,7 +189,7 @@ def run_stage(task: TaskRecord, sizes: RolloutSizes, workers: int, root: Path) -
 
 
 def _ratio(name: str, value: float, target: float | None = None) -> Ratio:
-    return Ratio(name=name, value=value, target=target, met=None if target is None else value >= target)
+    return Ratio.of(name, value, target)
 
 
 def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBench:
@@ -204,6 +198,8 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
 
     task = next(t for t in generate_tasks(_tasks_config(sizes), seed=0) if t.split == "seen")
     config = _config(sizes, workers=1)
+    if scratch is not None:  # --scratch names a folder to use: made if missing, like a workspace
+        Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
     try:
         # the episodes the stage explores, by seed: the loops run the same ones
@@ -246,19 +242,10 @@ def markdown(bench: RolloutBench, command: str) -> str:
         "Cores busy = our CPU time / wall time; other load = cores the machine's other processes kept busy "
         "meanwhile (above ~0.1, the figures are slowed by them).",
         "",
-        "| case | what | steps | episodes (succeeded) | wall s | steps/s | steps/s per core | cores busy | other load "
-        "| notes |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        *table(["case", "what", "steps", "episodes (succeeded)", "wall s", "steps/s", "steps/s per core", "cores busy",
+                "other load", "notes"], [
+            [r.case, r.name, f"{r.steps:,}", f"{r.episodes} ({r.successes})", f"{r.wall_s:.1f}", f"{r.steps_per_s:.1f}",
+             f"{r.steps_per_s_per_core:.1f}", f"{r.cpu_s / r.wall_s:.2f}", f"{r.other_load:.2f}", r.note]
+            for r in bench.rows]),
     ]
-    lines += [
-        f"| {r.case} | {r.name} | {r.steps:,} | {r.episodes} ({r.successes}) | {r.wall_s:.1f} | {r.steps_per_s:.1f} | "
-        f"{r.steps_per_s_per_core:.1f} | {r.cpu_s / r.wall_s:.2f} | {r.other_load:.2f} | {r.note} |"
-        for r in bench.rows
-    ]
-    lines += ["", "| ratio | value | target | met |", "|---|---|---|---|"]
-    lines += [
-        f"| {r.name} | {r.value:.2f} | {'' if r.target is None else f'>= {r.target}'} | "
-        f"{'' if r.met is None else '✓' if r.met else '✗'} |"
-        for r in bench.ratios
-    ]
-    return "\n".join(lines) + "\n"
+    return "\n".join([*lines, "", *ratio_table(bench.ratios)]) + "\n"

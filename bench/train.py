@@ -35,6 +35,7 @@ from pydantic import BaseModel
 
 from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
+from bench.tables import Ratio, ratio_table, table
 from envs.observation import PROPRIO_DIM, Observation
 from policies.policy import Policy
 from policies.precision import cpu_has_bf16_units
@@ -90,15 +91,6 @@ class TrainRow(BaseModel):
     wall_s: float | None = None
     other_load: float | None = None  # cores the machine's other processes kept busy meanwhile
     note: str = ""
-
-
-class Ratio(BaseModel):
-    name: str
-    value: float
-    unit: str = "x"  # x (a ratio), % (a fraction, shown as a percentage) or ms
-    target: float | None = None
-    at_most: bool = False  # the target is an upper bound
-    met: bool | None = None
 
 
 class TrainBench(BaseModel):
@@ -302,8 +294,7 @@ def _gpu() -> str:
 
 
 def _ratio(name: str, value: float, unit: str = "x", target: float | None = None, at_most: bool = False) -> Ratio:
-    met = None if target is None else (value <= target if at_most else value >= target)
-    return Ratio(name=name, value=value, unit=unit, target=target, at_most=at_most, met=met)
+    return Ratio.of(name, value, target, unit, at_most)
 
 
 def _weights_missing(encoder: str) -> str | None:
@@ -324,6 +315,8 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
     cpus, torch_threads = os.cpu_count() or 1, torch.get_num_threads()
     image_size = CampaignConfig().render.image_size
     wanted = set(sizes.cases) | {"stage"}
+    if scratch is not None:  # --scratch names a folder to use: made if missing, like a workspace
+        Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
     try:
         source = Workspace.at(root / "warehouse").create()
@@ -405,10 +398,6 @@ def _figure(value: float | None, digits: int = 0) -> str:
     return "" if value is None else f"{value:,.{digits}f}"
 
 
-def _value(ratio: Ratio, value: float) -> str:
-    return f"{value:.1%}" if ratio.unit == "%" else f"{value:.1f} ms" if ratio.unit == "ms" else f"{value:.2f}"
-
-
 def markdown(bench: TrainBench, command: str) -> str:
     lines = [
         "# Training benchmark: the train stage vs in-memory batches, and the policy's latency",
@@ -423,22 +412,12 @@ def markdown(bench: TrainBench, command: str) -> str:
         "on one frame, cached instruction embedding. Other load = cores the machine's other processes kept busy "
         "meanwhile (above ~0.1, the figures are slowed by them).",
         "",
-        "| case | what | device | batch | loader workers | steps | samples/s | data wait | threads | p50 ms | p95 ms "
-        "| wall s | other load | notes |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        *table(["case", "what", "device", "batch", "loader workers", "steps", "samples/s", "data wait", "threads",
+                "p50 ms", "p95 ms", "wall s", "other load", "notes"], [
+            [r.case, r.name, r.device, _figure(r.batch_size), _figure(r.loader_workers), _figure(r.steps),
+             _figure(r.samples_per_s), None if r.data_wait is None else f"{r.data_wait:.1%}", _figure(r.threads),
+             _figure(r.p50_ms, 2), _figure(r.p95_ms, 2), _figure(r.wall_s, 2 if (r.wall_s or 0) < 1 else 1),
+             _figure(r.other_load, 2), r.note]
+            for r in bench.rows]),
     ]
-    lines += [
-        f"| {r.case} | {r.name} | {r.device or ''} | {_figure(r.batch_size)} | {_figure(r.loader_workers)} | "
-        f"{_figure(r.steps)} | {_figure(r.samples_per_s)} | "
-        f"{'' if r.data_wait is None else f'{r.data_wait:.1%}'} | {_figure(r.threads)} | {_figure(r.p50_ms, 2)} | "
-        f"{_figure(r.p95_ms, 2)} | {_figure(r.wall_s, 2 if (r.wall_s or 0) < 1 else 1)} | {_figure(r.other_load, 2)} | {r.note} |"
-        for r in bench.rows
-    ]
-    lines += ["", "| ratio | value | target | met |", "|---|---|---|---|"]
-    lines += [
-        f"| {r.name} | {_value(r, r.value)} | "
-        f"{'' if r.target is None else ('<= ' if r.at_most else '>= ') + _value(r, r.target)} | "
-        f"{'' if r.met is None else '✓' if r.met else '✗'} |"
-        for r in bench.ratios
-    ]
-    return "\n".join(lines) + "\n"
+    return "\n".join([*lines, "", *ratio_table(bench.ratios)]) + "\n"

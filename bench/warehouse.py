@@ -25,6 +25,7 @@ import pyarrow.parquet as pq
 from pydantic import BaseModel
 
 from bench.synthetic import TASKS, explore_unit, register_explore_unit
+from bench.tables import table as markdown_table
 from schemas.tables import STEPS
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
@@ -222,6 +223,8 @@ def _rss_mb() -> float:
 
 
 def bench_warehouse(sizes: BenchSizes, scratch: Path | None = None) -> list[Measure]:
+    if scratch is not None:  # --scratch names a folder to use: made if missing, like a workspace
+        Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
     try:  # reads first: their workers fork this process, which the SQL measure's tables would swell
         reads = bench_reads(root, sizes)
@@ -244,12 +247,8 @@ def markdown(measures: list[Measure], command: str) -> str:
         "of its repeats; the reference is measured in the same run. Ratio = ours / reference in speed terms "
         "(above 1: faster than the reference).",
         "",
-        "| measure | ours | reference | ratio | target | notes |",
-        "|---|---|---|---|---|---|",
+        *markdown_table(["measure", "ours", "reference", "ratio", "target", "notes"], [
+            [m.name, f"{_figure(m.value, m.unit)} {m.unit}", _figure(m.reference, m.unit),
+             None if m.ratio is None else f"{m.ratio:.2f}", m.target or "", m.note] for m in measures]),
     ]
-    for m in measures:
-        lines.append(
-            f"| {m.name} | {_figure(m.value, m.unit)} {m.unit} | {_figure(m.reference, m.unit)} | "
-            f"{'' if m.ratio is None else f'{m.ratio:.2f}'} | {m.target or ''} | {m.note} |"
-        )
     return "\n".join(lines) + "\n"

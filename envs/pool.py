@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any, TypeVar
 
+from schemas.retry import retrying
+
 Unit = TypeVar("Unit")
 Result = TypeVar("Result")
 log = logging.getLogger("sim2act.envs.pool")
@@ -237,12 +239,8 @@ def run_with_retries(
     pool: WorkerPool, work: Callable[[Unit], Result], unit: Unit, label: str = "", retries: int = RETRIES
 ) -> tuple[Result, float]:
     """Run `unit`, again on a fresh worker if its worker died; a unit that raises is not retried."""
-    for attempt in range(retries):
-        try:
-            return pool.run(work, unit, label)
-        except WorkerLost as lost:
-            log.warning("%s; retrying it (%d/%d)", lost, attempt + 1, retries)
-    return pool.run(work, unit, label)
+    again = retrying(lambda error: isinstance(error, WorkerLost), attempts=retries + 1, log=log, what=label or "a unit")
+    return again(pool.run, work, unit, label)
 
 
 def run_in_pool(

@@ -1,10 +1,11 @@
 """How a training step computes on its device: bf16 autocast where the hardware has bf16 matrix units,
 channels_last on CPU. Numbers behind the choices are in docs/bench-train.md.
 
-- bf16 on CPU pays only with native bf16 units (AMX tiles, or AVX-512 BF16): there a conv-trunk step
-  ran ~2.5x faster. Without them oneDNN emulates bf16 and the same step is ~15x *slower* (an AVX2-only
-  AMD EPYC: 533 -> 34 samples/s on the default model), so `train.amp` asks for bf16 and gets it only
-  where it helps.
+- bf16 on CPU pays only with AMX (bf16 matrix tiles): there a conv-trunk step ran ~2.5x faster. With
+  AVX-512 BF16 alone (dot-product instructions, no tiles: an Intel Xeon) the default model ran 0.94x
+  fp32's speed (743 vs 794 samples/s, both channels_last); with neither, oneDNN emulates bf16 and the
+  step is ~10x *slower* (an AVX2-only AMD EPYC: 631 -> 65 samples/s). So `train.amp` asks for bf16 and
+  gets it only where it helps: AMX on CPU.
 - channels_last (NHWC) lets oneDNN pick its blocked convolution kernels without reordering every
   activation: 1.2-1.4x on the default model in fp32 on that same CPU; the conv trunk is ~60% of a step.
 """
@@ -18,8 +19,9 @@ from torch import nn
 
 
 def cpu_has_bf16_units() -> bool:
-    """Whether this CPU computes bf16 matrix products natively (AMX tiles or AVX-512 BF16)."""
-    return bool(torch.cpu._is_amx_tile_supported() or torch.cpu._is_avx512_bf16_supported())
+    """Whether this CPU multiplies bf16 matrices in hardware tiles (AMX), where bf16 pays; AVX-512 BF16
+    alone did not (module docstring)."""
+    return bool(torch.cpu._is_amx_tile_supported())
 
 
 def uses_bf16(device: torch.device, amp: bool) -> bool:
@@ -51,7 +53,7 @@ def image_layout(image: torch.Tensor, device: torch.device, channels_last: bool 
 def describe(device: torch.device, amp: bool) -> str:
     """For the training's log line: what the step computes in, and why."""
     if uses_bf16(device, amp):
-        units = "" if device.type == "cuda" else " (CPU bf16 units)"
+        units = "" if device.type == "cuda" else " (CPU bf16 units: AMX)"
         return f"bf16 autocast{units}" + (", channels_last" if uses_channels_last(device) else "")
-    why = "" if not amp or device.type != "cpu" else " (this CPU has no bf16 units: emulated bf16 is slower)"
+    why = "" if not amp or device.type != "cpu" else " (this CPU has no bf16 units (AMX): bf16 is slower here)"
     return "fp32" + (", channels_last" if uses_channels_last(device) else "") + why

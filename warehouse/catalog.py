@@ -11,7 +11,6 @@ from __future__ import annotations
 import itertools
 import json
 import shutil
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -22,6 +21,7 @@ import duckdb
 import pyarrow as pa
 
 from schemas.errors import Sim2ActError
+from schemas.retry import retrying
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
 from schemas.version import SCHEMA_VERSION
 from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, sha256_of
@@ -37,8 +37,8 @@ class CatalogVersionError(Sim2ActError, RuntimeError):
     """The warehouse was written by another layout version; nothing is touched."""
 
 
-def _is_lock_error(exc: Exception) -> bool:
-    return "lock" in str(exc).lower()
+def _is_lock_error(exc: BaseException) -> bool:
+    return isinstance(exc, duckdb.IOException) and "lock" in str(exc).lower()
 
 
 def check_rows(table: str, rows: Sequence[Mapping[str, Any]]) -> pa.Table:
@@ -83,15 +83,9 @@ class Catalog:
         """
         if read_only and not self.path.exists():
             raise CatalogMissing(f"no warehouse catalog at {self.path} (run `sim2act run` first)")
-        deadline = time.monotonic() + LOCK_WAIT_S
-        while True:
-            try:
-                con = duckdb.connect(str(self.path), read_only=read_only)
-                break
-            except duckdb.IOException as exc:
-                if not _is_lock_error(exc) or time.monotonic() > deadline:
-                    raise
-                time.sleep(0.05)
+        # another process holds DuckDB's write lock for a moment: wait for it, a while at most
+        con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
+            duckdb.connect, str(self.path), read_only=read_only)
         try:
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)

@@ -18,7 +18,16 @@ def test_amp_on_cpu_means_bf16_only_with_bf16_units(monkeypatch, units):
     assert precision.uses_bf16(CPU, True) is units and precision.uses_bf16(CPU, False) is False
     assert precision.uses_bf16(CUDA, True) is True  # every GPU it trains on has bf16 (Ampere on)
     described = precision.describe(CPU, True)
-    assert described.startswith("bf16 autocast (CPU bf16 units)" if units else "fp32, channels_last (this CPU has no")
+    assert described.startswith("bf16 autocast (CPU bf16 units: AMX)" if units else "fp32, channels_last (this CPU has no")
+
+
+def test_bf16_units_on_cpu_means_amx_tiles(monkeypatch):
+    # AVX-512 BF16 without AMX trained the default model slower in bf16 than in fp32 (docs/bench-train.md)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    assert precision.cpu_has_bf16_units() is False
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True)
+    assert precision.cpu_has_bf16_units() is True
 
 
 def test_on_cpu_the_model_and_its_frames_are_channels_last():
