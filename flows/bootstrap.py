@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import get_args
 
 from prefect import flow, task
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
@@ -20,6 +21,7 @@ from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.run_lock import exclusive_run
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
+from schemas.tasks import Split
 from schemas.workspace import Workspace
 from stages.adapt import AdaptResult, run_adapt
 from stages.baselines import BaselinesResult, run_baselines
@@ -181,7 +183,7 @@ def iteration_flow(
                            deployment, run_id),
         evaluation, tracking.experiment_id, run_id,
     )
-    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split in ("seen", "unseen")}  # canonical wording
+    success = {t.task_id: t.success_rate for t in evaluation.tasks if t.split in get_args(Split)}  # canonical wording
     stages_run = sum(result.did_work() for result in (tasks, explore, filtered, index, model, evaluation, deployment))
     return IterationOutcome(
         iteration=iteration, tasks_key=tasks.unit_key, dataset=index, model_key=model.model_key,

@@ -395,11 +395,11 @@ class ConfigError(Sim2ActError, ValueError):
     label = "config error: "
 
 
-def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
     merged = dict(base)
     for key, value in override.items():
         if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = _deep_merge(merged[key], value)
+            merged[key] = deep_merge(merged[key], value)
         else:
             merged[key] = value
     return merged
@@ -458,8 +458,8 @@ def load_config(
     if config_file is not None:
         if not config_file.is_file():
             raise ConfigError(f"--config: no such file {config_file}")
-        data = _deep_merge(data, _read_yaml(config_file.read_text(), str(config_file)))
-    data = _deep_merge(data, overrides or {})
+        data = deep_merge(data, _read_yaml(config_file.read_text(), str(config_file)))
+    data = deep_merge(data, overrides or {})
     try:
         return CampaignConfig.model_validate(data)
     except ValidationError as exc:

@@ -7,8 +7,8 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
-from tenacity import (Retrying, RetryCallState, retry_if_exception, stop_after_attempt, stop_after_delay, stop_never,
-                      wait_exponential, wait_fixed)
+from tenacity import (Retrying, RetryCallState, retry_if_exception, stop_after_attempt, stop_after_delay, stop_any,
+                      stop_never, wait_exponential, wait_fixed)
 
 
 def retrying(
@@ -25,11 +25,8 @@ def retrying(
     retries while `when(error)` holds, up to `attempts` tries in all and/or for `within_s` seconds,
     waiting `wait_s` (doubling up to `backoff_max_s` when set) between tries; then the last error is
     raised as it was. `log`: a warning before each new try, naming `what`."""
-    stop = stop_never
-    if attempts is not None:
-        stop = stop_after_attempt(attempts)
-    if within_s is not None:
-        stop = stop | stop_after_delay(within_s) if attempts is not None else stop_after_delay(within_s)
+    stops = [*([stop_after_attempt(attempts)] if attempts is not None else []),
+             *([stop_after_delay(within_s)] if within_s is not None else [])]
     wait = wait_exponential(multiplier=wait_s, max=backoff_max_s) if backoff_max_s is not None else wait_fixed(wait_s)
 
     def warn(state: RetryCallState) -> None:
@@ -38,4 +35,5 @@ def retrying(
             log.warning("%s: %s; trying again (%d/%s)", what, error, state.attempt_number,
                         attempts - 1 if attempts is not None else "until it succeeds")
 
-    return Retrying(retry=retry_if_exception(when), stop=stop, wait=wait, before_sleep=warn, reraise=True)
+    return Retrying(retry=retry_if_exception(when), stop=stop_any(*stops) if stops else stop_never, wait=wait,
+                    before_sleep=warn, reraise=True)

@@ -4,6 +4,7 @@ every earlier iteration's, and fixes the training selection and its digest."""
 from __future__ import annotations
 
 import logging
+import time
 
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
@@ -76,17 +77,15 @@ def run_index(
     if existing:
         digest, episodes, kept, triplets = existing[0]
         skipped = True
-    else:
-        def work() -> UnitOutput:
-            selection = Selection(tuple(explore_units), tuple(filter_units))
-            digest, counts = selection.digest(catalog), selection.counts(catalog)
-            row = {"unit_key": key, "campaign": config.name, "iteration": iteration, "dataset_digest": digest,
-                   "explore_units": explore_units, "filter_units": filter_units, **counts}
-            return UnitOutput({"dataset_digest": digest, **counts}, rows={"iterations": [row]})
-
-        summary = StageUnits(catalog, STAGE, config.name, iteration).run(key, work).summary
-        digest = summary["dataset_digest"]
-        episodes, kept, triplets = summary["episodes"], summary["kept_episodes"], summary["triplets"]
+    else:  # the query above was the registration check: register without a second one
+        started = time.monotonic()
+        selection = Selection(tuple(explore_units), tuple(filter_units))
+        digest, counts = selection.digest(catalog), selection.counts(catalog)
+        episodes, kept, triplets = counts["episodes"], counts["kept_episodes"], counts["triplets"]
+        row = {"unit_key": key, "campaign": config.name, "iteration": iteration, "dataset_digest": digest,
+               "explore_units": explore_units, "filter_units": filter_units, **counts}
+        StageUnits(catalog, STAGE, config.name, iteration).register(
+            key, UnitOutput({"dataset_digest": digest, **counts}, rows={"iterations": [row]}), time.monotonic() - started)
         skipped = False
     log.info(
         "index it%d: dataset %s: %d triplets from %d kept of %d episodes (iterations 0..%d)%s",

@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 
-from schemas.config import PRESETS, CampaignConfig, load_config, parse_settings
+from schemas.config import PRESETS, CampaignConfig, deep_merge, load_config, parse_settings
 from schemas.workspace import Workspace, write_text_atomically
 
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
@@ -36,17 +36,7 @@ def add_campaign_options(command: argparse.ArgumentParser) -> argparse.ArgumentP
 def campaign_config(args: argparse.Namespace, overrides: dict | None = None) -> CampaignConfig:
     """The campaign the options name, with a command's own `overrides` (nested dicts, over --set's),
     validated: a bad field costs one line, before any work."""
-    settings = parse_settings(args.set)
-
-    def merge(into: dict, extra: dict) -> None:
-        for key, value in extra.items():
-            if isinstance(value, dict) and isinstance(into.get(key), dict):
-                merge(into[key], value)
-            else:
-                into[key] = value
-
-    merge(settings, overrides or {})
-    return load_config(args.preset, args.config, settings)
+    return load_config(args.preset, args.config, deep_merge(parse_settings(args.set), overrides or {}))
 
 
 def open_catalog(args: argparse.Namespace):

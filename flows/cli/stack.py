@@ -4,7 +4,6 @@ from ServiceConfig's fields, so a setting added there is a flag here, with its d
 from __future__ import annotations
 
 import argparse
-import typing
 
 from pydantic import ValidationError
 
@@ -18,7 +17,7 @@ from schemas.workspace import Workspace
 def add_service_options(command: argparse.ArgumentParser) -> None:
     """One flag per ServiceConfig field (--prefect-port, ..., --timezone); unset flags keep the model's defaults."""
     for name, field in ServiceConfig.model_fields.items():
-        kind = int if typing.get_origin(field.annotation) is None and field.annotation in (int, "int") else str
+        kind = int if field.annotation is int else str
         help = f"{field.description} (default {field.default!r})" if field.description else f"default {field.default!r}"
         command.add_argument(f"--{name.replace('_', '-')}", type=kind, help=help)
 
