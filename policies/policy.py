@@ -12,7 +12,7 @@ import torch
 
 from envs.observation import DISCRETE_FAMILIES, Observation
 from policies.model import ModelDims, VLAModel, pixels, uncertainty
-from schemas.config import ModelConfig
+from schemas.config import MODEL_LEGACY_VALUES, ModelConfig
 
 if TYPE_CHECKING:
     from policies.chunking import EpisodeActor
@@ -115,7 +115,9 @@ class Policy:
         instruction without one is encoded on first use. `weights`: `registered` (the moving average
         where training kept one) or `final` (checkpoint_members)."""
         state = torch.load(path, map_location="cpu", weights_only=False)
-        config, dims = ModelConfig(**state["model_config"]), ModelDims(**state["dims"])
+        # a checkpoint from before a model field existed was trained as that field's legacy value
+        config = ModelConfig(**{**MODEL_LEGACY_VALUES, **state["model_config"]})
+        dims = ModelDims(**state["dims"])
         members = []
         for member in checkpoint_members(state, weights):
             model = VLAModel(config, dims)

@@ -26,7 +26,7 @@ from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, pixels, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
 from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
-from schemas.config import CampaignConfig, TrainConfig
+from schemas.config import MODEL_LEGACY_VALUES, CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.wordings import training_variants
 from schemas.workspace import Workspace
@@ -43,7 +43,7 @@ EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
 LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 0, "ema": None, "language_augment": 0.0,
-                 "model": {"chunk": 1, "execution": "temporal_ensemble", "execute_steps": None, "ensemble_decay": 0.01}}
+                 "model": MODEL_LEGACY_VALUES}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps

@@ -75,12 +75,18 @@ class Catalog:
         return self.warehouse / "quarantine"
 
     @contextmanager
-    def connect(self, read_only: bool = False, as_of_iteration: int | None = None) -> Iterator[duckdb.DuckDBPyConnection]:
+    def connect(self, read_only: bool = False, as_of_iteration: int | None = None,
+                confined: bool = False) -> Iterator[duckdb.DuckDBPyConnection]:
         """Open briefly and close: DuckDB lets one process write, so nobody holds it for long.
 
         With `as_of_iteration=K` the connection sees the warehouse as it was after iteration K:
         temporary views shadow every table and shard view, cut at iteration <= K.
+        `confined` (read-only connections that run someone's SQL: `sim2act sql`, the dashboard): the
+        connection reads files in the warehouse folder and nowhere else, no ATTACH, no extension, and
+        its configuration is locked, so a query cannot read `/etc/passwd` or undo the confinement.
         """
+        if confined and not read_only:
+            raise ValueError("a confined connection is a read-only one")
         if read_only and not self.path.exists():
             raise CatalogMissing(f"no warehouse catalog at {self.path} (run `sim2act run` first)")
         # another process holds DuckDB's write lock for a moment: wait for it, a while at most
@@ -91,6 +97,8 @@ class Catalog:
                 self._snapshot_views(con, as_of_iteration)
             elif not self._in_place and self._moved(con):
                 self._follow_move(con, read_only)
+            if confined:
+                self._confine(con)
             yield con
         finally:
             con.close()
@@ -244,6 +252,12 @@ class Catalog:
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
         self._in_place = True
 
+    def _confine(self, con: duckdb.DuckDBPyConnection) -> None:
+        """After the views exist (they name the shard files): the warehouse folder only, then lock."""
+        con.execute("SET allowed_directories = ?", [[self.warehouse.resolve().as_posix() + "/"]])
+        con.execute("SET enable_external_access = false")
+        con.execute("SET lock_configuration = true")
+
     def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.
         (The ready-made views name these views, so they need no refresh.)"""
@@ -343,8 +357,9 @@ class Catalog:
         with self.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
             return con.execute(sql, list(params)).fetchall()
 
-    def query_arrow(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None) -> pa.Table:
-        with self.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
+    def query_arrow(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None,
+                    confined: bool = False) -> pa.Table:
+        with self.connect(read_only=True, as_of_iteration=as_of_iteration, confined=confined) as con:
             return con.execute(sql, list(params)).to_arrow_table()
 
     def shard_paths(self, table: str, where: str = "TRUE", params: Sequence[Any] = ()) -> list[tuple[Path, str]]:

@@ -64,14 +64,14 @@ def format_rows(table: pa.Table, fmt: OutputFormat) -> str:
 
 
 def query_with_quarantine(catalog: Catalog, sql: str, as_of_iteration: int | None = None) -> pa.Table:
-    """Run a read-only query; when it fails on a registered shard that turns out corrupt, the
+    """Run a read-only query on a connection confined to the warehouse's files; when it fails on a registered shard that turns out corrupt, the
     shard is quarantined (reported in the log) and the query runs again without it. The check
     includes its sha256: bytes changed inside a data page leave a whole Parquet footer, and only
     the query reading that page trips over them."""
     check_read_only(sql)
     while True:
         try:
-            return catalog.query_arrow(sql, as_of_iteration=as_of_iteration)
+            return catalog.query_arrow(sql, as_of_iteration=as_of_iteration, confined=True)
         except duckdb.Error as exc:
             path = catalog.registered_shard_in(str(exc))
             if path is None or not any(p == path for p, _ in catalog.verify(full=True, paths=[path])):

@@ -8,7 +8,7 @@ from policies.model import ModelDims, ModelOutput, SpatialSoftmax, VLAModel, inf
 from schemas.config import ModelConfig
 
 DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, discrete_actions=4, language_dim=384)
-SMALL = ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1)
+SMALL = ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=1)  # one action per sample: the batches below
 
 
 def _batch(n: int = 16, discrete: int = 0):
@@ -168,7 +168,7 @@ def test_fine_tuned_language_encoder_starts_from_the_pretrained_weights_and_lear
     from policies.language import encode
 
     torch.manual_seed(0)
-    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, language_trainable=True), DIMS)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, language_trainable=True, chunk=1), DIMS)
     texts = ["lift the red cube", "pick up the green block", "lift the red cube"]
     embedded = model.language_input(texts, cached=None)
     assert np.allclose(embedded.detach().numpy(), encode("all-MiniLM-L6-v2", texts), atol=1e-5)

@@ -11,7 +11,7 @@ from policies.policy import Normaliser, Policy, policy_state, save_atomically
 from schemas.config import ModelConfig
 
 DIMS = ModelDims(image_size=84, proprio_dim=9, action_dim=7, discrete_actions=4, language_dim=384)
-SMALL = ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1)
+SMALL = ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=1)  # one action per sample
 IDENTITY_ACTION, IDENTITY_PROPRIO = Normaliser(np.zeros(7, np.float32), np.ones(7, np.float32)), \
     Normaliser(np.zeros(9, np.float32), np.ones(9, np.float32))
 
@@ -63,9 +63,11 @@ def test_a_checkpoint_from_before_ensembles_loads_as_one_model(tmp_path: Path):
     model = _member(0)
     state = policy_state([model], IDENTITY_ACTION, IDENTITY_PROPRIO)
     state["state_dict"] = state.pop("members")[0]  # the layout checkpoints had before train.ensemble
+    for field in ("chunk", "execution", "execute_steps", "ensemble_decay"):  # nor had they action chunks
+        del state["model_config"][field]
     path = tmp_path / "old.pt"
     torch.save(state, path)
     loaded = Policy.load(path, {"lift the red cube": np.ones(384, np.float32)})
-    assert len(loaded.members) == 1
+    assert len(loaded.members) == 1 and loaded.config.chunk == 1  # as trained, not today's default
     np.testing.assert_allclose(loaded.act(OBS, "lift the red cube", "robosuite").action,
                                _policy([model]).act(OBS, "lift the red cube", "robosuite").action, atol=1e-6)

@@ -43,7 +43,7 @@ def test_a_bf16_training_step_on_cpu_computes_in_bf16_and_learns():
     torch.manual_seed(0)
     # the patch ViT: cheap where bf16 is emulated (a CPU without bf16 units runs this test too)
     model = precision.to_device_layout(
-        VLAModel(ModelConfig(dim=32, heads=4, vision="vit", vision_depth=1, fusion_depth=1), DIMS), CPU)
+        VLAModel(ModelConfig(dim=32, heads=4, vision="vit", vision_depth=1, fusion_depth=1, chunk=1), DIMS), CPU)
     optimiser = torch.optim.AdamW(model.parameters(), lr=3e-3)
     image = precision.image_layout(torch.rand(8, 3, 84, 84), CPU)
     language, proprio, action = torch.randn(8, 384), torch.randn(8, 9), torch.randn(8, 7)

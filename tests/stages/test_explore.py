@@ -136,7 +136,8 @@ def _curriculum(tmp_path, curriculum: bool = True) -> tuple[CampaignConfig, list
         explore=ExploreConfig(episodes_per_task=2, episodes_per_shard=2, workers=1, curriculum=curriculum),
     )
     torch.manual_seed(0)
-    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1),
+    # chunk 1: each step's action is the policy's stateless `act` on that step's instruction (checked below)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=1),
                      ModelDims(84, PROPRIO_DIM, ACTION_DIM, len(ACTIONS), 384))
     checkpoint = tmp_path / "policy.pt"
     torch.save(policy_state([model], Normaliser(np.zeros(ACTION_DIM), np.ones(ACTION_DIM)),

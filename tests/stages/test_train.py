@@ -265,7 +265,7 @@ def test_states_of_different_lengths_are_padded_normalised_and_masked():
 
 def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the_key_it_had_before_the_fields_existed(campaign):
     workspace = Workspace.at(campaign[1])
-    legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None}})
+    legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
     dataset = latest_index(workspace, legacy.name)
     added = {name: True for name in EXECUTION_FIELDS | {"state_weight", "init_from", "steps", "seed", "ema", "language_augment"}}
@@ -277,7 +277,7 @@ def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the
     assert train_unit_key(default, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key)
     # a chunked model, another training seed: other models; the seed's default keeps the key
     for change in ({"model": {"chunk": 4}}, {"seed": 1}, {"model": {"chunk": 4, "execution": "receding"}}):
-        other = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, **change}})
+        other = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}, **change}})
         assert train_unit_key(other, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key), change
 
 

@@ -88,6 +88,31 @@ def test_sql_is_read_only(workspace, statement):
         run_sql(Catalog(workspace.catalog), statement)
 
 
+def test_sql_reads_the_warehouses_files_and_nothing_outside_it(workspace, tmp_path_factory):
+    """A query is someone's text: it may read the warehouse's shards, by view or by path, but not a
+    file elsewhere on the machine, not through `..`, not by attaching a database, at any snapshot."""
+    _register(workspace, "filter-a", 4)
+    catalog = Catalog(workspace.catalog)
+    outside = tmp_path_factory.mktemp("outside") / "secret.csv"
+    outside.write_text("token\nhunter2\n")
+    assert duckdb.sql(f"SELECT * FROM read_csv('{outside}')").fetchall() == [("hunter2",)]  # readable by a plain client
+    shard = workspace.shard_path("filter_decisions", 0, "filter-a")
+    assert run_sql(catalog, f"SELECT count(*) AS n FROM read_parquet('{shard}')", "csv") == "n\n4"
+    for as_of in (None, 0):
+        assert run_sql(catalog, "SELECT count(*) AS n FROM filter_decisions", "csv", as_of_iteration=as_of) == "n\n4"
+        for sql in (f"SELECT * FROM read_csv('{outside}')", "SELECT * FROM read_csv('/etc/passwd')",
+                    f"SELECT * FROM read_csv('{workspace.catalog.parent}/../{outside.parent.name}/secret.csv')",
+                    "SELECT * FROM glob('/*')"):
+            with pytest.raises(duckdb.Error, match="file system operations are disabled"):
+                run_sql(catalog, sql, as_of_iteration=as_of)
+    with catalog.connect(read_only=True, confined=True) as con:
+        with pytest.raises(duckdb.Error, match="configuration has been locked"):
+            con.execute("SET enable_external_access = true")
+    with pytest.raises(ValueError, match="read-only"):
+        with catalog.connect(confined=True):
+            pass
+
+
 def test_sql_formats(workspace):
     _register(workspace, "filter-a", 4)
     catalog = Catalog(workspace.catalog)
