@@ -18,6 +18,7 @@ from envs.suite import generate_tasks
 from policies.model import ModelDims
 from schemas.config import CampaignConfig, ConfigError
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
+from schemas.settings import tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import evaluation_cases
@@ -49,7 +50,7 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
             raise ConfigError(f"--model: no model {ref!r} in {workspace.root}")
         return ModelRef(ref, str(workspace.root / found[0][0]), found[0][1], ref)  # stored relative to the workspace
     name, version_number, alias = parse_registry_ref(ref, config.registered_model_name)
-    client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
+    client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=tracking_uri(workspace))
     try:
         version = (client.get_model_version(name, version_number) if version_number
                    else client.get_model_version_by_alias(name, alias))

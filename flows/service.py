@@ -1,6 +1,7 @@
 """The local stack behind `sim2act up / down / status`: a Prefect server and an MLflow server on
-the workspace's own SQLite databases (the ones the embedded default writes), the dashboard, and
-the process serving the bootstrap deployments. Loopback ports; one record file says what runs.
+the workspace's own SQLite databases (the ones the embedded default writes) or on the databases the
+environment names (PostgreSQL: docs/scale-out.md), the dashboard, and the process serving the
+bootstrap deployments. Loopback ports; one record file says what runs.
 
 Each process runs in its own session, so `down` stops it with everything it started.
 """
@@ -22,6 +23,7 @@ from pathlib import Path
 from schemas.config import CampaignConfig
 from schemas.errors import Sim2ActError
 from schemas.service import HOST, ServiceConfig
+from schemas.settings import ARTIFACTS_DESTINATION_ENV, BACKEND_STORE_ENV, TRACKING_URI_ENV
 from schemas.workspace import Workspace, write_text_atomically
 
 STARTUP_TIMEOUT_S = 180.0  # a first Prefect start migrates its database: ~10-40 s on 2 cores
@@ -42,6 +44,7 @@ class ProcessSpec:
     env: dict[str, str]
     health_url: str  # answers 200 once the process is ready
     url: str  # what the user opens
+    tracking: bool = False  # the MLflow server that runs log through (it has a database of its own)
 
 
 def _bin(name: str) -> str:
@@ -49,18 +52,31 @@ def _bin(name: str) -> str:
 
 
 def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
-    """In start order: the deployments' process needs the Prefect server up."""
+    """In start order: the deployments' process needs the Prefect server up.
+
+    The servers' databases are the environment's (schemas/settings.py): Prefect reads its own
+    PREFECT_SERVER_DATABASE_CONNECTION_URL; MLflow's server takes MLFLOW_BACKEND_STORE_URI from the
+    environment, never from its command line (where `ps` would show the password). Without them both
+    use SQLite files in the workspace, which runs on this machine also write directly. With a database
+    of its own, the MLflow server proxies the artifacts and every run logs through it."""
     base = {k: v for k, v in os.environ.items() if k != PREFECT_API_ENV}
     prefect, mlflow, dashboard = (service.url(s) for s in ("prefect", "mlflow", "dashboard"))
+    own_database = bool(base.get(BACKEND_STORE_ENV))
+    mlflow_command = [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port), "--workers", "1"]
+    mlflow_env = dict(base)
+    if own_database:
+        mlflow_env.setdefault(ARTIFACTS_DESTINATION_ENV, workspace.artifact_root.as_uri())
+    else:
+        mlflow_command += ["--backend-store-uri", workspace.tracking_uri,
+                           "--default-artifact-root", workspace.artifact_root.as_uri()]
     linked = {**base, PREFECT_API_ENV: f"{prefect}/api", MLFLOW_UI_ENV: mlflow}
+    if own_database:
+        linked.setdefault(TRACKING_URI_ENV, mlflow)
     return [
         # The UI asks its API at PREFECT_UI_API_URL, which otherwise assumes port 4200.
         ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
                     {**base, "PREFECT_UI_API_URL": f"{prefect}/api"}, f"{prefect}/api/health", prefect),
-        ProcessSpec("mlflow", [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port),
-                               "--backend-store-uri", workspace.tracking_uri,
-                               "--default-artifact-root", workspace.artifact_root.as_uri(), "--workers", "1"],
-                    base, f"{mlflow}/health", mlflow),
+        ProcessSpec("mlflow", mlflow_command, mlflow_env, f"{mlflow}/health", mlflow, tracking=own_database),
         ProcessSpec("dashboard", [_bin("sim2act"), "dashboard", "--workspace", str(workspace.root),
                                   "--host", HOST, "--port", str(service.dashboard_port)],
                     linked, f"{dashboard}/health", dashboard),
@@ -121,7 +137,10 @@ def running_urls(workspace: Workspace) -> dict[str, str]:
     up = {row["name"]: row for row in process_status(workspace) if row["state"] == "up"}
     if "prefect" not in up or "mlflow" not in up:
         return {}
-    return {PREFECT_API_ENV: f"{up['prefect']['url']}/api", MLFLOW_UI_ENV: up["mlflow"]["url"]}
+    urls = {PREFECT_API_ENV: f"{up['prefect']['url']}/api", MLFLOW_UI_ENV: up["mlflow"]["url"]}
+    if up["mlflow"].get("tracking"):
+        urls[TRACKING_URI_ENV] = up["mlflow"]["url"]
+    return urls
 
 
 def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> None:
@@ -156,7 +175,7 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
                                            stdin=subprocess.DEVNULL, start_new_session=True)
             started.append(spec.name)
             state["processes"][spec.name] = {"pid": process.pid, "url": spec.url, "health_url": spec.health_url,
-                                             "log": str(log)}
+                                             "log": str(log), "tracking": spec.tracking}
             write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
             _wait_healthy(spec, process, log)
             on_ready(f"{spec.name:<12} {spec.url}")

@@ -11,6 +11,7 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunT
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
+from schemas.settings import is_workspace_tracking, tracking_uri
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
 
@@ -30,14 +31,16 @@ def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
 
 class Tracking:
     def __init__(self, workspace: Workspace, config: CampaignConfig):
-        self.client = MlflowClient(tracking_uri=workspace.tracking_uri, registry_uri=workspace.tracking_uri)
+        uri = tracking_uri(workspace)
+        self.client = MlflowClient(tracking_uri=uri, registry_uri=uri)
         self.config = config
         self.warehouse = workspace.warehouse
         experiment = self.client.get_experiment_by_name(EXPERIMENT)
+        # In the workspace's own store the artifacts sit in its folder; an MLflow server keeps them
+        # where it was told (its proxied artifact store), so the experiment takes the server's default.
+        location = workspace.artifact_root.as_uri() if is_workspace_tracking(workspace) else None
         self.experiment_id = (
-            experiment.experiment_id
-            if experiment
-            else self.client.create_experiment(EXPERIMENT, artifact_location=workspace.artifact_root.as_uri())
+            experiment.experiment_id if experiment else self.client.create_experiment(EXPERIMENT, artifact_location=location)
         )
         # A campaign is its name plus everything but the iteration count and the adaptation after its
         # iterations: asking for more iterations, or for an adaptation, continues the same campaign run.

@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Sets up everything Sim2Act needs on a fresh Debian machine: the system libraries for
-# offscreen MuJoCo rendering (Mesa EGL), Chromium (the dashboard's tests drive it headless) and a
+# offscreen MuJoCo rendering (Mesa EGL), Chromium (the dashboard's tests drive it headless),
+# PostgreSQL (the servers' databases beyond one machine; tests start their own on loopback) and a
 # virtual environment with the pinned packages.
 # Idempotent: `make` calls it only when pyproject.toml changed since the last setup.
 set -euo pipefail
 venv="${1:-.venv}"
 
-system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 chromium)
+system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 chromium postgresql)
 missing=()
 for pkg in "${system_packages[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

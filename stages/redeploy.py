@@ -12,6 +12,7 @@ from mlflow import MlflowClient
 
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
+from schemas.settings import tracking_uri
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Promotion
@@ -90,7 +91,7 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
 
     example = input_example(catalog, config.name)
     signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
-    mlflow.set_tracking_uri(workspace.tracking_uri)
+    mlflow.set_tracking_uri(tracking_uri(workspace))
     with mlflow.start_run(run_id=mlflow_run_id):
         info = mlflow.pyfunc.log_model(
             name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
@@ -110,7 +111,7 @@ def run_redeploy(
     catalog = Catalog(workspace.catalog)
     name, alias = config.registered_model_name, config.redeploy.alias
     key = unit_key(STAGE, VERSION, config.redeploy, [model_key])
-    client = MlflowClient(tracking_uri=workspace.tracking_uri)
+    client = MlflowClient(tracking_uri=tracking_uri(workspace))
     existing = catalog.query("SELECT version, champion_version FROM deployments WHERE unit_key = ?", [key])
     if existing:
         version, champion = existing[0]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from flows.cli.common import (Commands, add_campaign_options, campaign_config, configure_environment,
-                              log_stages_to_stderr, open_catalog, same_campaign_flags)
+from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
+                              configure_environment, log_stages_to_stderr, open_catalog, same_campaign_flags)
 from flows.lifetime import watch
 from schemas.config import ConfigError
 from schemas.workspace import write_text_atomically
@@ -21,6 +21,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     check_where(config.train.where)
     workspace, catalog = open_catalog(args)
     configure_environment(workspace)
+    check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     workspace.create()
     watch()  # the temporary Prefect server and the workers end with this command, however it ends
     print(
@@ -63,6 +64,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if not catalog.is_registered(tasks_key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
     configure_environment(workspace)
+    check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     log_stages_to_stderr()
     watch()  # the loader workers end with this command, however it ends
     tracking = Tracking(workspace, config)
@@ -90,6 +92,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     config = campaign_config(args, {} if args.episodes is None else {"evaluate": {"episodes_per_task": args.episodes}})
     workspace, _ = open_catalog(args)
     configure_environment(workspace)
+    check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     log_stages_to_stderr()
     from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
     from flows.tracking import Tracking

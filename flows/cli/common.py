@@ -7,9 +7,13 @@ import argparse
 import logging
 import os
 import sys
+import urllib.request
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from schemas.config import PRESETS, CampaignConfig, deep_merge, load_config, parse_settings
+from schemas.errors import Sim2ActError
+from schemas.settings import TRACKING_URI_ENV, apply_secrets_file, redacted, tracking_uri
 from schemas.workspace import Workspace, write_text_atomically
 
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
@@ -58,8 +62,16 @@ def same_campaign_flags(args: argparse.Namespace) -> str:
 
 
 def configure_environment(workspace: Workspace) -> None:
-    """Embedded defaults: Prefect's ephemeral API with its home in the workspace, MLflow on SQLite
-    in the workspace, no telemetry, no hub downloads (the env modules choose the renderer)."""
+    """The secrets file's settings (schemas/settings.py), the running stack's URLs, then embedded
+    defaults: Prefect's ephemeral API with its home in the workspace, MLflow on SQLite in the workspace
+    (unless MLFLOW_TRACKING_URI says otherwise), no telemetry, no hub downloads (the env modules choose
+    the renderer)."""
+    from flows.service import running_urls
+
+    apply_secrets_file()
+    # While `sim2act up` runs on this workspace, runs report to its servers and show in its UIs.
+    for key, value in running_urls(workspace).items():
+        os.environ.setdefault(key, value)
     defaults = {
         "PREFECT_HOME": str(workspace.prefect_home),
         "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
@@ -67,7 +79,6 @@ def configure_environment(workspace: Workspace) -> None:
         "PREFECT_LOGGING_EXTRA_LOGGERS": "sim2act",
         "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "90",
         "MLFLOW_DISABLE_TELEMETRY": "true",
-        "MLFLOW_TRACKING_URI": workspace.tracking_uri,
         "HF_HUB_OFFLINE": "1",
         "TOKENIZERS_PARALLELISM": "false",
         "PYTHONWARNINGS": "ignore::DeprecationWarning,ignore::FutureWarning",
@@ -77,11 +88,32 @@ def configure_environment(workspace: Workspace) -> None:
     }
     for key, value in defaults.items():
         os.environ.setdefault(key, value)
-    from flows.service import running_urls
 
-    # While `sim2act up` runs on this workspace, runs report to its servers and show in its UIs.
-    for key, value in running_urls(workspace).items():
-        os.environ.setdefault(key, value)
+
+class TrackingUnreachable(Sim2ActError, RuntimeError):
+    pass
+
+
+def check_tracking_server(workspace: Workspace) -> None:
+    """Where MLFLOW_TRACKING_URI names an MLflow server, it answers before any work starts (MLflow's
+    own client would retry for minutes, mid-campaign).
+
+    Raises:
+        TrackingUnreachable: no answer from its /health.
+    """
+    uri = tracking_uri(workspace)
+    if urlsplit(uri).scheme not in ("http", "https"):
+        return
+    health = f"{uri.rstrip('/')}/health"
+    try:
+        with urllib.request.urlopen(health, timeout=10) as response:
+            if response.status == 200:
+                return
+            why = f"HTTP {response.status}"
+    except OSError as exc:
+        why = str(getattr(exc, "reason", exc))
+    raise TrackingUnreachable(f"{TRACKING_URI_ENV}={redacted(uri)}: no MLflow server answers at {redacted(health)} "
+                              f"({why})")
 
 
 def log_stages_to_stderr() -> None:

@@ -112,9 +112,11 @@ def test_each_split_gets_at_least_its_episodes_per_split():
 def test_every_error_the_cli_turns_into_one_line_is_a_sim2act_error():
     from dashboards.panels import PanelError
     from envs.replay import ReplayError
+    from flows.cli.common import TrackingUnreachable
     from flows.run_lock import WorkspaceBusy
     from flows.service import ServiceError
     from schemas.errors import Sim2ActError
+    from schemas.settings import SecretsFileError
     from warehouse.catalog import CatalogMissing, CatalogVersionError
     from warehouse.export_lerobot import ExportError
     from warehouse.shard_writer import DiskFull
@@ -122,7 +124,8 @@ def test_every_error_the_cli_turns_into_one_line_is_a_sim2act_error():
     from warehouse.training_reader import SelectionError
 
     for error in (ConfigError, PanelError, ReplayError, WorkspaceBusy, ServiceError, CatalogMissing,
-                  CatalogVersionError, ExportError, DiskFull, ReadOnlyViolation, SelectionError):
+                  CatalogVersionError, ExportError, DiskFull, ReadOnlyViolation, SelectionError, TrackingUnreachable,
+                  SecretsFileError):
         assert issubclass(error, Sim2ActError), error
 
 

@@ -1,0 +1,97 @@
+"""Settings that come from the environment, never from a campaign config: where MLflow tracking goes,
+the stack's databases, and their credentials.
+
+A campaign config is logged everywhere on purpose (MLflow params, Prefect parameters, the workspace),
+so a database URL with its password must not be one of its fields. These are the tools' own variables
+(MLflow's and Prefect's names, so their documentation applies), read from the environment, or from a
+secrets file that SIM2ACT_SECRETS_FILE names: KEY=VALUE lines, `#` comments, mode 600. The environment
+wins over the file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import stat
+from collections.abc import MutableMapping
+from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
+
+from schemas.errors import Sim2ActError
+from schemas.workspace import Workspace
+
+SECRETS_FILE_ENV = "SIM2ACT_SECRETS_FILE"
+# MLflow's: where runs are logged (default: the workspace's SQLite file); an http(s) URL is an MLflow server.
+TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"
+# MLflow's, read by `sim2act up`'s MLflow server: its database (default: the workspace's SQLite file)
+# and, with a database of its own, where it keeps the artifacts it proxies (default: the workspace's folder).
+BACKEND_STORE_ENV, ARTIFACTS_DESTINATION_ENV = "MLFLOW_BACKEND_STORE_URI", "MLFLOW_ARTIFACTS_DESTINATION"
+# Prefect's, read by `sim2act up`'s Prefect server: its database (default: SQLite in the workspace's Prefect home).
+PREFECT_DATABASE_ENV = "PREFECT_SERVER_DATABASE_CONNECTION_URL"
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+class SecretsFileError(Sim2ActError, ValueError):
+    pass
+
+
+def read_secrets_file(path: Path) -> dict[str, str]:
+    """KEY=VALUE per line (blank lines and `#` comments skipped, one pair of quotes around a value
+    dropped). A refusal never shows a line's text: it may hold a secret.
+
+    Raises:
+        SecretsFileError: no such file; readable or writable by group or others; a line that is not KEY=VALUE.
+    """
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise SecretsFileError(f"secrets file {path} ({SECRETS_FILE_ENV}): no such file") from None
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        raise SecretsFileError(f"secrets file {path}: expected mode 600 (only its owner reads it), got "
+                               f"{stat.S_IMODE(mode):03o}: chmod 600 {path}")
+    values = {}
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        key, sep, value = line.partition("=")
+        key, value = key.strip().removeprefix("export ").strip(), value.strip()
+        if not sep or not _KEY.fullmatch(key):
+            raise SecretsFileError(f"secrets file {path} line {number}: expected KEY=VALUE")
+        if len(value) >= 2 and value[0] == value[-1] and value[0] in "'\"":
+            value = value[1:-1]
+        values[key] = value
+    return values
+
+
+def apply_secrets_file(environ: MutableMapping[str, str] | None = None) -> list[str]:
+    """Load the file SIM2ACT_SECRETS_FILE names (if any) into the environment, where a variable is not
+    already set; -> the names it set. Child processes (the servers, workers) inherit them."""
+    environ = os.environ if environ is None else environ
+    if not environ.get(SECRETS_FILE_ENV):
+        return []
+    loaded = read_secrets_file(Path(environ[SECRETS_FILE_ENV]).expanduser())
+    added = [key for key in loaded if key not in environ]
+    for key in added:
+        environ[key] = loaded[key]
+    return added
+
+
+def tracking_uri(workspace: Workspace) -> str:
+    """Where this process logs MLflow runs and registers models: MLFLOW_TRACKING_URI, else the
+    workspace's own SQLite file."""
+    return os.environ.get(TRACKING_URI_ENV) or workspace.tracking_uri
+
+
+def is_workspace_tracking(workspace: Workspace) -> bool:
+    """Runs go to the workspace's own store (artifacts then live in its folder, by path)."""
+    return tracking_uri(workspace) == workspace.tracking_uri
+
+
+def redacted(url: str) -> str:
+    """A URL as it may be shown: its password replaced by ***."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    host = parts.netloc.rpartition("@")[2]
+    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))

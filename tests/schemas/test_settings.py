@@ -1,0 +1,63 @@
+"""Settings from the environment and the secrets file (schemas/settings.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from schemas.settings import (SecretsFileError, apply_secrets_file, is_workspace_tracking, read_secrets_file, redacted,
+                              tracking_uri)
+from schemas.workspace import Workspace
+
+
+def _secrets(tmp_path, text: str, mode: int = 0o600):
+    path = tmp_path / "secrets.env"
+    path.write_text(text)
+    path.chmod(mode)
+    return path
+
+
+def test_a_secrets_file_is_key_value_lines_with_comments_quotes_and_export(tmp_path):
+    path = _secrets(tmp_path, "# the stack's databases\n\nMLFLOW_BACKEND_STORE_URI = 'postgresql://u:p w@h/db'\n"
+                              'export PREFECT_SERVER_DATABASE_CONNECTION_URL="postgresql+asyncpg://u:p=q@h/db"\n'
+                              "EMPTY=\n")
+    assert read_secrets_file(path) == {"MLFLOW_BACKEND_STORE_URI": "postgresql://u:p w@h/db",
+                                       "PREFECT_SERVER_DATABASE_CONNECTION_URL": "postgresql+asyncpg://u:p=q@h/db",
+                                       "EMPTY": ""}
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o660])
+def test_a_secrets_file_others_can_read_is_refused_saying_how_to_fix_it(tmp_path, mode):
+    path = _secrets(tmp_path, "A=1\n", mode)
+    with pytest.raises(SecretsFileError, match=rf"expected mode 600 \(only its owner reads it\), got {mode:03o}: "
+                                               rf"chmod 600 {path}"):
+        read_secrets_file(path)
+
+
+def test_a_bad_line_is_refused_by_its_number_without_showing_it(tmp_path):
+    path = _secrets(tmp_path, "A=1\npostgresql://u:hunter2@h/db\n")
+    with pytest.raises(SecretsFileError) as refused:
+        read_secrets_file(path)
+    assert str(refused.value) == f"secrets file {path} line 2: expected KEY=VALUE" and "hunter2" not in str(refused.value)
+    with pytest.raises(SecretsFileError, match="no such file"):
+        read_secrets_file(tmp_path / "missing.env")
+
+
+def test_the_environment_wins_over_the_file_and_only_named_files_are_read(tmp_path):
+    path = _secrets(tmp_path, "MLFLOW_TRACKING_URI=http://from-file\nPREFECT_API_URL=http://from-file/api\n")
+    environ = {"SIM2ACT_SECRETS_FILE": str(path), "MLFLOW_TRACKING_URI": "http://from-env"}
+    assert apply_secrets_file(environ) == ["PREFECT_API_URL"]
+    assert environ["MLFLOW_TRACKING_URI"] == "http://from-env" and environ["PREFECT_API_URL"] == "http://from-file/api"
+    assert apply_secrets_file({"MLFLOW_TRACKING_URI": "x"}) == []
+
+
+def test_tracking_goes_to_the_workspace_unless_the_environment_names_a_store(tmp_path, monkeypatch):
+    workspace = Workspace.at(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert tracking_uri(workspace) == f"sqlite:///{tmp_path / 'mlflow' / 'mlflow.db'}" and is_workspace_tracking(workspace)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:5000")
+    assert tracking_uri(workspace) == "http://127.0.0.1:5000" and not is_workspace_tracking(workspace)
+
+
+def test_a_url_is_shown_without_its_password():
+    assert redacted("postgresql://sim2act:hunter2@127.0.0.1:5432/mlflow") == "postgresql://sim2act:***@127.0.0.1:5432/mlflow"
+    assert redacted("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
