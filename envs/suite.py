@@ -87,6 +87,17 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
     return tasks
 
 
+def weak_tasks_left_out(config: TasksConfig) -> list[str]:
+    """Pure: the tasks the config's specs and colours would bind that generate_tasks leaves out because
+    their scripted expert is below target (tasks.weak_experts: skip), for the one line that says so."""
+    if config.weak_experts == "keep":
+        return []
+    suite, flagged = load_specs(config.spec_files), load_expert_table().flagged()
+    ids = {task_id_of(suite[name].spec, b) for name in config.specs if name in suite
+           for b in _bindings(suite[name].spec, config.colours)}
+    return sorted(ids & flagged)
+
+
 def subtask_instructions(task: TaskRecord, suite: dict[str, SuiteEntry]) -> list[str]:
     """A long-horizon task's sub-tasks, said canonically with its colours, in order ([]: not long-horizon,
     or a spec the suite does not hold, such as a proposer's)."""

@@ -16,7 +16,7 @@ from schemas.errors import Sim2ActError
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
-PRESETS = ("smoke", "default", "headline", "curriculum", "hard-mix")
+PRESETS = ("smoke", "default", "headline", "curriculum", "hard-mix", "generalist")
 
 PositiveInt = Annotated[int, Field(gt=0)]
 

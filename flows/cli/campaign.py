@@ -14,12 +14,14 @@ from schemas.workspace import write_text_atomically
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
-    from envs.suite import generate_tasks
+    from envs.suite import generate_tasks, weak_tasks_left_out
+    from warehouse.capacity import check_disk
     from warehouse.training_reader import check_where
 
-    generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
+    tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
     check_where(config.train.where)
     workspace, catalog = open_catalog(args)
+    estimate = check_disk(workspace.root, config, tasks, catalog)  # a campaign the disk cannot hold: one line
     configure_environment(workspace)
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     workspace.create()
@@ -28,6 +30,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"sim2act: campaign {config.name!r}, {config.iterations} iteration(s), workspace {workspace.root}",
         flush=True,
     )
+    weak = weak_tasks_left_out(config.tasks)
+    if weak:
+        print(f"sim2act: {len(weak)} task(s) left out, their scripted expert below 90% (docs/experts.md; "
+              f"tasks.weak_experts: keep uses them): {', '.join(weak)}", flush=True)
+    if estimate.steps:
+        seen = sum(t.split == "seen" for t in tasks)
+        print(f"sim2act: {len(tasks)} tasks ({seen} explored); about {estimate.steps:,} steps and "
+              f"{estimate.bytes / 1e9:.2f} GB to explore over {estimate.iterations} iteration(s)", flush=True)
     from flows.bootstrap import bootstrap
 
     bootstrap(config=config, workspace=str(workspace.root), continue_campaign=args.continue_campaign)
