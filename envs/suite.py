@@ -90,7 +90,7 @@ def generate_tasks(config: TasksConfig, seed: int) -> list[TaskRecord]:
 def weak_tasks_left_out(config: TasksConfig) -> list[str]:
     """Pure: the tasks the config's specs and colours would bind that generate_tasks leaves out because
     their scripted expert is below target (tasks.weak_experts: skip), for the one line that says so."""
-    if config.weak_experts == "keep":
+    if config.weak_experts == "keep" or config.include is not None:  # an include list names a weak task: refused
         return []
     suite, flagged = load_specs(config.spec_files), load_expert_table().flagged()
     ids = {task_id_of(suite[name].spec, b) for name in config.specs if name in suite

@@ -23,7 +23,8 @@ from pathlib import Path
 from schemas.config import CampaignConfig
 from schemas.errors import Sim2ActError
 from schemas.service import HOST, ServiceConfig
-from schemas.settings import ARTIFACTS_DESTINATION_ENV, BACKEND_STORE_ENV, TRACKING_URI_ENV
+from schemas.settings import (ARTIFACTS_DESTINATION_ENV, BACKEND_STORE_ENV, PREFECT_DATABASE_ENV, SECRETS_FILE_ENV,
+                             TRACKING_URI_ENV)
 from schemas.workspace import Workspace, write_text_atomically
 
 STARTUP_TIMEOUT_S = 180.0  # a first Prefect start migrates its database: ~10-40 s on 2 cores
@@ -59,23 +60,27 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
     environment, never from its command line (where `ps` would show the password). Without them both
     use SQLite files in the workspace, which runs on this machine also write directly. With a database
     of its own, the MLflow server proxies the artifacts and every run logs through it."""
-    base = {k: v for k, v in os.environ.items() if k != PREFECT_API_ENV}
+    # each server gets its own database URL and no other; the dashboard and the deployments' process neither
+    databases = {PREFECT_DATABASE_ENV, BACKEND_STORE_ENV, ARTIFACTS_DESTINATION_ENV}
+    base = {k: v for k, v in os.environ.items() if k != PREFECT_API_ENV and k not in databases}
     prefect, mlflow, dashboard = (service.url(s) for s in ("prefect", "mlflow", "dashboard"))
-    own_database = bool(base.get(BACKEND_STORE_ENV))
+    own_database = bool(os.environ.get(BACKEND_STORE_ENV))
     mlflow_command = [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port), "--workers", "1"]
-    mlflow_env = dict(base)
+    mlflow_env = {**base, **{k: os.environ[k] for k in (BACKEND_STORE_ENV, ARTIFACTS_DESTINATION_ENV) if k in os.environ}}
+    prefect_env = {**base, **{k: os.environ[k] for k in (PREFECT_DATABASE_ENV,) if k in os.environ}}
     if own_database:
         mlflow_env.setdefault(ARTIFACTS_DESTINATION_ENV, workspace.artifact_root.as_uri())
     else:
         mlflow_command += ["--backend-store-uri", workspace.tracking_uri,
                            "--default-artifact-root", workspace.artifact_root.as_uri()]
-    linked = {**base, PREFECT_API_ENV: f"{prefect}/api", MLFLOW_UI_ENV: mlflow}
+    linked = {**{k: v for k, v in base.items() if k != SECRETS_FILE_ENV}, PREFECT_API_ENV: f"{prefect}/api",
+              MLFLOW_UI_ENV: mlflow}
     if own_database:
         linked.setdefault(TRACKING_URI_ENV, mlflow)
     return [
         # The UI asks its API at PREFECT_UI_API_URL, which otherwise assumes port 4200.
         ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
-                    {**base, "PREFECT_UI_API_URL": f"{prefect}/api"}, f"{prefect}/api/health", prefect),
+                    {**prefect_env, "PREFECT_UI_API_URL": f"{prefect}/api"}, f"{prefect}/api/health", prefect),
         ProcessSpec("mlflow", mlflow_command, mlflow_env, f"{mlflow}/health", mlflow, tracking=own_database),
         ProcessSpec("dashboard", [_bin("sim2act"), "dashboard", "--workspace", str(workspace.root),
                                   "--host", HOST, "--port", str(service.dashboard_port)],

@@ -5,13 +5,14 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
+from urllib.parse import urlsplit
 
 from mlflow import MlflowClient
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunTag
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import CampaignConfig
-from schemas.settings import is_workspace_tracking, tracking_uri
+from schemas.settings import tracking_uri
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
 
@@ -36,9 +37,10 @@ class Tracking:
         self.config = config
         self.warehouse = workspace.warehouse
         experiment = self.client.get_experiment_by_name(EXPERIMENT)
-        # In the workspace's own store the artifacts sit in its folder; an MLflow server keeps them
-        # where it was told (its proxied artifact store), so the experiment takes the server's default.
-        location = workspace.artifact_root.as_uri() if is_workspace_tracking(workspace) else None
+        # An MLflow server keeps artifacts where it was told (its proxied store): the experiment takes the
+        # server's default. Any store opened directly (the workspace's SQLite file, a database URL) would
+        # put them in ./mlruns of whatever folder the command ran in: the workspace's folder instead.
+        location = None if urlsplit(uri).scheme in ("http", "https") else workspace.artifact_root.as_uri()
         self.experiment_id = (
             experiment.experiment_id if experiment else self.client.create_experiment(EXPERIMENT, artifact_location=location)
         )

@@ -49,8 +49,13 @@ def read_secrets_file(path: Path) -> dict[str, str]:
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
         raise SecretsFileError(f"secrets file {path}: expected mode 600 (only its owner reads it), got "
                                f"{stat.S_IMODE(mode):03o}: chmod 600 {path}")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeError) as exc:
+        raise SecretsFileError(f"secrets file {path}: expected a readable UTF-8 text file, got {type(exc).__name__}: "
+                               f"{getattr(exc, 'strerror', None) or exc}") from None
     values = {}
-    for number, line in enumerate(path.read_text().splitlines(), 1):
+    for number, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -81,11 +86,6 @@ def tracking_uri(workspace: Workspace) -> str:
     """Where this process logs MLflow runs and registers models: MLFLOW_TRACKING_URI, else the
     workspace's own SQLite file."""
     return os.environ.get(TRACKING_URI_ENV) or workspace.tracking_uri
-
-
-def is_workspace_tracking(workspace: Workspace) -> bool:
-    """Runs go to the workspace's own store (artifacts then live in its folder, by path)."""
-    return tracking_uri(workspace) == workspace.tracking_uri
 
 
 def redacted(url: str) -> str:

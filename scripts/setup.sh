@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Sets up everything Sim2Act needs on a fresh Debian machine: the system libraries for
 # offscreen MuJoCo rendering (Mesa EGL), Chromium (the dashboard's tests drive it headless),
-# PostgreSQL (the servers' databases beyond one machine; tests start their own on loopback) and a
+# PostgreSQL (the servers' databases beyond one machine; the tests start a throw-away cluster of their
+# own on a free loopback port, whether or not Debian's package runs its main cluster on 5432) and a
 # virtual environment with the pinned packages.
 # Idempotent: `make` calls it only when pyproject.toml changed since the last setup.
 set -euo pipefail

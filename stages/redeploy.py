@@ -59,7 +59,9 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         import mlflow.artifacts
 
         target.mkdir(parents=True, exist_ok=True)
-        mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target))
+        uri = tracking_uri(workspace)  # this workspace's registry, not MLflow's default of ./mlflow.db
+        mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target), tracking_uri=uri,
+                                            registry_uri=uri)
     return PolicyExplorer(
         name=f"policy:{name}/{version}",
         model_key=model_version.tags[MODEL_KEY_TAG],

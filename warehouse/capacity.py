@@ -4,7 +4,8 @@ preset on a small disk costs one line instead of a run that stops hours in with 
 Explored steps: each seen task's episodes (explore.episodes_per_task per iteration) times its scripted
 expert's measured mean episode length (schemas/task_specs/experts.json, docs/experts.md; the task's
 horizon where it has no record), for every iteration not yet indexed. Bytes per step: this warehouse's
-own steps shards where it has some, else the figure measured on 84 px frames scaled by the frame's area.
+own steps shards of this campaign where it has some, else the figure measured on 84 px frames scaled by
+the frame's area.
 """
 
 from __future__ import annotations
@@ -43,9 +44,10 @@ class ExploreEstimate(BaseModel):
 
 
 def bytes_per_step(config: CampaignConfig, catalog: Catalog | None) -> tuple[float, bool]:
-    """(bytes per steps row, measured on this warehouse)."""
+    """(bytes per steps row, measured on this warehouse's shards of this campaign)."""
     if catalog is not None and catalog.path.exists():
-        [(size, rows)] = catalog.query("SELECT sum(num_bytes), sum(num_rows) FROM shards WHERE table_name = 'steps'")
+        [(size, rows)] = catalog.query("SELECT sum(num_bytes), sum(num_rows) FROM shards WHERE table_name = 'steps' "
+                                       "AND campaign = ?", [config.name])  # its own frames: another may differ in size
         if rows:
             return size / rows, True
     scale = (config.render.image_size / 84) ** 2 * (DEPTH_FACTOR if config.render.depth else 1.0)
@@ -58,7 +60,7 @@ def explore_estimate(config: CampaignConfig, tasks: list[TaskRecord], catalog: C
     experts = experts or load_expert_table()
     done = 0
     if catalog is not None and catalog.path.exists():
-        [(done,)] = catalog.query("SELECT count(*) FROM iterations WHERE campaign = ?", [config.name])
+        [(done,)] = catalog.query("SELECT count(DISTINCT iteration) FROM iterations WHERE campaign = ?", [config.name])
     left = max(0, config.iterations - done)
     per_iteration = sum(
         config.explore.episodes_per_task * (experts.rows[t.task_id].mean_length if t.task_id in experts.rows else t.horizon)

@@ -353,8 +353,10 @@ class Catalog:
 
     # -- reader side -----------------------------------------------------------------------
 
-    def query(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None) -> list[tuple]:
-        with self.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
+    def query(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None,
+              confined: bool = False) -> list[tuple]:
+        """`confined`: the SQL holds a user's text (a --where): the warehouse's files only (connect)."""
+        with self.connect(read_only=True, as_of_iteration=as_of_iteration, confined=confined) as con:
             return con.execute(sql, list(params)).fetchall()
 
     def query_arrow(self, sql: str, params: Sequence[Any] = (), as_of_iteration: int | None = None,

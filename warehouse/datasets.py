@@ -37,7 +37,7 @@ class Selection:
         rows in varying order, and float sums in another order differ in the last bits."""
         return catalog.query_arrow(
             f"SELECT {', '.join(columns)} FROM steps WHERE {_narrowed(where)} ORDER BY episode_id, step",
-            [list(self.filter_units)],
+            [list(self.filter_units)], confined=True,
         )
 
     def digest(self, catalog: Catalog) -> str:

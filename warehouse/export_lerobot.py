@@ -138,7 +138,7 @@ def _select(catalog: Catalog, where: str | None, include_rejected: bool) -> list
         WHERE episode_id IN (SELECT episode_id FROM steps WHERE ({where or "TRUE"})) {kept}
         GROUP BY episode_id ORDER BY episode_id"""
     try:
-        rows = catalog.query(sql)
+        rows = catalog.query(sql, confined=True)  # --where is a user's SQL: the warehouse's files only
     except duckdb.Error as exc:
         what = f"--where {where!r}" if where else "selecting the episodes"
         raise ExportError(f"{what}: {str(exc).splitlines()[0]}") from None

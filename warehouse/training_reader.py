@@ -59,7 +59,7 @@ def select_rows(
     """The registered steps rows matching `where` (SQL over the steps columns; subqueries may use
     any catalog table or view), as runs of consecutive rows per shard file; with `units`, only
     the steps shards those units wrote are read."""
-    with catalog.connect(read_only=True, as_of_iteration=as_of_iteration) as con:
+    with catalog.connect(read_only=True, as_of_iteration=as_of_iteration, confined=True) as con:  # `where`: a user's SQL
         paths = [
             (catalog.warehouse / p).as_posix()
             for (p,) in con.execute(
@@ -135,7 +135,7 @@ def check_where(where: str | None) -> None:
         return
     from schemas.tables import CATALOG_TABLES, EPISODES, FILTER_DECISIONS, INSTRUCTIONS, STEPS, VIEWS, catalog_ddl
 
-    with duckdb.connect() as con:
+    with duckdb.connect(config={"enable_external_access": False, "lock_configuration": True}) as con:  # no files
         for name, schema in (("steps", STEPS), ("episodes", EPISODES), ("filter_decisions", FILTER_DECISIONS),
                              ("instructions", INSTRUCTIONS)):
             con.register(name, schema.empty_table())

@@ -9,6 +9,7 @@ from flows.cli.common import (Commands, add_campaign_options, campaign_config, c
                               configure_environment, log_stages_to_stderr, open_catalog, same_campaign_flags)
 from flows.lifetime import watch
 from schemas.config import ConfigError
+from schemas.experts import TARGET
 from schemas.workspace import write_text_atomically
 
 
@@ -21,7 +22,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
     check_where(config.train.where)
     workspace, catalog = open_catalog(args)
-    estimate = check_disk(workspace.root, config, tasks, catalog)  # a campaign the disk cannot hold: one line
+    to_explore = config
+    if args.continue_campaign and catalog.path.exists():  # as bootstrap continues it: one iteration more
+        from stages.redeploy import finished_iterations
+
+        to_explore = config.model_copy(update={"iterations": max(config.iterations,
+                                                                 finished_iterations(workspace, config.name) + 1)})
+    estimate = check_disk(workspace.root, to_explore, tasks, catalog)  # a campaign the disk cannot hold: one line
     configure_environment(workspace)
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     workspace.create()
@@ -32,7 +39,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
     weak = weak_tasks_left_out(config.tasks)
     if weak:
-        print(f"sim2act: {len(weak)} task(s) left out, their scripted expert below 90% (docs/experts.md; "
+        print(f"sim2act: {len(weak)} task(s) left out, their scripted expert below {TARGET:.0%} (docs/experts.md; "
               f"tasks.weak_experts: keep uses them): {', '.join(weak)}", flush=True)
     if estimate.steps:
         seen = sum(t.split == "seen" for t in tasks)

@@ -4,16 +4,17 @@
 from __future__ import annotations
 
 import argparse
+import base64
 import logging
 import os
 import sys
 import urllib.request
 from pathlib import Path
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit, urlunsplit
 
 from schemas.config import PRESETS, CampaignConfig, deep_merge, load_config, parse_settings
 from schemas.errors import Sim2ActError
-from schemas.settings import TRACKING_URI_ENV, apply_secrets_file, redacted, tracking_uri
+from schemas.settings import BACKEND_STORE_ENV, TRACKING_URI_ENV, apply_secrets_file, redacted, tracking_uri
 from schemas.workspace import Workspace, write_text_atomically
 
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
@@ -96,24 +97,33 @@ class TrackingUnreachable(Sim2ActError, RuntimeError):
 
 def check_tracking_server(workspace: Workspace) -> None:
     """Where MLFLOW_TRACKING_URI names an MLflow server, it answers before any work starts (MLflow's
-    own client would retry for minutes, mid-campaign).
+    own client would retry for minutes, mid-campaign); and a stack database named without a server to
+    log through (`sim2act down` since) is refused rather than logging to the workspace's SQLite file.
 
     Raises:
-        TrackingUnreachable: no answer from its /health.
+        TrackingUnreachable: no answer from its /health, or no server for the named database.
     """
     uri = tracking_uri(workspace)
-    if urlsplit(uri).scheme not in ("http", "https"):
+    if os.environ.get(BACKEND_STORE_ENV) and not os.environ.get(TRACKING_URI_ENV):
+        raise TrackingUnreachable(f"{BACKEND_STORE_ENV} names the stack's tracking database, but no MLflow server "
+                                  f"runs for {workspace.root}: start it (`sim2act up`) or set {TRACKING_URI_ENV}")
+    parts = urlsplit(uri)
+    if parts.scheme not in ("http", "https"):
         return
-    health = f"{uri.rstrip('/')}/health"
+    # urllib takes no user:password@ in a URL: MLflow's own client sends them as basic auth
+    health = urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2], path=f"{parts.path.rstrip('/')}/health"))
+    request = urllib.request.Request(health)
+    if parts.username is not None:
+        token = base64.b64encode(f"{unquote(parts.username)}:{unquote(parts.password or '')}".encode()).decode()
+        request.add_header("Authorization", f"Basic {token}")
     try:
-        with urllib.request.urlopen(health, timeout=10) as response:
+        with urllib.request.urlopen(request, timeout=10) as response:
             if response.status == 200:
                 return
             why = f"HTTP {response.status}"
-    except OSError as exc:
-        why = str(getattr(exc, "reason", exc))
-    raise TrackingUnreachable(f"{TRACKING_URI_ENV}={redacted(uri)}: no MLflow server answers at {redacted(health)} "
-                              f"({why})")
+    except (OSError, ValueError) as exc:  # ValueError: not a URL urllib can open
+        why = str(getattr(exc, "reason", None) or exc)
+    raise TrackingUnreachable(f"{TRACKING_URI_ENV}={redacted(uri)}: no MLflow server answers at {health} ({why})")
 
 
 def log_stages_to_stderr() -> None:

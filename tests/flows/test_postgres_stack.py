@@ -48,7 +48,15 @@ def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finis
         outputs.append(up.stdout + up.stderr)
         try:
             assert up.returncode == 0, up.stdout[-3000:] + up.stderr[-3000:]
-            assert read_state(Workspace.at(workspace))["processes"]["mlflow"]["tracking"] is True
+            processes = read_state(Workspace.at(workspace))["processes"]
+            assert processes["mlflow"]["tracking"] is True
+            # each server has its own database's URL and no other; the dashboard and the deployments neither
+            environ = {name: psutil.Process(record["pid"]).environ() for name, record in processes.items()}
+            databases = {"PREFECT_SERVER_DATABASE_CONNECTION_URL", "MLFLOW_BACKEND_STORE_URI"}
+            assert {name: sorted(databases & set(env)) for name, env in environ.items()} == {
+                "prefect": ["PREFECT_SERVER_DATABASE_CONNECTION_URL"], "mlflow": ["MLFLOW_BACKEND_STORE_URI"],
+                "dashboard": [], "deployments": []}
+            assert environ["deployments"]["MLFLOW_TRACKING_URI"] == urls["mlflow"]
             # from a shell without the secrets: the commands find the stack, and log through its MLflow server
             trained = sim2act("train", "--preset", "smoke", "--workspace", ws, "--set", "train.steps=2",
                               "--set", "train.seed=7", env=env)
@@ -100,5 +108,13 @@ def test_an_mlflow_server_that_does_not_answer_is_one_line_before_any_work(finis
     assert done.returncode == 2 and done.stdout == "", done.stdout
     [line] = done.stderr.strip().splitlines()
     assert line.startswith(f"sim2act: MLFLOW_TRACKING_URI={url.replace('hunter2', '***')}: no MLflow server answers"), line
-    assert "hunter2" not in line
+    assert "hunter2" not in line and "Connection refused" in line, line
+    assert sorted(p.relative_to(workspace) for p in workspace.rglob("*")) == before
+    # a stack database named, but no server to log through (the stack is down): refused, not SQLite
+    env = {**env, "MLFLOW_BACKEND_STORE_URI": "postgresql://sim2act:hunter2@127.0.0.1:1/mlflow"}
+    del env["MLFLOW_TRACKING_URI"]
+    done = sim2act("train", "--preset", "smoke", "--workspace", str(workspace), "--set", "train.steps=2", env=env)
+    assert done.returncode == 2 and done.stderr.strip() == (
+        f"sim2act: MLFLOW_BACKEND_STORE_URI names the stack's tracking database, but no MLflow server runs for "
+        f"{Workspace.at(workspace).root}: start it (`sim2act up`) or set MLFLOW_TRACKING_URI"), done.stderr
     assert sorted(p.relative_to(workspace) for p in workspace.rglob("*")) == before

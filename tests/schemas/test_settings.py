@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from schemas.settings import (SecretsFileError, apply_secrets_file, is_workspace_tracking, read_secrets_file, redacted,
-                              tracking_uri)
+from schemas.settings import SecretsFileError, apply_secrets_file, read_secrets_file, redacted, tracking_uri
 from schemas.workspace import Workspace
 
 
@@ -13,6 +12,13 @@ def _secrets(tmp_path, text: str, mode: int = 0o600):
     path = tmp_path / "secrets.env"
     path.write_text(text)
     path.chmod(mode)
+    return path
+
+
+def _binary(tmp_path):
+    path = tmp_path / "binary.env"
+    path.write_bytes(b"A=\xff\xfe\n")
+    path.chmod(0o600)
     return path
 
 
@@ -40,6 +46,12 @@ def test_a_bad_line_is_refused_by_its_number_without_showing_it(tmp_path):
     assert str(refused.value) == f"secrets file {path} line 2: expected KEY=VALUE" and "hunter2" not in str(refused.value)
     with pytest.raises(SecretsFileError, match="no such file"):
         read_secrets_file(tmp_path / "missing.env")
+    folder = tmp_path / "a-folder"
+    folder.mkdir(mode=0o700)
+    with pytest.raises(SecretsFileError, match="expected a readable UTF-8 text file, got IsADirectoryError"):
+        read_secrets_file(folder)
+    with pytest.raises(SecretsFileError, match="expected a readable UTF-8 text file, got UnicodeDecodeError"):
+        read_secrets_file(_binary(tmp_path))
 
 
 def test_the_environment_wins_over_the_file_and_only_named_files_are_read(tmp_path):
@@ -53,9 +65,9 @@ def test_the_environment_wins_over_the_file_and_only_named_files_are_read(tmp_pa
 def test_tracking_goes_to_the_workspace_unless_the_environment_names_a_store(tmp_path, monkeypatch):
     workspace = Workspace.at(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    assert tracking_uri(workspace) == f"sqlite:///{tmp_path / 'mlflow' / 'mlflow.db'}" and is_workspace_tracking(workspace)
+    assert tracking_uri(workspace) == f"sqlite:///{tmp_path / 'mlflow' / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:5000")
-    assert tracking_uri(workspace) == "http://127.0.0.1:5000" and not is_workspace_tracking(workspace)
+    assert tracking_uri(workspace) == "http://127.0.0.1:5000"
 
 
 def test_a_url_is_shown_without_its_password():

@@ -29,7 +29,7 @@ def test_the_generalist_preset_spans_the_three_families_with_capable_experts_and
     # kept: each seen task's explored steps weighted by its expert's success (the filter keeps successes)
     kept = sum(config.explore.episodes_per_task * experts.rows[t.task_id].mean_length * experts.rows[t.task_id].success_rate
                for t in tasks if t.split == "seen")
-    assert estimate.iterations == 1 and kept >= 1_000_000 and estimate.steps >= kept
+    assert estimate.iterations == 1 and kept >= 1_000_000
     assert 3e9 < estimate.bytes < 5e9  # ~2.9 KB a step at 84 px, +20%
 
 
@@ -55,7 +55,8 @@ def test_bytes_per_step_come_from_the_warehouse_once_it_has_steps(tmp_path):
     fill(workspace)
     catalog = Catalog(workspace.catalog)
     [(size, rows)] = catalog.query("SELECT sum(num_bytes), sum(num_rows) FROM shards WHERE table_name = 'steps'")
-    measured = explore_estimate(config, tasks, catalog)
+    assert not explore_estimate(config, tasks, catalog).measured_here  # another campaign's frames ('bench') do not count
+    measured = explore_estimate(config.model_copy(update={"name": "bench"}), tasks, catalog)
     assert measured.measured_here and measured.bytes_per_step == pytest.approx(size / rows)
 
 

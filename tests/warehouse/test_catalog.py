@@ -108,6 +108,8 @@ def test_sql_reads_the_warehouses_files_and_nothing_outside_it(workspace, tmp_pa
     with catalog.connect(read_only=True, confined=True) as con:
         with pytest.raises(duckdb.Error, match="configuration has been locked"):
             con.execute("SET enable_external_access = true")
+        with pytest.raises(duckdb.Error, match="file system operations are disabled"):
+            con.execute(f"ATTACH '{outside.parent / 'other.duckdb'}'")
     with pytest.raises(ValueError, match="read-only"):
         with catalog.connect(confined=True):
             pass

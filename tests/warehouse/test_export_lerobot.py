@@ -237,6 +237,8 @@ def test_refusals_write_nothing(warehouse, tmp_path):
         export_lerobot(catalog, tmp_path / "a", where="no_such_column = 1")
     with pytest.raises(ExportError, match=r"--where 'task_id = ': Parser Error"):
         export_lerobot(catalog, tmp_path / "a", where="task_id = ")
+    with pytest.raises(ExportError, match=r"file system operations are disabled"):
+        export_lerobot(catalog, tmp_path / "outside", where="task_id IN (SELECT column0 FROM read_csv('/etc/passwd'))")
     with pytest.raises(ExportError, match="no episode matches .* among the episodes the filter kept"):
         export_lerobot(catalog, tmp_path / "a", where="task_id = 'nope'")
     with pytest.raises(ExportError, match="no episode matches"):

@@ -186,6 +186,17 @@ def test_a_bad_selection_is_one_clear_error(filled):
         select_rows(Catalog(filled.catalog), "no_such_column > 1")
 
 
+def test_a_selection_reads_the_warehouse_and_no_other_file(filled):
+    """train.where arrives from configs and the Prefect form: SQL that could read any file otherwise."""
+    from warehouse.training_reader import check_where
+
+    outside = "task_id IN (SELECT column0 FROM read_csv('/etc/passwd'))"
+    for refuse in (lambda: check_where(outside), lambda: select_rows(Catalog(filled.catalog), outside)):
+        with pytest.raises(SelectionError, match="file system operations are disabled"):
+            refuse()
+    assert select_rows(Catalog(filled.catalog), "task_id IN (SELECT task_id FROM tasks)")  # the catalog's own: fine
+
+
 WRITER = """
 import sys
 from schemas.workspace import Workspace
