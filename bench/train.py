@@ -24,6 +24,7 @@ import json
 import os
 import shutil
 import statistics
+import itertools
 import tempfile
 import time
 from pathlib import Path
@@ -223,8 +224,13 @@ def run_in_memory(source: Workspace, dataset: IndexResult, sizes: TrainSizes, st
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(0)
     action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
-    rows = dataset.selection.kept_steps(catalog, list(COLUMNS), cfg.where).to_pylist()
-    collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets, state_norm)
+    rows = dataset.selection.kept_steps(catalog, [*COLUMNS, "episode_id"], cfg.where).to_pylist()  # in step order
+    chunk = cfg.model.chunk
+    if chunk > 1:  # as the stage's reader attaches them: this step's action and the next chunk-1 of its episode
+        for i, row in enumerate(rows):
+            ahead = list(itertools.takewhile(lambda r: r["episode_id"] == row["episode_id"], rows[i:i + chunk]))
+            row["action_chunk"], row["expert_chunk"] = [r["action"] for r in ahead], [r["expert_action"] for r in ahead]
+    collate = TrainingCollate(action_norm, proprio_norm, _embeddings(), cfg.targets, state_norm, chunk=chunk)
     order = np.random.default_rng(0).permutation(len(rows))
     batches = [default_convert(collate([rows[i] for i in order[first : first + cfg.batch_size]]))
                for first in range(0, len(rows), cfg.batch_size)]
