@@ -5,14 +5,17 @@ the explorer the next iteration uses: the champion, new or kept."""
 from __future__ import annotations
 
 import logging
+import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from mlflow import MlflowClient
 
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
-from schemas.settings import tracking_uri
+from schemas.settings import TRACKING_URI_ENV, tracking_uri
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Promotion
@@ -93,14 +96,34 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
 
     example = input_example(catalog, config.name)
     signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
-    mlflow.set_tracking_uri(tracking_uri(workspace))
-    with mlflow.start_run(run_id=mlflow_run_id):
+    with _fluent_tracking(tracking_uri(workspace)), mlflow.start_run(run_id=mlflow_run_id):
         info = mlflow.pyfunc.log_model(
             name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
             signature=signature, input_example=example, pip_requirements=["sim2act", "torch==2.13.0"],
         )
-    return int(mlflow.register_model(info.model_uri, config.registered_model_name,
-                                     tags={MODEL_KEY_TAG: model_key}).version)
+        return int(mlflow.register_model(info.model_uri, config.registered_model_name,
+                                         tags={MODEL_KEY_TAG: model_key}).version)
+
+
+@contextmanager
+def _fluent_tracking(uri: str) -> Iterator[None]:
+    """MLflow's fluent API (log_model, register_model) tracks one URI per process and writes it into
+    MLFLOW_TRACKING_URI, which this process's later work and every child it starts would then take for
+    the user's setting (schemas.settings.tracking_uri): another workspace's store. Set for the call,
+    then put back as it was, the variable included."""
+    import mlflow
+    from mlflow.tracking._tracking_service import utils  # the fluent API's global, restored below
+
+    before, before_env = utils._tracking_uri, os.environ.get(TRACKING_URI_ENV)
+    mlflow.set_tracking_uri(uri)
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(before)
+        if before_env is None:
+            os.environ.pop(TRACKING_URI_ENV, None)
+        else:
+            os.environ[TRACKING_URI_ENV] = before_env
 
 
 def run_redeploy(
