@@ -62,9 +62,10 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         import mlflow.artifacts
 
         target.mkdir(parents=True, exist_ok=True)
-        uri = tracking_uri(workspace)  # this workspace's registry, not MLflow's default of ./mlflow.db
-        mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target), tracking_uri=uri,
-                                            registry_uri=uri)
+        # this workspace's registry, not MLflow's default of ./mlflow.db: `models:/` URIs resolve through the
+        # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
+        with _fluent_tracking(tracking_uri(workspace)):
+            mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target))
     return PolicyExplorer(
         name=f"policy:{name}/{version}",
         model_key=model_version.tags[MODEL_KEY_TAG],
