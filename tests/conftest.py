@@ -44,6 +44,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.e2e)
 
 
+@pytest.fixture(autouse=True)
+def _mlflow_tracking_restored() -> Iterator[None]:
+    """MLflow's fluent API writes the URI it is given into MLFLOW_TRACKING_URI, which the settings read
+    as the user's choice (schemas.settings.tracking_uri): a test that calls mlflow.set_tracking_uri would
+    send every later test's runs, and the `sim2act` children they start, to its workspace (CI caught
+    four tests logging into the campaign fixture's store). Each test gets the process's setting back."""
+    from mlflow.tracking._tracking_service import utils  # the fluent API's global
+
+    before, before_env = utils._tracking_uri, os.environ.get("MLFLOW_TRACKING_URI")
+    yield
+    utils._tracking_uri = before
+    if before_env is None:
+        os.environ.pop("MLFLOW_TRACKING_URI", None)
+    else:
+        os.environ["MLFLOW_TRACKING_URI"] = before_env
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

@@ -138,11 +138,12 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
     [(promoted, decision)] = Catalog(ws.catalog).query("SELECT promoted, decision FROM deployments WHERE iteration = 1")
     champion = int(client.get_model_version_by_alias("sim2act-smoke", "champion").version)
     assert champion == (2 if promoted else 1) and "champion" in decision
-    import mlflow
     from mlflow.models import get_model_info
 
-    mlflow.set_tracking_uri(ws.tracking_uri)
-    info = get_model_info("models:/sim2act-smoke/2")
+    from stages.redeploy import _fluent_tracking  # models:/ URIs resolve through the fluent global
+
+    with _fluent_tracking(ws.tracking_uri):
+        info = get_model_info("models:/sim2act-smoke/2")
     assert info.signature.inputs.input_names() == ["image", "proprio", "instruction", "family"]
     assert info.signature.outputs.input_names() == ["action", "uncertainty"]
 
