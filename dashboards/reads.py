@@ -35,12 +35,10 @@ def _json_value(value: Any) -> Any:
 
 
 def read_rows(catalog: Catalog, sql: str, params: Mapping[str, Any] | Sequence[Any] = ()) -> Rows:
-    """A read-only query's rows as JSON-ready dicts (anything but SELECT/EXPLAIN is refused). Not confined
-    like `sim2act sql`: DuckDB applies external-access settings to the database instance that a process's
-    concurrent connections share, and the server answers requests concurrently (a locked configuration
-    then refused the next request's panel)."""
+    """A read-only query's rows as JSON-ready dicts (anything but SELECT/EXPLAIN is refused), on a
+    connection confined to the warehouse's files like `sim2act sql`'s (Catalog.connect)."""
     check_read_only(sql)
-    with catalog.connect(read_only=True) as con:
+    with catalog.connect(read_only=True, confined=True) as con:
         cursor = con.execute(sql, params if isinstance(params, Mapping) else list(params))
         columns = [d[0] for d in cursor.description]
         return Rows(columns, [dict(zip(columns, map(_json_value, row))) for row in cursor.fetchall()])

@@ -253,8 +253,22 @@ class Catalog:
         self._in_place = True
 
     def _confine(self, con: duckdb.DuckDBPyConnection) -> None:
-        """After the views exist (they name the shard files): the warehouse folder only, then lock."""
-        con.execute("SET allowed_directories = ?", [[self.warehouse.resolve().as_posix() + "/"]])
+        """After the views exist (they name the shard files): the warehouse folder only, then lock.
+
+        DuckDB keeps these settings on the database instance, which every connection a process holds
+        open to the same file shares (the dashboard answers requests concurrently): a connection that
+        finds the instance already locked checks that the lock confines it to this warehouse instead
+        of setting it again (which a locked configuration refuses)."""
+        folder = self.warehouse.resolve().as_posix() + "/"
+        [(locked, external, allowed)] = con.execute(
+            "SELECT current_setting('lock_configuration'), current_setting('enable_external_access'), "
+            "current_setting('allowed_directories')").fetchall()
+        if locked:
+            if external or folder not in allowed:
+                raise RuntimeError(f"expected this process's DuckDB instance confined to {folder}, "
+                                   f"got a locked configuration allowing {allowed} (external access {external})")
+            return
+        con.execute("SET allowed_directories = ?", [[folder]])
         con.execute("SET enable_external_access = false")
         con.execute("SET lock_configuration = true")
 

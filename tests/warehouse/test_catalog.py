@@ -113,6 +113,17 @@ def test_sql_reads_the_warehouses_files_and_nothing_outside_it(workspace, tmp_pa
     with pytest.raises(ValueError, match="read-only"):
         with catalog.connect(confined=True):
             pass
+    # concurrent connections of one process share DuckDB's instance and its locked settings (the dashboard
+    # answers requests concurrently): the second one is confined too, and answers
+    with catalog.connect(read_only=True, confined=True) as first, catalog.connect(read_only=True, confined=True) as second:
+        assert first.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(4,)]
+        assert second.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(4,)]
+        with pytest.raises(duckdb.Error, match="file system operations are disabled"):
+            second.execute("SELECT * FROM read_csv('/etc/passwd')")
+    from dashboards.reads import read_rows
+    assert read_rows(catalog, "SELECT count(*) AS n FROM filter_decisions").rows == [{"n": 4}]
+    with pytest.raises(duckdb.Error, match="file system operations are disabled"):
+        read_rows(catalog, "SELECT * FROM read_csv('/etc/passwd')")
 
 
 def test_sql_formats(workspace):
