@@ -31,7 +31,7 @@ from stages.explore import ExploreResult, PolicyExplorer, run_explore
 from stages.filter import FilterResult, run_filter
 from stages.generate_tasks import TasksResult, run_generate_tasks
 from stages.index import IndexResult, run_index
-from stages.redeploy import RedeployResult, finished_iterations, run_redeploy
+from stages.redeploy import RedeployResult, continued, run_redeploy
 from stages.train import TrainResult, run_train
 from warehouse.catalog import Catalog
 from warehouse.tasks import load_embeddings, load_tasks
@@ -213,7 +213,7 @@ def _run_campaign(config: CampaignConfig, ws: Workspace, continue_campaign: bool
     catalog = Catalog(ws.catalog)
     catalog.initialise()
     if continue_campaign:
-        config = config.model_copy(update={"iterations": max(config.iterations, finished_iterations(ws, config.name) + 1)})
+        config = continued(config, ws)
         log.info("continuing campaign %s: iterations 0..%d", config.name, config.iterations - 1)
     orphans = catalog.clean_orphans()
     if orphans:

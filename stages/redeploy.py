@@ -46,6 +46,13 @@ def finished_iterations(workspace: Workspace, campaign: str) -> int:
     return count
 
 
+def continued(config: CampaignConfig, workspace: Workspace) -> CampaignConfig:
+    """The campaign `--continue` runs: one iteration past its latest finished one, and at least its
+    configured iterations (the nightly deployment and `sim2act run --continue` share this)."""
+    iterations = max(config.iterations, finished_iterations(workspace, config.name) + 1)
+    return config.model_copy(update={"iterations": iterations})
+
+
 def _registered_version(client: MlflowClient, name: str, model_key: str) -> int | None:
     """A version already made for this model (a run killed after registering, before the catalog row)."""
     for version in client.search_model_versions(f"name = '{name}'"):

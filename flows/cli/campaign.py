@@ -24,10 +24,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     workspace, catalog = open_catalog(args)
     to_explore = config
     if args.continue_campaign and catalog.path.exists():  # as bootstrap continues it: one iteration more
-        from stages.redeploy import finished_iterations
+        from stages.redeploy import continued
 
-        to_explore = config.model_copy(update={"iterations": max(config.iterations,
-                                                                 finished_iterations(workspace, config.name) + 1)})
+        to_explore = continued(config, workspace)
     estimate = check_disk(workspace.root, to_explore, tasks, catalog)  # a campaign the disk cannot hold: one line
     configure_environment(workspace)
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
