@@ -71,7 +71,9 @@ def register_explore_unit(workspace: Workspace, key: str, *, campaign: str = "be
                           seed: int = 0, **sizes) -> bool:
     """Write one synthetic unit's shards and register them as an explore unit (False: already was)."""
     tables = explore_unit(key, campaign=campaign, iteration=iteration, seed=seed, **sizes)
-    shards = [write_shard(name, table, workspace.shard_path(name, iteration, key)) for name, table in tables.items()]
-    return Catalog(workspace.catalog).register_unit(
+    catalog = Catalog(workspace.catalog)
+    shards = [write_shard(name, table, workspace.shard_path(name, iteration, key), catalog.store)
+              for name, table in tables.items()]
+    return catalog.register_unit(
         unit_key=key, stage="explore", campaign=campaign, iteration=iteration, summary={}, shards=shards
     )

@@ -31,6 +31,7 @@ from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
 from warehouse.priority import TaskPriority, plan_priorities
 from warehouse.shard_writer import ShardFile, write_shard
+from warehouse.store import FOLDER, open_store
 
 STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a hand already at the object
 EXPERT, VLM = "expert", "vlm"
@@ -73,6 +74,9 @@ class ExploreUnit(BaseModel):
     # instruction -> embedding, only the few this unit's episodes say (small vectors)
     embeddings: dict[str, list[float]]
     relabel_to: list[TaskRecord] = []  # explore.relabel: the seen tasks a failed episode may have done instead
+    # where the warehouse keeps shards (warehouse/store.py; not part of the key): a worker, which has no
+    # catalog, writes there with the credentials of its own environment
+    shard_store: str = FOLDER
 
 
 class ExploreResult(StageResult):
@@ -266,11 +270,12 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             }
         )
     workspace = Workspace.at(unit.workspace)
+    store = open_store(workspace.warehouse, unit.shard_store)
     return [
         write_shard("episodes", pa.Table.from_pylist(episode_rows, schema=EPISODES),
-                    workspace.shard_path("episodes", unit.iteration, unit.unit_key)),
+                    workspace.shard_path("episodes", unit.iteration, unit.unit_key), store),
         write_shard("steps", pa.Table.from_pylist(step_rows, schema=STEPS),
-                    workspace.shard_path("steps", unit.iteration, unit.unit_key)),
+                    workspace.shard_path("steps", unit.iteration, unit.unit_key), store),
     ]
 
 
@@ -328,6 +333,7 @@ def run_explore(
                            f" ({p.success:.0%}, {p.uncertainty:.2f} -> {p.score:.2f})") for p in priorities))
     episodes_of = {p.task_id: p.episodes for p in priorities} if priorities else None
     units = plan_explore(config, iteration, tasks, policy, embeddings, workspace, episodes_of, curriculum_subgoals(config, tasks))
+    units = [u.model_copy(update={"shard_store": catalog.store.url}) for u in units]
     keys = [u.unit_key for u in units]
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(keys))

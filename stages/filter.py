@@ -122,9 +122,9 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
         started = time.monotonic()
         [(episodes_path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
         [(steps_path, _)] = catalog.shard_paths("steps", "unit_key = ?", [explore_key])
-        steps = _steps_by_episode(read_shard("steps", steps_path, STEP_COLUMNS))
+        steps = _steps_by_episode(read_shard("steps", steps_path, STEP_COLUMNS, catalog.store))
         decisions = []
-        for episode in read_shard("episodes", episodes_path).to_pylist():
+        for episode in read_shard("episodes", episodes_path, store=catalog.store).to_pylist():
             bounds = action_bounds(families[episode["task_id"]])
             facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size,
                                   config.render.depth)
@@ -142,7 +142,7 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
             )
         shard = write_shard(
             "filter_decisions", pa.Table.from_pylist(decisions, schema=FILTER_DECISIONS),
-            workspace.shard_path("filter_decisions", iteration, key),
+            workspace.shard_path("filter_decisions", iteration, key), catalog.store,
         )
         units.register(key, UnitOutput(dict(Counter(d["reason"] for d in decisions)), [shard]),
                        time.monotonic() - started)

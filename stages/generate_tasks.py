@@ -86,7 +86,7 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
                 },
                 schema=INSTRUCTIONS,
             ),
-            workspace.shard_path("instructions", 0, key),
+            workspace.shard_path("instructions", 0, key), catalog.store,
         )
         summary = {"tasks": len(proposed), "instructions": len(pairs),
                    **({"proposals": proposals.model_dump(exclude={"tasks"})} if proposals else {})}

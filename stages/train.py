@@ -12,7 +12,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -471,7 +470,7 @@ def run_train(
     action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
     if source is not None:  # the source's heads speak in its own units
         action_norm, proprio_norm = Normaliser(*source["action"]), Normaliser(*source["proprio"])
-    shards_read = sorted({Path(r.path).relative_to(catalog.warehouse).as_posix() for r in rows})
+    shards_read = sorted({catalog.store.rel_of(r.path) for r in rows})
     frozen_language = not cfg.model.language_trainable
     rewordings = None
     if cfg.language_augment > 0:
@@ -480,7 +479,7 @@ def run_train(
         rows, cfg.batch_size, cfg.shuffle_buffer, 0, 1, cfg.loader_workers,  # seeded per member; epochs set below
         TrainingCollate(action_norm, proprio_norm, embeddings if frozen_language else None, cfg.targets, state_norm,
                         cfg.model.chunk, rewordings, cfg.language_augment),
-        chunk=cfg.model.chunk,
+        chunk=cfg.model.chunk, store=catalog.store,
     )
     batches.epochs = training_epochs(cfg, batches.batches_per_epoch)
     samples, steps_per_member = batches.rows_per_epoch, batches.epochs * batches.batches_per_epoch

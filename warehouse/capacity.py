@@ -20,6 +20,7 @@ from schemas.errors import Sim2ActError
 from schemas.experts import ExpertTable, load_expert_table
 from schemas.tasks import TaskRecord
 from warehouse.catalog import Catalog
+from warehouse.store import FOLDER
 
 # Bytes per steps row at 84 px RGB (zstd level 3), measured 2026-11-26: 2,855 (quality campaign, Lift,
 # 5,848 rows) and 2,867 (smoke, Lift and Stack, 1,086 rows). Nearly all of it is the frame.
@@ -77,6 +78,8 @@ def check_disk(root: Path, config: CampaignConfig, tasks: list[TaskRecord], cata
         InsufficientDisk: the estimate exceeds the free space; the line says both and what to change.
     """
     estimate = explore_estimate(config, tasks, catalog)
+    if catalog is not None and catalog.store.url != FOLDER:
+        return estimate  # shards go to an object store: this disk holds only the catalog
     where = root
     while not where.exists():
         where = where.parent

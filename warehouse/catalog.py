@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import shutil
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -24,9 +23,11 @@ from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
 from schemas.version import SCHEMA_VERSION
-from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, sha256_of
+from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard
+from warehouse.store import FOLDER, ShardStore, open_store
 
 LOCK_WAIT_S = 120.0
+_RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its recorded store: fixed once it exists
 
 
 class CatalogMissing(Sim2ActError, FileNotFoundError):
@@ -69,10 +70,42 @@ class Catalog:
         self.path = path
         self.warehouse = path.parent
         self._in_place = False  # the shard views were seen pointing at this folder: no need to look again
+        self._store: ShardStore | None = None
+
+    @property
+    def store(self) -> ShardStore:
+        """Where this warehouse's shards live (warehouse/store.py): the store its catalog recorded when
+        it was created; a new catalog takes SIM2ACT_SHARD_STORE's, else the folder."""
+        if self._store is None:
+            self._store = open_store(self.warehouse, self._recorded_store())
+        return self._store
+
+    def _recorded_store(self) -> str | None:
+        """The catalog's record (a catalog older than the record keeps its shards in the folder); None
+        before the catalog exists. Read on a connection of its own, before connect() opens another."""
+        if not self.path.exists():
+            return None
+        key = (self.path.resolve(), self.path.stat().st_ino)  # a catalog made anew at the same path is another
+        if key in _RECORDED_STORES:
+            return _RECORDED_STORES[key]
+        con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(duckdb.connect, str(self.path), read_only=True)
+        try:
+            if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
+                return None  # created, not initialised yet
+            row = con.execute("SELECT value FROM catalog_meta WHERE key = 'shard_store'").fetchone()
+        finally:
+            con.close()
+        _RECORDED_STORES[key] = row[0] if row else FOLDER
+        return _RECORDED_STORES[key]
 
     @property
     def quarantine_folder(self) -> Path:
         return self.warehouse / "quarantine"
+
+    @property
+    def quarantine_location(self) -> str:
+        """Where quarantined shards go: the folder, or the store's quarantine/ prefix."""
+        return self.store.location("quarantine")
 
     @contextmanager
     def connect(self, read_only: bool = False, as_of_iteration: int | None = None,
@@ -89,10 +122,12 @@ class Catalog:
             raise ValueError("a confined connection is a read-only one")
         if read_only and not self.path.exists():
             raise CatalogMissing(f"no warehouse catalog at {self.path} (run `sim2act run` first)")
+        store = self.store  # before the connection: it may read the catalog's record on one of its own
         # another process holds DuckDB's write lock for a moment: wait for it, a while at most
         con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
             duckdb.connect, str(self.path), read_only=read_only)
         try:
+            store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
             elif not self._in_place and self._moved(con):
@@ -114,6 +149,7 @@ class Catalog:
             con.execute(
                 "INSERT INTO catalog_meta VALUES ('schema_version', ?) ON CONFLICT DO NOTHING", [str(SCHEMA_VERSION)]
             )
+            con.execute("INSERT INTO catalog_meta VALUES ('shard_store', ?) ON CONFLICT DO NOTHING", [self.store.url])
             for name, schema in SHARD_TABLES.items():
                 con.register("empty_shard", pa.Table.from_batches([], schema=schema))
                 con.execute(f"CREATE TABLE IF NOT EXISTS _empty_{name} AS SELECT * FROM empty_shard")
@@ -181,9 +217,11 @@ class Catalog:
         or row is refused before anything is committed. Registering a key twice is a no-op
         and returns False.
         """
-        for shard in shards:
-            if inspect_shard(shard.table, shard.path) != shard.num_rows or sha256_of(shard.path) != shard.sha256:
-                raise ShardUnreadable(f"{shard.path}: differs from what its writer reported; not registered")
+        for shard in shards:  # in the store: an object on S3 is read back as the registrar sees it
+            if (inspect_shard(shard.table, shard.path, self.store) != shard.num_rows
+                    or self.store.sha256(self.store.rel(shard.path)) != shard.sha256):
+                raise ShardUnreadable(f"{self.store.location(self.store.rel(shard.path))}: differs from what its "
+                                      "writer reported; not registered")
         tables = {table: check_rows(table, table_rows) for table, table_rows in (rows or {}).items()}
         now = datetime.now(timezone.utc).replace(tzinfo=None)
         tables["stage_runs"] = check_rows("stage_runs", [{
@@ -224,7 +262,7 @@ class Catalog:
     def _shard_source(self, con: duckdb.DuckDBPyConnection, table: str, as_of_iteration: int | None) -> str:
         persistent = self._persistent(con)
         paths = [
-            (self.warehouse / row[0]).as_posix()
+            self.store.location(row[0])
             for row in con.execute(
                 f"SELECT path FROM {persistent}.shards WHERE table_name = ? AND (? IS NULL OR iteration <= ?) ORDER BY path",
                 [table, as_of_iteration, as_of_iteration],
@@ -259,16 +297,16 @@ class Catalog:
         open to the same file shares (the dashboard answers requests concurrently): a connection that
         finds the instance already locked checks that the lock confines it to this warehouse instead
         of setting it again (which a locked configuration refuses)."""
-        folder = self.warehouse.resolve().as_posix() + "/"
+        folders = self.store.allowed()  # the warehouse folder; an S3 store's prefix too
         [(locked, external, allowed)] = con.execute(
             "SELECT current_setting('lock_configuration'), current_setting('enable_external_access'), "
             "current_setting('allowed_directories')").fetchall()
         if locked:
-            if external or folder not in allowed:
-                raise RuntimeError(f"expected this process's DuckDB instance confined to {folder}, "
+            if external or not set(folders) <= set(allowed):
+                raise RuntimeError(f"expected this process's DuckDB instance confined to {folders}, "
                                    f"got a locked configuration allowing {allowed} (external access {external})")
             return
-        con.execute("SET allowed_directories = ?", [[folder]])
+        con.execute("SET allowed_directories = ?", [folders])
         con.execute("SET enable_external_access = false")
         con.execute("SET lock_configuration = true")
 
@@ -290,19 +328,17 @@ class Catalog:
 
     def clean_orphans(self) -> list[Path]:
         """Delete shard files (and temporaries) that no catalog row names: leftovers of a killed
-        run. Call it only where no other writer is at work on this warehouse."""
-        shards_root = self.warehouse / "shards"
-        if not shards_root.exists():
-            return []
+        run. Call it only where no other writer is at work on this warehouse. -> their paths
+        under the warehouse folder (where the store keeps them)."""
         known: set[str] = set()
         if self.path.exists():
             with self.connect(read_only=True) as con:
                 known = {row[0] for row in con.execute("SELECT path FROM shards").fetchall()}
         removed = []
-        for path in shards_root.rglob("*"):
-            if path.is_file() and path.relative_to(self.warehouse).as_posix() not in known:
-                path.unlink()
-                removed.append(path)
+        for rel in self.store.files("shards"):
+            if rel not in known:
+                self.store.delete(rel)
+                removed.append(self.warehouse / rel)
         return removed
 
     # -- corruption ------------------------------------------------------------------------
@@ -320,12 +356,12 @@ class Catalog:
             ).fetchall()
         bad = []
         for path, table, num_rows, sha in shards:
-            file = self.warehouse / path
+            where = self.store.location(path)
             try:
-                if inspect_shard(table, file) != num_rows:
-                    raise ShardUnreadable(f"{file}: {num_rows} rows registered, the file has others")
-                if full and sha256_of(file) != sha:
-                    raise ShardUnreadable(f"{file}: sha256 differs from the registered one")
+                if inspect_shard(table, self.warehouse / path, self.store) != num_rows:
+                    raise ShardUnreadable(f"{where}: {num_rows} rows registered, the file has others")
+                if full and self.store.sha256(path) != sha:
+                    raise ShardUnreadable(f"{where}: sha256 differs from the registered one")
             except (ShardUnreadable, SchemaMismatch) as exc:
                 bad.append((path, str(exc)))
         for path, reason in bad:
@@ -351,11 +387,8 @@ class Catalog:
             con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
             self._refresh_views(con, {t for _, t, _ in siblings})
         for p, _, _ in siblings:
-            source = self.warehouse / p
-            if source.exists():
-                target = self.quarantine_folder / p
-                target.parent.mkdir(parents=True, exist_ok=True)
-                shutil.move(source, target)
+            if self.store.exists(p):
+                self.store.move(p, f"quarantine/{p}")
 
     def registered_shard_in(self, message: str) -> str | None:
         """The registered shard a DuckDB error message names, if any."""

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,10 @@ import pyarrow.parquet as pq
 from schemas.errors import Sim2ActError
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
+from warehouse.store import ShardConflict, ShardStore, write_new_file
+
+__all__ = ["ShardConflict", "ShardFile", "SchemaMismatch", "ShardUnreadable", "DiskFull", "write_shard",
+           "read_shard", "inspect_shard", "check_schema", "sha256_of"]
 
 # Rows per Parquet row group: DuckDB scans row groups in parallel and is 5-10x slower per row
 # below ~5K rows; a shard of a few episodes is a single group.
@@ -32,10 +35,6 @@ class ShardUnreadable(ValueError):
     """Not a whole Parquet file: truncated, corrupt, or gone."""
 
 
-class ShardConflict(FileExistsError):
-    """Another writer already put different bytes at this shard's path."""
-
-
 class DiskFull(Sim2ActError, OSError):
     """No space left on the device a shard is written to; the message is one line naming the
     shard, its unit and what to do. An OSError, so a worker pool hands it back as itself."""
@@ -51,6 +50,7 @@ class ShardFile:
 
 
 def sha256_of(path: Path) -> str:
+    """A local file's sha256 (a shard in a store: ShardStore.sha256)."""
     digest = hashlib.sha256()
     with path.open("rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -76,25 +76,27 @@ def check_schema(table_name: str, schema: pa.Schema) -> None:
         raise SchemaMismatch(f"{table_name}: columns are out of order: {schema.names} (expected {expected.names})")
 
 
-def _open_shard(table_name: str, path: Path) -> pq.ParquetFile:
+def _open_shard(table_name: str, path: Path, store: ShardStore | None) -> pq.ParquetFile:
     """A whole Parquet file of the declared schema, opened (its footer read, no data)."""
+    where = path if store is None else store.location(store.rel(path))
     try:
-        parquet = pq.ParquetFile(path)
+        parquet = pq.ParquetFile(path if store is None else store.open(where))
     except (OSError, pa.ArrowException) as exc:
-        raise ShardUnreadable(f"{path}: not a readable Parquet file ({exc})") from None
+        raise ShardUnreadable(f"{where}: not a readable Parquet file ({exc})") from None
     check_schema(table_name, parquet.schema_arrow)
     return parquet
 
 
-def inspect_shard(table_name: str, path: Path) -> int:
-    """Check a shard file without reading its data. Returns its row count."""
-    return _open_shard(table_name, path).metadata.num_rows
+def inspect_shard(table_name: str, path: Path, store: ShardStore | None = None) -> int:
+    """Check a shard file without reading its data. Returns its row count. `path` is the shard's path
+    under the warehouse folder; with a `store`, the shard is read where the store keeps it."""
+    return _open_shard(table_name, path, store).metadata.num_rows
 
 
-def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
-    """Write `rows` as the shard `path` (zstd). Readers never see a partial file, and a file
-    already at `path` is kept when it holds the same bytes (a unit computed twice) and refused
-    otherwise."""
+def write_shard(table_name: str, rows: pa.Table, path: Path, store: ShardStore | None = None) -> ShardFile:
+    """Write `rows` as the shard `path` (zstd), in the warehouse's `store` (the file `path` without one).
+    Readers never see a partial file, and a file already at `path` is kept when it holds the same
+    bytes (a unit computed twice) and refused otherwise."""
     check_schema(table_name, rows.schema)
     rows = rows.replace_schema_metadata(
         {b"sim2act.table": table_name.encode(), b"sim2act.schema_version": str(SCHEMA_VERSION).encode()}
@@ -104,8 +106,10 @@ def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
     data = sink.getvalue()
     sha = hashlib.sha256(data).hexdigest()
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        _write_new(path, data, sha)
+        if store is None:
+            write_new_file(path, data, sha)
+        else:
+            store.put_new(store.rel(path), data, sha)
     except OSError as exc:  # a bare `[Errno 28]` names neither the shard nor what to do
         if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
@@ -116,23 +120,5 @@ def write_shard(table_name: str, rows: pa.Table, path: Path) -> ShardFile:
     return ShardFile(table_name, path, rows.num_rows, data.size, sha)
 
 
-def _write_new(path: Path, data: pa.Buffer, sha: str) -> None:
-    """`data` at `path` through a temporary file (fsynced, then linked): never partial, never over
-    other bytes."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with tmp.open("wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        try:
-            os.link(tmp, path)  # atomic, and unlike rename it never replaces what is there
-        except FileExistsError:
-            if sha256_of(path) != sha:
-                raise ShardConflict(f"{path} exists with other content; remove it if no catalog row names it")
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def read_shard(table_name: str, path: Path, columns: list[str] | None = None) -> pa.Table:
-    return _open_shard(table_name, path).read(columns=columns)
+def read_shard(table_name: str, path: Path, columns: list[str] | None = None, store: ShardStore | None = None) -> pa.Table:
+    return _open_shard(table_name, path, store).read(columns=columns)

@@ -31,6 +31,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from schemas.errors import Sim2ActError
 from schemas.frames import decode_depth, decode_frame
 from warehouse.catalog import Catalog
+from warehouse.store import ShardStore
 
 COLUMNS = ["instruction", "image", "depth", "proprio", "action", "expert_action", "qpos"]
 LOOKAHEAD_COLUMNS = ["episode_id", "action", "expert_action"]  # what a chunk's later steps are read for
@@ -61,7 +62,7 @@ def select_rows(
     the steps shards those units wrote are read."""
     with catalog.connect(read_only=True, as_of_iteration=as_of_iteration, confined=True) as con:  # `where`: a user's SQL
         paths = [
-            (catalog.warehouse / p).as_posix()
+            catalog.store.location(p)
             for (p,) in con.execute(
                 "SELECT path FROM shards WHERE table_name = 'steps' AND (?::VARCHAR[] IS NULL OR list_contains(?, unit_key)) "
                 "ORDER BY path", [units, units]).fetchall()
@@ -156,8 +157,9 @@ class StepBatches(IterableDataset):
     def __init__(
         self, ranges: list[RowRange], batch_size: int, shuffle_buffer: int, seed: int, epochs: int,
         workers: int = 0, collate: Collate = decode_rows, start_batch: int = 0, piece_rows: int = 1024,
-        chunk: int = 1,
+        chunk: int = 1, store: ShardStore | None = None,
     ):
+        self.store = store  # where the ranges' locations are read (None: local files)
         self.streams = max(1, workers)
         self.parts = partition(ranges, self.streams, piece_rows)
         rows = sum(stop - start for piece in self.parts[0] for _, start, stop in piece)
@@ -178,7 +180,7 @@ class StepBatches(IterableDataset):
     def _rows(self, path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
         """The selected rows of one file, reading only the row groups they fall in (and, for chunks,
         the look-ahead columns of the rows up to chunk-1 past them)."""
-        parquet = pq.ParquetFile(Path(path))
+        parquet = pq.ParquetFile(Path(path) if self.store is None else self.store.open(path))
         sizes = [parquet.metadata.row_group(g).num_rows for g in range(parquet.num_row_groups)]
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         for group, first in enumerate(starts[:-1]):

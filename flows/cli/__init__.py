@@ -32,6 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.command_line = " ".join(["sim2act", *argv])  # reports say the command that made them
     try:
+        from schemas.settings import apply_secrets_file
+
+        apply_secrets_file()  # every command: the shard store's keys are read by sql, export, replay as well
         return args.handler(args)
     except Sim2ActError as exc:
         print(f"sim2act: {exc.label}{exc}", file=sys.stderr)

@@ -61,7 +61,7 @@ def cmd_warehouse_verify(args: argparse.Namespace) -> int:
         print(f"quarantined {path}: {reason}")
     [(shards,)] = catalog.query("SELECT count(*) FROM shards")
     print(f"{shards} registered shard(s) verified{' (sha256 too)' if args.full else ''}, {len(bad)} quarantined "
-          f"to {catalog.quarantine_folder}; the next `sim2act run` redoes their units")
+          f"to {catalog.quarantine_location}; the next `sim2act run` redoes their units")
     return 1 if bad else 0
 
 

@@ -1,0 +1,123 @@
+"""Shards on a real S3 server (SeaweedFS on loopback, tests/s3.py): written by the same writer, registered
+by the same catalog, read by DuckDB (httpfs) and pyarrow, verified, quarantined and cleaned where they
+live; the warehouse folder holds only the catalog. Then the settings' refusals, which need no server."""
+
+from __future__ import annotations
+
+import duckdb
+import pytest
+
+from schemas.workspace import Workspace
+from tests.s3 import s3_server
+from tests.warehouse.filled import fill
+from warehouse.catalog import Catalog
+from warehouse.shard_writer import ShardConflict, write_shard
+from warehouse.sql import run_sql
+from warehouse.store import FOLDER, SHARD_STORE_ENV, ShardStoreError, canonical_url, open_store
+from warehouse.training_reader import StepBatches, select_rows
+
+COUNTS = ("SELECT (SELECT count(*) FROM steps), (SELECT count(*) FROM episodes), "
+          "(SELECT count(*) FILTER (WHERE kept) FROM filter_decisions), (SELECT count(*) FROM kept_steps)")
+
+
+@pytest.fixture(scope="module")
+def s3():
+    with s3_server(("shards",)) as server:
+        yield server
+
+
+def _filled(root, environ: dict[str, str], monkeypatch) -> Workspace:
+    for name, value in environ.items():
+        monkeypatch.setenv(name, value)
+    workspace = Workspace.at(root).create()
+    fill(workspace, iterations=2, units=2, episodes=2, steps=6)
+    return workspace
+
+
+def _batches(ranges, store) -> list[tuple]:
+    batches = StepBatches(ranges, 4, 8, seed=0, epochs=1, store=store, collate=lambda rows: {"rows": rows})
+    return sorted((row["instruction"], tuple(row["action"])) for batch in batches for row in batch["rows"])
+
+
+def _answers(catalog: Catalog) -> tuple:
+    """What a folder's warehouse and an S3 one must agree on."""
+    ranges = select_rows(catalog, "success")
+    return (catalog.query(COUNTS), catalog.query(COUNTS, as_of_iteration=0),
+            run_sql(catalog, "SELECT count(*) AS n FROM steps", "csv"), [(r.start, r.stop) for r in ranges],
+            _batches(ranges, catalog.store))
+
+
+def test_a_warehouse_on_s3_answers_as_one_in_its_folder(s3, tmp_path, monkeypatch):
+    local = Catalog(_filled(tmp_path / "folder", {}, monkeypatch).catalog)
+    assert local.store.url == FOLDER
+    expected = _answers(local)
+    on_s3 = _filled(tmp_path / "s3", s3.environ("s3://shards/lab/one"), monkeypatch)
+    catalog = Catalog(on_s3.catalog)
+    assert catalog.store.url == "s3://shards/lab/one"
+    # the shards are objects under the prefix, the same names as in a folder; the folder holds the catalog only
+    registered = [path for (path,) in catalog.query("SELECT path FROM shards ORDER BY path")]
+    assert registered and s3.keys("shards") == [f"lab/one/{path}" for path in registered]
+    assert [p.name for p in on_s3.warehouse.rglob("*") if p.is_file()] == ["catalog.duckdb"]
+    # the same counts, snapshot, sim2act sql answer, selection and training rows
+    assert _answers(catalog) == expected and expected[0][0][0] > 0
+    assert all(r.path.startswith("s3://shards/lab/one/shards/steps/") for r in select_rows(catalog, "success"))
+    # sim2act sql's confined connection reads the prefix and nothing else
+    for sql in ("SELECT * FROM read_csv('/etc/passwd')", "SELECT * FROM read_parquet('s3://shards/lab/other/x.parquet')"):
+        with pytest.raises(duckdb.Error, match="file system operations are disabled"):
+            run_sql(catalog, sql)
+
+
+def test_verify_quarantines_and_clean_orphans_deletes_objects_on_s3(s3, tmp_path, monkeypatch):
+    workspace = _filled(tmp_path, s3.environ("s3://shards/lab/two"), monkeypatch)
+    catalog = Catalog(workspace.catalog)
+    fs, root = s3.filesystem(), "shards/lab/two"
+    [(bad, unit)] = catalog.query("SELECT path, unit_key FROM shards WHERE table_name = 'steps' ORDER BY path LIMIT 1")
+    with fs.open_output_stream(f"{root}/{bad}") as out:  # bit rot: the same name, other bytes
+        out.write(b"not parquet at all")
+    stray = "shards/steps/iteration=0/killed-mid-unit.parquet"
+    with fs.open_output_stream(f"{root}/{stray}") as out:  # an unregistered leftover
+        out.write(b"half")
+    found = catalog.verify(full=True)
+    assert [path for path, _ in found] == [bad] and "not a readable Parquet file" in found[0][1]
+    assert catalog.query("SELECT count(*) FROM shards WHERE unit_key = ?", [unit]) == [(0,)]
+    keys = s3.keys("shards")
+    assert f"lab/two/quarantine/{bad}" in keys and f"lab/two/{bad}" not in keys
+    assert catalog.query("SELECT count(*) FROM steps")[0][0] > 0  # the views hold the other shards
+    assert catalog.clean_orphans() == [workspace.warehouse / stray]
+    assert f"lab/two/{stray}" not in s3.keys("shards")
+    # a unit computed twice keeps the object when the bytes agree, and refuses other bytes
+    [(path,)] = catalog.query("SELECT path FROM shards WHERE table_name = 'filter_decisions' ORDER BY path LIMIT 1")
+    again = catalog.query_arrow(f"SELECT * FROM read_parquet('{catalog.store.location(path)}')")
+    from warehouse.shard_writer import read_shard
+
+    same = read_shard("filter_decisions", workspace.warehouse / path, store=catalog.store)
+    assert write_shard("filter_decisions", same, workspace.warehouse / path, catalog.store).sha256 == \
+        catalog.query("SELECT sha256 FROM shards WHERE path = ?", [path])[0][0]
+    with pytest.raises(ShardConflict, match="exists with other content"):
+        write_shard("filter_decisions", same.slice(1), workspace.warehouse / path, catalog.store)
+    assert again.num_rows == same.num_rows
+
+
+def test_store_settings_are_refused_in_one_line(tmp_path):
+    assert canonical_url("s3://bucket/a/b/") == "s3://bucket/a/b" and canonical_url("") == FOLDER
+    with pytest.raises(ShardStoreError, match=r"expected s3://bucket/prefix .*got 'gs://x/y'"):
+        canonical_url("gs://x/y")
+    with pytest.raises(ShardStoreError, match="set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY"):
+        open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://b/p"})
+    keys = {"AWS_ACCESS_KEY_ID": "k", "AWS_SECRET_ACCESS_KEY": "s"}
+    with pytest.raises(ShardStoreError, match=r"expected folder \(where the warehouse at .* keeps its shards\), got s3://b/p"):
+        open_store(tmp_path, FOLDER, {SHARD_STORE_ENV: "s3://b/p", **keys})
+    with pytest.raises(ShardStoreError, match="expected s3://b/p .*got s3://b/q"):
+        open_store(tmp_path, "s3://b/p", {SHARD_STORE_ENV: "s3://b/q/", **keys})
+    with pytest.raises(ShardStoreError, match="AWS_ENDPOINT_URL: expected http"):
+        open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://b/p", "AWS_ENDPOINT_URL": "127.0.0.1:9000", **keys})
+    assert open_store(tmp_path, "s3://b/p", keys).url == "s3://b/p"  # the recorded store, the keys from the environment
+    # a catalog made before stores existed keeps its shards in its folder, whatever the variable says
+    workspace = Workspace.at(tmp_path / "old").create()
+    Catalog(workspace.catalog).initialise()
+    with duckdb.connect(str(workspace.catalog)) as con:
+        con.execute("DELETE FROM catalog_meta WHERE key = 'shard_store'")
+    from warehouse import catalog as catalog_module
+
+    catalog_module._RECORDED_STORES.clear()
+    assert Catalog(workspace.catalog).store.url == FOLDER

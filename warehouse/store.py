@@ -1,0 +1,295 @@
+"""Where shard files live: the warehouse folder (the default) or a prefix of an S3 bucket.
+
+The catalog names every shard by its path relative to the warehouse folder
+(`shards/steps/iteration=0/<unit>.parquet`); a store maps that name to the file or the object that
+holds it, for pyarrow (writes, footers, reads) and for DuckDB (the views' `read_parquet`). The
+catalog file itself stays a DuckDB file in the workspace of the host that registers units (the
+flow's); only shards move. A warehouse records its store when it is created, and a command told
+another one is refused: a warehouse never has shards in two places.
+
+S3: `SIM2ACT_SHARD_STORE=s3://bucket/prefix`, with the variables every S3 client reads
+(`AWS_ENDPOINT_URL` for a server other than AWS, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`,
+`AWS_REGION`), from the environment or the secrets file (schemas.settings), never a config.
+An object is whole once written (S3 has no partial objects), so the temporary name the folder store
+needs is not needed there; the registrar checks every shard's bytes before it registers the unit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import duckdb
+import pyarrow as pa
+
+from schemas.errors import Sim2ActError
+
+SHARD_STORE_ENV = "SIM2ACT_SHARD_STORE"
+FOLDER = "folder"  # the recorded name of the default store: the warehouse folder itself
+_DUCKDB_SECRET = "sim2act_shard_store"
+
+
+class ShardStoreError(Sim2ActError, ValueError):
+    """A store setting that cannot be used; one line naming the variable and what was expected."""
+
+
+class ShardConflict(FileExistsError):
+    """Another writer already put different bytes at this shard's path."""
+
+
+def sha256_of(handle: pa.NativeFile) -> str:
+    digest = hashlib.sha256()
+    for block in iter(lambda: handle.read(1 << 20), b""):
+        digest.update(block)
+    return digest.hexdigest()
+
+
+class ShardStore(ABC):
+    """A warehouse's shard files by their names relative to the warehouse folder (`rel`)."""
+
+    url: str  # what the catalog records: FOLDER or s3://bucket/prefix
+
+    def __init__(self, warehouse: Path):
+        self.warehouse = warehouse
+
+    def rel(self, path: Path | str) -> str:
+        """The name of a shard given as a path under the warehouse folder (how workspaces spell them)."""
+        path = Path(path)
+        return (path.relative_to(self.warehouse) if path.is_absolute() else path).as_posix()
+
+    @abstractmethod
+    def location(self, rel: str) -> str:
+        """What DuckDB's read_parquet reads for `rel` (and the training reader opens again)."""
+
+    def rel_of(self, location: str) -> str:
+        """The shard name a location (as read_parquet's `filename` gives it) holds."""
+        return self.rel(location)
+
+    @abstractmethod
+    def open(self, location: str) -> pa.NativeFile:
+        """A random-access reader of a location; FileNotFoundError (an OSError) when there is none."""
+
+    @abstractmethod
+    def put_new(self, rel: str, data: pa.Buffer, sha: str) -> None:
+        """`data` at `rel`, whole or not at all, never over other bytes (ShardConflict)."""
+
+    @abstractmethod
+    def exists(self, rel: str) -> bool: ...
+
+    @abstractmethod
+    def files(self, under: str) -> list[str]:
+        """Every file's rel under the folder `under` (temporaries included)."""
+
+    @abstractmethod
+    def move(self, rel: str, to_rel: str) -> None: ...
+
+    @abstractmethod
+    def delete(self, rel: str) -> None: ...
+
+    def read(self, rel: str) -> pa.NativeFile:
+        return self.open(self.location(rel))
+
+    def sha256(self, rel: str) -> str:
+        with self.read(rel) as handle:
+            return sha256_of(handle)
+
+    def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
+        """Make `con` able to read this store's locations (nothing for a folder)."""
+
+    def allowed(self) -> list[str]:
+        """The prefixes a confined DuckDB connection may read (Catalog.connect)."""
+        return [self.warehouse.resolve().as_posix() + "/"]
+
+
+class FolderStore(ShardStore):
+    """Shards as files in the warehouse folder: written to a temporary name, fsynced, then linked."""
+
+    url = FOLDER
+
+    def location(self, rel: str) -> str:
+        return (self.warehouse / rel).as_posix()
+
+    def open(self, location: str) -> pa.NativeFile:
+        return pa.OSFile(location)
+
+    def put_new(self, rel: str, data: pa.Buffer, sha: str) -> None:
+        write_new_file(self.warehouse / rel, data, sha)
+
+    def exists(self, rel: str) -> bool:
+        return (self.warehouse / rel).is_file()
+
+    def files(self, under: str) -> list[str]:
+        root = self.warehouse / under
+        return sorted(p.relative_to(self.warehouse).as_posix() for p in root.rglob("*") if p.is_file())
+
+    def move(self, rel: str, to_rel: str) -> None:
+        target = self.warehouse / to_rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(self.warehouse / rel, target)
+
+    def delete(self, rel: str) -> None:
+        (self.warehouse / rel).unlink(missing_ok=True)
+
+
+def write_new_file(path: Path, data: pa.Buffer, sha: str) -> None:
+    """`data` at `path` through a temporary file (fsynced, then linked): never partial, never over
+    other bytes."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with tmp.open("wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        try:
+            os.link(tmp, path)  # atomic, and unlike rename it never replaces what is there
+        except FileExistsError:
+            with pa.OSFile(str(path)) as there:
+                if sha256_of(there) != sha:
+                    raise ShardConflict(f"{path} exists with other content; remove it if no catalog row names it")
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+class S3Store(ShardStore):
+    """Shards as objects under s3://bucket/prefix/, through pyarrow's S3 client and DuckDB's httpfs."""
+
+    def __init__(self, warehouse: Path, url: str, environ: Mapping[str, str]):
+        super().__init__(warehouse)
+        self.url = canonical_url(url)
+        self.root = self.url.removeprefix("s3://")  # pyarrow's paths have no scheme
+        missing = [name for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY") if not environ.get(name)]
+        if missing:
+            raise ShardStoreError(f"the warehouse's shards are in {self.url}: set {' and '.join(missing)} "
+                                  "(environment or secrets file)")
+        endpoint = environ.get("AWS_ENDPOINT_URL", "")
+        scheme = urlsplit(endpoint).scheme if endpoint else "https"
+        if endpoint and (scheme not in ("http", "https") or not urlsplit(endpoint).netloc):
+            raise ShardStoreError(f"AWS_ENDPOINT_URL: expected http(s)://host:port, got {endpoint!r}")
+        self._key, self._secret = environ["AWS_ACCESS_KEY_ID"], environ["AWS_SECRET_ACCESS_KEY"]
+        self._region = environ.get("AWS_REGION") or environ.get("AWS_DEFAULT_REGION") or "us-east-1"
+        self._host, self._scheme = urlsplit(endpoint).netloc if endpoint else "", scheme
+        self._fs = None
+
+    def __getstate__(self) -> dict:  # DataLoader workers get the settings, and make their own client
+        return {**self.__dict__, "_fs": None}
+
+    @property
+    def filesystem(self):
+        if self._fs is None:
+            from pyarrow.fs import S3FileSystem
+
+            self._fs = S3FileSystem(access_key=self._key, secret_key=self._secret, region=self._region,
+                                    endpoint_override=self._host or None, scheme=self._scheme,
+                                    connect_timeout=10, request_timeout=60)
+        return self._fs
+
+    def _path(self, rel: str) -> str:
+        return f"{self.root}/{rel}"
+
+    def location(self, rel: str) -> str:
+        return f"s3://{self._path(rel)}"
+
+    def rel_of(self, location: str) -> str:
+        return location.removeprefix(f"{self.url}/")
+
+    def open(self, location: str) -> pa.NativeFile:
+        return self.filesystem.open_input_file(location.removeprefix("s3://"))
+
+    def put_new(self, rel: str, data: pa.Buffer, sha: str) -> None:
+        if self.exists(rel):  # a unit computed twice: the same bytes are kept, others refused
+            if self.sha256(rel) != sha:
+                raise ShardConflict(f"{self.location(rel)} exists with other content; remove it if no catalog row "
+                                    "names it")
+            return
+        with self.filesystem.open_output_stream(self._path(rel)) as out:  # the object appears whole, or not at all
+            out.write(data)
+
+    def exists(self, rel: str) -> bool:
+        from pyarrow.fs import FileType
+
+        return self.filesystem.get_file_info(self._path(rel)).type == FileType.File
+
+    def files(self, under: str) -> list[str]:
+        from pyarrow.fs import FileSelector, FileType
+
+        infos = self.filesystem.get_file_info(FileSelector(self._path(under), recursive=True, allow_not_found=True))
+        return sorted(i.path.removeprefix(self.root + "/") for i in infos if i.type == FileType.File)
+
+    def move(self, rel: str, to_rel: str) -> None:
+        self.filesystem.copy_file(self._path(rel), self._path(to_rel))
+        self.filesystem.delete_file(self._path(rel))
+
+    def delete(self, rel: str) -> None:
+        if self.exists(rel):
+            self.filesystem.delete_file(self._path(rel))
+
+    def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
+        """httpfs from the duckdb-extension-httpfs package (no download), and this store's key as a
+        temporary secret scoped to its prefix. A connection of a process whose DuckDB instance already
+        has them (concurrent connections share it) leaves them be."""
+        loaded = con.execute("SELECT loaded FROM duckdb_extensions() WHERE extension_name = 'httpfs'").fetchone()
+        if not (loaded and loaded[0]):
+            con.execute(f"LOAD '{_httpfs_extension()}'")
+        if con.execute("SELECT 1 FROM duckdb_secrets() WHERE name = ?", [_DUCKDB_SECRET]).fetchone():
+            return
+        quote = lambda value: "'" + value.replace("'", "''") + "'"  # noqa: E731 (CREATE SECRET takes no parameters)
+        options = {"KEY_ID": self._key, "SECRET": self._secret, "REGION": self._region, "URL_STYLE": "path",
+                   "SCOPE": self.url + "/"}
+        if self._host:
+            options["ENDPOINT"] = self._host
+        settings = ", ".join(f"{name} {quote(value)}" for name, value in options.items())
+        con.execute(f"CREATE TEMPORARY SECRET {_DUCKDB_SECRET} (TYPE s3, {settings}, "
+                    f"USE_SSL {'true' if self._scheme == 'https' else 'false'})")
+
+    def allowed(self) -> list[str]:
+        return [*super().allowed(), self.url + "/"]
+
+
+def _httpfs_extension() -> str:
+    try:
+        import duckdb_extension_httpfs
+    except ImportError:
+        raise ShardStoreError("reading shards on S3 needs DuckDB's httpfs: pip install "
+                              f"duckdb-extension-httpfs=={duckdb.__version__}") from None
+    found = sorted(Path(duckdb_extension_httpfs.__file__).parent.glob("extensions/*/httpfs.duckdb_extension"))
+    if not found:
+        raise ShardStoreError(f"no httpfs.duckdb_extension in {Path(duckdb_extension_httpfs.__file__).parent}")
+    return found[-1].as_posix()
+
+
+def canonical_url(url: str) -> str:
+    """FOLDER, or s3://bucket/prefix with no trailing slash.
+
+    Raises:
+        ShardStoreError: anything else.
+    """
+    url = url.strip()
+    if url in ("", "file", FOLDER):
+        return FOLDER
+    parts = urlsplit(url)
+    if parts.scheme != "s3" or not parts.netloc or parts.query or parts.fragment:
+        raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix (or unset: the warehouse folder), "
+                              f"got {url!r}")
+    return f"s3://{parts.netloc}/{parts.path.strip('/')}".rstrip("/")
+
+
+def open_store(warehouse: Path, recorded: str | None = None, environ: Mapping[str, str] | None = None) -> ShardStore:
+    """The store of the warehouse at `warehouse`: the one its catalog recorded (`recorded`), else the one
+    SIM2ACT_SHARD_STORE names, else the folder.
+
+    Raises:
+        ShardStoreError: the variable names another store than the recorded one; an s3 URL without its keys.
+    """
+    environ = os.environ if environ is None else environ
+    wanted = canonical_url(environ[SHARD_STORE_ENV]) if environ.get(SHARD_STORE_ENV) else None
+    url = recorded or wanted or FOLDER
+    if wanted is not None and wanted != url:
+        raise ShardStoreError(f"{SHARD_STORE_ENV}: expected {url} (where the warehouse at {warehouse} keeps "
+                              f"its shards), got {wanted}")
+    return FolderStore(warehouse) if url == FOLDER else S3Store(warehouse, url, environ)
