@@ -12,7 +12,6 @@ import json
 import logging
 from collections import Counter
 from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -231,7 +230,8 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     if unit.policy is not None:
         from policies.policy import Policy
 
-        policy = Policy.load(Path(unit.policy.checkpoint),
+        checkpoint = open_store(Workspace.at(unit.workspace).warehouse, unit.shard_store).fetch(unit.policy.checkpoint)
+        policy = Policy.load(checkpoint,
                              {text: np.asarray(vector, dtype=np.float32) for text, vector in unit.embeddings.items()})
     env = worker_env(unit.task, unit.render)
     episode_rows, step_rows = [], []

@@ -21,6 +21,7 @@ from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Promotion
 from stages.explore import PolicyExplorer
 from warehouse.catalog import Catalog
+from warehouse.store import FOLDER
 
 STAGE, VERSION = "redeploy", 2
 MODEL_KEY_TAG = "sim2act.model_key"
@@ -73,10 +74,21 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
         with _fluent_tracking(tracking_uri(workspace)):
             mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target))
+    checkpoint = str(target / "artifacts" / "policy.pt")
+    store = Catalog(workspace.catalog).store
+    if store.url != FOLDER:  # rollout workers elsewhere share no folder with this one: they read the store
+        import hashlib
+
+        import pyarrow as pa
+
+        data = Path(checkpoint).read_bytes()
+        rel = f"models/{name}/{version}/policy.pt"
+        store.put_new(rel, pa.py_buffer(data), hashlib.sha256(data).hexdigest())
+        checkpoint = store.location(rel)
     return PolicyExplorer(
         name=f"policy:{name}/{version}",
         model_key=model_version.tags[MODEL_KEY_TAG],
-        checkpoint=str(target / "artifacts" / "policy.pt"),
+        checkpoint=checkpoint,
     )
 
 

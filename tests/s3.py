@@ -24,13 +24,14 @@ from tests.conftest import _free_port
 HOST = "127.0.0.1"
 
 
-@dataclass(frozen=True)
+@dataclass
 class S3Server:
     endpoint: str  # http://127.0.0.1:<port>
     access_key: str
     secret_key: str
     log: Path
-    process: subprocess.Popen
+    command: list[str]
+    process: subprocess.Popen  # the running one: `restart` replaces it
 
     def environ(self, store_url: str) -> dict[str, str]:
         """The variables a sim2act command reads to keep its shards at `store_url` on this server."""
@@ -76,36 +77,37 @@ def s3_server(buckets: tuple[str, ...] = ("shards",)) -> Iterator[S3Server]:
     command = [_weed(), "mini", f"-dir={root / 'data'}", f"-ip={HOST}", f"-ip.bind={HOST}", *flags, "-webdav=false",
                "-admin.ui=false", f"-s3.config={config}", "-master.telemetry=false"]
     (root / "data").mkdir()
-    with log.open("w") as out:
-        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     s3_port = next(flag for flag in flags if flag.startswith("-s3.port=")).partition("=")[2]
-    server = S3Server(f"http://{HOST}:{s3_port}", access_key, secret_key, log, process)
+    server = S3Server(f"http://{HOST}:{s3_port}", access_key, secret_key, log, command, None)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            if process.poll() is not None:
-                raise RuntimeError(f"weed exited {process.returncode}: {log.read_text()[-2000:]}")
-            try:
-                fs = server.filesystem()
-                for bucket in buckets:
-                    fs.create_dir(bucket)
-                fs.get_file_info(buckets[0])
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"no S3 gateway at {server.endpoint} within 60 s: {log.read_text()[-2000:]}")
-                time.sleep(0.5)
+        start(server)
+        fs = server.filesystem()
+        for bucket in buckets:
+            fs.create_dir(bucket)
         yield server
     finally:
         stop(server)
         shutil.rmtree(root, ignore_errors=True)
 
 
+def start(server: S3Server) -> None:
+    """Start (again: same ports, same data) and wait until the gateway answers."""
+    with server.log.open("a") as out:
+        server.process = subprocess.Popen(server.command, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not healthy(server):
+        if server.process.poll() is not None:
+            raise RuntimeError(f"weed exited {server.process.returncode}: {server.log.read_text()[-2000:]}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"no S3 gateway at {server.endpoint} within 60 s: {server.log.read_text()[-2000:]}")
+        time.sleep(0.2)
+
+
 def stop(server: S3Server) -> None:
     """End the whole process group (weed mini runs its servers in one process, but be sure)."""
     import os
 
-    if server.process.poll() is None:
+    if server.process is not None and server.process.poll() is None:
         os.killpg(server.process.pid, signal.SIGTERM)
         try:
             server.process.wait(timeout=20)

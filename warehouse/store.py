@@ -17,6 +17,7 @@ needs is not needed there; the registrar checks every shard's bytes before it re
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import shutil
 from abc import ABC, abstractmethod
@@ -28,10 +29,17 @@ import duckdb
 import pyarrow as pa
 
 from schemas.errors import Sim2ActError
+from schemas.retry import retrying
 
 SHARD_STORE_ENV = "SIM2ACT_SHARD_STORE"
 FOLDER = "folder"  # the recorded name of the default store: the warehouse folder itself
 _DUCKDB_SECRET = "sim2act_shard_store"
+# An S3 server that does not answer (restarting, a network blip) is waited for this long, trying again
+# with backoff, then the command stops with one line; every unit is keyed, so the same command resumes.
+STORE_WAIT_S = 60.0
+# DuckDB's own reads of the views' objects: httpfs tries again 8 times, 0.5 s apart growing 1.5x (~25 s)
+_HTTPFS_RETRIES = {"http_retries": 8, "http_retry_wait_ms": 500, "http_retry_backoff": 1.5}
+log = logging.getLogger("sim2act.warehouse")
 
 
 class ShardStoreError(Sim2ActError, ValueError):
@@ -40,6 +48,17 @@ class ShardStoreError(Sim2ActError, ValueError):
 
 class ShardConflict(FileExistsError):
     """Another writer already put different bytes at this shard's path."""
+
+
+class ShardStoreUnreachable(Sim2ActError, OSError):
+    """The S3 server did not answer for STORE_WAIT_S; one line naming it and how to resume."""
+
+
+def _unreachable(exc: BaseException) -> bool:
+    """pyarrow's S3 client failing to reach the server (as opposed to a refusal: no such key, access denied)."""
+    text = str(exc)
+    return isinstance(exc, OSError) and any(sign in text for sign in (
+        "NETWORK_CONNECTION", "curlCode", "SERVICE_UNAVAILABLE", "SLOW_DOWN", "INTERNAL_FAILURE"))
 
 
 def sha256_of(handle: pa.NativeFile) -> str:
@@ -93,6 +112,10 @@ class ShardStore(ABC):
 
     def read(self, rel: str) -> pa.NativeFile:
         return self.open(self.location(rel))
+
+    def fetch(self, location: str) -> Path:
+        """A local file holding `location` (a worker loads the champion's checkpoint from it)."""
+        return Path(location)
 
     def sha256(self, rel: str) -> str:
         with self.read(rel) as handle:
@@ -192,14 +215,46 @@ class S3Store(ShardStore):
     def _path(self, rel: str) -> str:
         return f"{self.root}/{rel}"
 
+    def _patient(self, action, *args):
+        """`action(*args)`, tried again while the server does not answer, for STORE_WAIT_S at most."""
+        try:
+            return retrying(_unreachable, within_s=STORE_WAIT_S, wait_s=0.5, backoff_max_s=4.0, log=log,
+                            what=f"shard store {self.url}")(action, *args)
+        except OSError as exc:
+            if not _unreachable(exc):
+                raise
+            detail = str(exc).split("; Details:")[0].split(": AWS Error ")[-1]
+            raise ShardStoreUnreachable(
+                f"the shard store {self.url} ({self._host or 'AWS'}) did not answer for {STORE_WAIT_S:.0f} s "
+                f"({detail}): start it, then run the same command again to resume") from None
+
     def location(self, rel: str) -> str:
         return f"s3://{self._path(rel)}"
 
     def rel_of(self, location: str) -> str:
         return location.removeprefix(f"{self.url}/")
 
+    def fetch(self, location: str) -> Path:
+        """Downloaded once per host into ~/.cache/sim2act/objects (locations name immutable objects:
+        a model version's checkpoint), through a temporary name."""
+        cache = Path.home() / ".cache" / "sim2act" / "objects" / hashlib.sha256(location.encode()).hexdigest()[:32]
+        local = cache / location.rsplit("/", 1)[-1]
+        if not local.exists():
+            cache.mkdir(parents=True, exist_ok=True)
+            tmp = local.with_name(f".{local.name}.tmp-{os.getpid()}")
+            with self.open(location) as source, tmp.open("wb") as out:
+                for block in iter(lambda: source.read(1 << 20), b""):
+                    out.write(block)
+            tmp.replace(local)
+        return local
+
     def open(self, location: str) -> pa.NativeFile:
-        return self.filesystem.open_input_file(location.removeprefix("s3://"))
+        """The whole object, read into memory (a shard is a few MB): a server that blips mid-read is
+        waited for like any other request, never seen half-way through a footer."""
+        def whole() -> pa.Buffer:
+            with self.filesystem.open_input_file(location.removeprefix("s3://")) as handle:
+                return handle.read_buffer()
+        return pa.BufferReader(self._patient(whole))
 
     def put_new(self, rel: str, data: pa.Buffer, sha: str) -> None:
         if self.exists(rel):  # a unit computed twice: the same bytes are kept, others refused
@@ -207,27 +262,31 @@ class S3Store(ShardStore):
                 raise ShardConflict(f"{self.location(rel)} exists with other content; remove it if no catalog row "
                                     "names it")
             return
-        with self.filesystem.open_output_stream(self._path(rel)) as out:  # the object appears whole, or not at all
-            out.write(data)
+
+        def upload() -> None:
+            with self.filesystem.open_output_stream(self._path(rel)) as out:  # the object appears whole, or not at all
+                out.write(data)
+        self._patient(upload)
 
     def exists(self, rel: str) -> bool:
         from pyarrow.fs import FileType
 
-        return self.filesystem.get_file_info(self._path(rel)).type == FileType.File
+        return self._patient(self.filesystem.get_file_info, self._path(rel)).type == FileType.File
 
     def files(self, under: str) -> list[str]:
         from pyarrow.fs import FileSelector, FileType
 
-        infos = self.filesystem.get_file_info(FileSelector(self._path(under), recursive=True, allow_not_found=True))
+        selector = FileSelector(self._path(under), recursive=True, allow_not_found=True)
+        infos = self._patient(self.filesystem.get_file_info, selector)
         return sorted(i.path.removeprefix(self.root + "/") for i in infos if i.type == FileType.File)
 
     def move(self, rel: str, to_rel: str) -> None:
-        self.filesystem.copy_file(self._path(rel), self._path(to_rel))
-        self.filesystem.delete_file(self._path(rel))
+        self._patient(self.filesystem.copy_file, self._path(rel), self._path(to_rel))
+        self._patient(self.filesystem.delete_file, self._path(rel))
 
     def delete(self, rel: str) -> None:
         if self.exists(rel):
-            self.filesystem.delete_file(self._path(rel))
+            self._patient(self.filesystem.delete_file, self._path(rel))
 
     def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
         """httpfs from the duckdb-extension-httpfs package (no download), and this store's key as a
@@ -238,6 +297,8 @@ class S3Store(ShardStore):
             con.execute(f"LOAD '{_httpfs_extension()}'")
         if con.execute("SELECT 1 FROM duckdb_secrets() WHERE name = ?", [_DUCKDB_SECRET]).fetchone():
             return
+        for name, value in _HTTPFS_RETRIES.items():
+            con.execute(f"SET {name} = {value}")
         quote = lambda value: "'" + value.replace("'", "''") + "'"  # noqa: E731 (CREATE SECRET takes no parameters)
         options = {"KEY_ID": self._key, "SECRET": self._secret, "REGION": self._region, "URL_STYLE": "path",
                    "SCOPE": self.url + "/"}

@@ -1,9 +1,9 @@
-"""The stack on PostgreSQL, for real (tests/postgres.py starts one on loopback): `sim2act up` with a
-secrets file naming Prefect's and MLflow's databases; a training and an evaluation started from a
-shell that has no secrets log through the MLflow server into PostgreSQL, their artifacts proxied into
-the server's store; the deployments live in Prefect's PostgreSQL database; and the password shows in
-no file of the workspace, no command's output, no MLflow param or tag, no Prefect parameter, and no
-process's command line."""
+"""The stack on PostgreSQL and S3, for real (tests/postgres.py and tests/s3.py start them on loopback):
+`sim2act up` with a secrets file naming Prefect's and MLflow's databases and an S3 bucket for MLflow's
+artifacts; a training and an evaluation started from a shell that has no secrets log through the
+MLflow server into PostgreSQL, their artifacts proxied into the bucket; the deployments live in
+Prefect's PostgreSQL database; and neither the password nor the S3 secret key shows in any file of the
+workspace, command output, MLflow param or tag, Prefect parameter, or process command line."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from schemas.workspace import Workspace
 from tests.conftest import _free_port
 from tests.flows.test_service import get_json, post_json, sim2act
 from tests.postgres import postgres_server
+from tests.s3 import s3_server
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -27,12 +28,15 @@ def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finis
     workspace = tmp_path / "workspace"
     shutil.copytree(finished_campaign[0], workspace)
     ws = str(workspace)
-    with postgres_server(("mlflow", "prefect")) as postgres:
+    with postgres_server(("mlflow", "prefect")) as postgres, s3_server(("lab",)) as s3:
         secrets_file = tmp_path / "secrets.env"
         secrets_file.write_text(
-            "# the stack's databases (schemas/settings.py)\n"
+            "# the stack's databases (schemas/settings.py), and the bucket MLflow's server keeps artifacts in\n"
             f"PREFECT_SERVER_DATABASE_CONNECTION_URL={postgres.url('prefect', 'postgresql+asyncpg')}\n"
-            f"MLFLOW_BACKEND_STORE_URI='{postgres.url('mlflow')}'\n")
+            f"MLFLOW_BACKEND_STORE_URI='{postgres.url('mlflow')}'\n"
+            "MLFLOW_ARTIFACTS_DESTINATION=s3://lab/mlflow\n"
+            f"MLFLOW_S3_ENDPOINT_URL={s3.endpoint}\nAWS_ACCESS_KEY_ID={s3.access_key}\n"
+            f"AWS_SECRET_ACCESS_KEY={s3.secret_key}\n")
         secrets_file.chmod(0o644)
         env = {k: v for k, v in os.environ.items() if not k.startswith(("PREFECT_API", "MLFLOW_TRACKING"))}
         refused = sim2act("up", "--workspace", ws, env={**env, "SIM2ACT_SECRETS_FILE": str(secrets_file)})
@@ -74,24 +78,26 @@ def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finis
             assert [name for name in runs if name.startswith("eval ")] and set(runs.values()) <= {"RUNNING", "FINISHED"}
             [(metric_count,)] = postgres.query("mlflow", "SELECT count(*) FROM metrics WHERE key LIKE 'train.%'")
             assert metric_count > 0
-            # ... their artifacts went through the server into its store (the workspace's folder by default)
+            # ... their artifacts went through the server into its store: the bucket
             [(location,)] = postgres.query("mlflow", "SELECT artifact_location FROM experiments WHERE name = 'sim2act'")
             assert location.startswith("mlflow-artifacts:"), location
             [(eval_run,)] = postgres.query("mlflow", "SELECT run_uuid FROM runs WHERE name LIKE 'eval %'")
-            assert list(Workspace.at(workspace).artifact_root.glob(f"*/{eval_run}/artifacts/evaluation/*/seen/*.mp4"))
+            videos = [key for key in s3.keys("lab") if f"/{eval_run}/artifacts/evaluation/" in key and "/seen/" in key]
+            assert videos and all(key.startswith("mlflow/") and key.endswith(".mp4") for key in videos), s3.keys("lab")
+            assert not list(Workspace.at(workspace).artifact_root.glob(f"*/{eval_run}"))
             # Prefect's deployments are in its PostgreSQL database
             assert {"nightly", "on-demand"} <= {name for (name,) in postgres.query("prefect", "SELECT name FROM deployment")}
             nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
 
             # the password: in none of what the stack and the commands wrote, logged or showed
-            secret = postgres.password
-            assert not [out for out in outputs if secret in out]
-            assert not [p for p in workspace.rglob("*") if p.is_file() and secret.encode() in p.read_bytes()]
             searched = post_json(f"{urls['mlflow']}/api/2.0/mlflow/runs/search",
                                  {"experiment_ids": [str(i) for i in range(0, 5)], "max_results": 500})[1]
             assert len(searched["runs"]) == len(runs)
-            assert secret not in str(searched) and secret not in str(nightly)
-            assert not [p.pid for p in psutil.process_iter(["cmdline"]) if secret in " ".join(p.info["cmdline"] or [])]
+            for secret in (postgres.password, s3.secret_key):
+                assert not [out for out in outputs if secret in out]
+                assert not [p for p in workspace.rglob("*") if p.is_file() and secret.encode() in p.read_bytes()]
+                assert secret not in str(searched) and secret not in str(nightly)
+                assert not [p.pid for p in psutil.process_iter(["cmdline"]) if secret in " ".join(p.info["cmdline"] or [])]
         finally:
             stopped = sim2act("down", "--workspace", ws, env=env)
             assert stopped.returncode == 0, stopped.stderr

@@ -132,3 +132,75 @@ def test_only_a_dead_worker_earns_a_shard_a_retry():
     assert _worker_died(None, None, Failed(data=WorkerLost("worker 1 died (killed by SIGKILL)")))
     assert not _worker_died(None, None, Failed(data=UnitFailed("lift-red shard 0 failed: OSError: disk full")))
     assert not _worker_died(None, None, Failed(data=PoolClosed("the pool was closed")))
+
+
+def test_two_hosts_sharing_no_folder_explore_into_s3_and_a_killed_host_costs_only_its_retried_shards(
+        reference, tmp_path, monkeypatch):
+    """The drill of docs/scale-out.md at small size: a Dask scheduler and one worker per "host" (its own
+    working folder and HOME, none of them the flow's workspace), shards on a real S3 server. Host B's
+    worker is SIGKILLed once it holds a shard, and the object store is down for 3 s mid-run: the
+    shards end byte-identical to the uninterrupted local run, the workspace holds only the catalog."""
+    import subprocess
+    import sys
+
+    from dask.distributed import Client
+
+    from tests.conftest import _free_port
+    from tests.s3 import s3_server, start, stop
+
+    dask = str(os.path.join(os.path.dirname(sys.executable), "dask"))
+    expected = shard_bytes(reference[0])  # (read before the environment names a store the reference lacks)
+    with s3_server(("lab",)) as s3:
+        for name, value in s3.environ("s3://lab/drill").items():  # the flow's host: it registers the units
+            monkeypatch.setenv(name, value)
+        port = _free_port()
+        processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                                    "--no-dashboard"], cwd=tmp_path, start_new_session=True,
+                                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)}
+        address = f"tcp://127.0.0.1:{port}"
+        hosts = {name: tmp_path / name for name in ("host-a", "host-b")}
+        for name, root in hosts.items():
+            (root / "home").mkdir(parents=True)
+            env = {k: v for k, v in os.environ.items() if k not in ("SIM2ACT_SHARD_STORE", "PWD")}
+            env.update(HOME=str(root / "home"), PYTHONPATH=os.pathsep.join(sys.path))  # the keys, not the store: units name it
+            processes[name] = subprocess.Popen(
+                [dask, "worker", address, "--nthreads", "1", "--nworkers", "1", "--no-nanny", "--name", name,
+                 "--no-dashboard", "--local-directory", str(root / "dask")], cwd=root, env=env, start_new_session=True,
+                stdout=(root / "worker.log").open("w"), stderr=subprocess.STDOUT)
+        try:
+            with Client(address, timeout=60) as client:
+                client.wait_for_workers(2, timeout=120)
+                names = {info["name"]: addr for addr, info in client.scheduler_info()["workers"].items()}
+                workspace = tmp_path / "flow-host" / "workspace"
+                config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(update={"dask_address": address})})
+                outcome, here = {}, contextvars.copy_context()
+                began = time.monotonic()
+                run = threading.Thread(target=lambda: outcome.update(result=here.run(explore, workspace, config)))
+                run.start()
+                deadline = time.monotonic() + 120
+                while not client.processing().get(names["host-b"]):
+                    assert run.is_alive() and time.monotonic() < deadline, "host B was never given a shard"
+                    time.sleep(0.05)
+                held = list(client.processing()[names["host-b"]])
+                os.killpg(processes["host-b"].pid, signal.SIGKILL)  # host B is gone, mid-explore
+                killed_at = time.monotonic() - began
+                stop(s3)  # and the object store, for 3 s
+                threading.Timer(3.0, start, [s3]).start()
+                run.join(timeout=400)
+                assert not run.is_alive()
+                wall = time.monotonic() - began
+        finally:
+            for process in processes.values():
+                if process.poll() is None:
+                    os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+        result, flow_run_id = outcome["result"]
+        assert result.episodes == 8 and held
+        assert shard_bytes(workspace) == expected  # the same rows, the same bytes
+        catalog = Catalog(Workspace.at(workspace).catalog)
+        assert sorted(key.removeprefix("drill/") for key in s3.keys("lab")) == sorted(shard_bytes(workspace))
+        assert [p.name for p in (workspace / "warehouse").rglob("*") if p.is_file()] == ["catalog.duckdb"]
+        assert catalog.store.url == "s3://lab/drill"
+        assert all(states[-1] == "Completed" for _, states in shard_task_runs(flow_run_id))
+        print(f"two-host drill: host B killed at {killed_at:.1f} s holding {len(held)} shard(s), the store down 3 s; "
+              f"8 episodes in {wall:.1f} s")

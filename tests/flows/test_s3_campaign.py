@@ -49,7 +49,10 @@ def test_a_smoke_campaign_keeps_its_shards_on_s3_and_every_reader_follows(tmp_pa
         registered = [path for (path,) in catalog.query("SELECT path FROM shards ORDER BY path")]
         assert {table for (table,) in catalog.query("SELECT DISTINCT table_name FROM shards")} == {
             "instructions", "episodes", "steps", "filter_decisions"}
-        assert s3.keys("lab") == [f"sim2act/{path}" for path in registered]
+        assert [key for key in s3.keys("lab") if key.startswith("sim2act/shards/")] == [f"sim2act/{path}" for path in registered]
+        # iteration 1's rollout workers read the champion's checkpoint from the store, not the flow's folder
+        assert "sim2act/models/sim2act-smoke/1/policy.pt" in s3.keys("lab")
+        assert catalog.query("SELECT count(*) FROM episodes WHERE explorer LIKE 'policy:%'")[0][0] > 0
         assert not [p for p in (workspace / "warehouse").rglob("*.parquet")]
 
         [(steps, steps_0, episodes)] = catalog.query(

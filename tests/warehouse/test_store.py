@@ -121,3 +121,33 @@ def test_store_settings_are_refused_in_one_line(tmp_path):
 
     catalog_module._RECORDED_STORES.clear()
     assert Catalog(workspace.catalog).store.url == FOLDER
+
+
+def test_a_store_that_restarts_is_waited_for_and_one_that_stays_down_is_one_line(s3, tmp_path, monkeypatch):
+    import hashlib
+    import threading
+    import time
+
+    import pyarrow as pa
+
+    from tests.s3 import start, stop
+    from warehouse import store as store_module
+    from warehouse.store import ShardStoreUnreachable
+
+    store = open_store(tmp_path, None, s3.environ("s3://shards/blip"))
+    data = b"a shard's bytes" * 100
+    stop(s3)  # killed; back in 3 s on the same ports and data
+    threading.Timer(3.0, start, [s3]).start()
+    began = time.monotonic()
+    store.put_new("shards/a.bin", pa.py_buffer(data), hashlib.sha256(data).hexdigest())
+    assert 2.5 < time.monotonic() - began < store_module.STORE_WAIT_S
+    assert store.exists("shards/a.bin") and store.sha256("shards/a.bin") == hashlib.sha256(data).hexdigest()
+    monkeypatch.setattr(store_module, "STORE_WAIT_S", 2.0)
+    stop(s3)
+    try:
+        with pytest.raises(ShardStoreUnreachable, match=r"^the shard store s3://shards/blip \(127\.0\.0\.1:\d+\) did not "
+                           r"answer for 2 s \(.*Could not connect to server\): start it, then run the same command "
+                           r"again to resume$"):
+            store.exists("shards/a.bin")
+    finally:
+        start(s3)
