@@ -16,6 +16,7 @@ import pytest
 
 from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, _free_port, sim2act_env
+from tests.flows.test_service import post_json
 from tests.s3 import s3_server
 from warehouse.catalog import Catalog
 
@@ -102,3 +103,9 @@ def test_a_smoke_campaign_keeps_its_shards_on_s3_and_every_reader_follows(tmp_pa
         with sqlite3.connect(Workspace.at(workspace).tracking_uri.removeprefix("sqlite:///")) as mlflow_db:
             for table in ("params", "tags"):
                 assert not mlflow_db.execute(f"SELECT key FROM {table} WHERE value LIKE ?", [f"%{secret}%"]).fetchall()
+        # ... nor in Prefect's flow runs (their parameters) or the log lines the flow sent it
+        status, runs = post_json(f"{prefect_api}/flow_runs/filter", {"flow_runs": {"name": {"like_": "smoke"}}})
+        assert status == 200 and runs and secret not in json.dumps(runs)
+        status, logs = post_json(f"{prefect_api}/logs/filter", {"logs": {"flow_run_id": {"any_": [r["id"] for r in runs]}},
+                                                               "limit": 200})
+        assert status == 200 and logs and secret not in json.dumps(logs)
