@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -27,6 +28,7 @@ from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, i
 from warehouse.store import FOLDER, ShardStore, open_store
 
 LOCK_WAIT_S = 120.0
+_CONFINING = threading.Lock()  # Catalog._confine: DuckDB's settings belong to the instance threads share
 _RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its recorded store: fixed once it exists
 
 
@@ -298,17 +300,18 @@ class Catalog:
         finds the instance already locked checks that the lock confines it to this warehouse instead
         of setting it again (which a locked configuration refuses)."""
         folders = self.store.allowed()  # the warehouse folder; an S3 store's prefix too
-        [(locked, external, allowed)] = con.execute(
-            "SELECT current_setting('lock_configuration'), current_setting('enable_external_access'), "
-            "current_setting('allowed_directories')").fetchall()
-        if locked:
-            if external or not set(folders) <= set(allowed):
-                raise RuntimeError(f"expected this process's DuckDB instance confined to {folders}, "
-                                   f"got a locked configuration allowing {allowed} (external access {external})")
-            return
-        con.execute("SET allowed_directories = ?", [folders])
-        con.execute("SET enable_external_access = false")
-        con.execute("SET lock_configuration = true")
+        with _CONFINING:  # two threads that both found it unlocked would both set it: the second is refused
+            [(locked, external, allowed)] = con.execute(
+                "SELECT current_setting('lock_configuration'), current_setting('enable_external_access'), "
+                "current_setting('allowed_directories')").fetchall()
+            if locked:
+                if external or not set(folders) <= set(allowed):
+                    raise RuntimeError(f"expected this process's DuckDB instance confined to {folders}, "
+                                       f"got a locked configuration allowing {allowed} (external access {external})")
+                return
+            con.execute("SET allowed_directories = ?", [folders])
+            con.execute("SET enable_external_access = false")
+            con.execute("SET lock_configuration = true")
 
     def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.

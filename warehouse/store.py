@@ -20,6 +20,7 @@ import hashlib
 import logging
 import os
 import shutil
+import threading
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
@@ -40,6 +41,7 @@ STORE_WAIT_S = 60.0
 # DuckDB's own reads of the views' objects: httpfs tries again 8 times, 0.5 s apart growing 1.5x (~25 s)
 _HTTPFS_RETRIES = {"http_retries": 8, "http_retry_wait_ms": 500, "http_retry_backoff": 1.5}
 log = logging.getLogger("sim2act.warehouse")
+_PREPARING = threading.Lock()
 
 
 class ShardStoreError(Sim2ActError, ValueError):
@@ -292,6 +294,10 @@ class S3Store(ShardStore):
         """httpfs from the duckdb-extension-httpfs package (no download), and this store's key as a
         temporary secret scoped to its prefix. A connection of a process whose DuckDB instance already
         has them (concurrent connections share it) leaves them be."""
+        with _PREPARING:  # the instance's extensions, settings and secrets are shared by the process's threads
+            self._prepare(con)
+
+    def _prepare(self, con: duckdb.DuckDBPyConnection) -> None:
         loaded = con.execute("SELECT loaded FROM duckdb_extensions() WHERE extension_name = 'httpfs'").fetchone()
         if not (loaded and loaded[0]):
             con.execute(f"LOAD '{_httpfs_extension()}'")
