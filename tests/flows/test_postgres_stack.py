@@ -1,14 +1,17 @@
-"""The stack on PostgreSQL and S3, for real (tests/postgres.py and tests/s3.py start them on loopback):
-`sim2act up` with a secrets file naming Prefect's and MLflow's databases and an S3 bucket for MLflow's
-artifacts; a training and an evaluation started from a shell that has no secrets log through the
-MLflow server into PostgreSQL, their artifacts proxied into the bucket; the deployments live in
-Prefect's PostgreSQL database; and neither the password nor the S3 secret key shows in any file of the
-workspace, command output, MLflow param or tag, Prefect parameter, or process command line."""
+"""The whole topology of docs/scale-out.md, for real, on loopback: PostgreSQL for Prefect's and MLflow's
+databases (tests/postgres.py), a SeaweedFS S3 server (tests/s3.py) for MLflow's artifacts and the
+warehouse's shards. `sim2act up` reads the databases and keys from a secrets file; a smoke campaign
+started from a shell holding only the object store's keys runs through the stack: its flow runs in
+Prefect's PostgreSQL, its runs and metrics in MLflow's, its videos in the bucket, its shards in the
+bucket (rollout workers write them, the flow registers them), and `sim2act sql`, --as-of-iteration,
+`warehouse verify`, `export lerobot`, `replay` and the stack's dashboard read them there. Neither the
+database password nor the S3 secret key shows in any workspace file, command output, MLflow param or
+tag, Prefect flow run, log or deployment, or process command line."""
 
 from __future__ import annotations
 
+import json
 import os
-import re
 import shutil
 
 import psutil
@@ -20,25 +23,36 @@ from tests.conftest import _free_port
 from tests.flows.test_service import get_json, post_json, sim2act
 from tests.postgres import postgres_server
 from tests.s3 import s3_server
+from warehouse.catalog import Catalog
 
 pytestmark = pytest.mark.timeout(900)
+STORE = "s3://lab/sim2act"
 
 
-def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finished_campaign, tmp_path):
+def _get(url: str, timeout: float = 120) -> bytes:
+    import urllib.request
+
+    with urllib.request.urlopen(url, timeout=timeout) as response:
+        assert response.status == 200
+        return response.read()
+
+
+def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_secrets_nowhere(tmp_path, monkeypatch):
     workspace = tmp_path / "workspace"
-    shutil.copytree(finished_campaign[0], workspace)
     ws = str(workspace)
     with postgres_server(("mlflow", "prefect")) as postgres, s3_server(("lab",)) as s3:
-        secrets_file = tmp_path / "secrets.env"
+        keys = {**s3.environ(STORE), "MLFLOW_S3_ENDPOINT_URL": s3.endpoint}
+        secrets_file, worker_secrets = tmp_path / "secrets.env", tmp_path / "worker.env"
         secrets_file.write_text(
-            "# the stack's databases (schemas/settings.py), and the bucket MLflow's server keeps artifacts in\n"
+            "# the stack's databases (schemas/settings.py), the bucket MLflow keeps artifacts in, the shard store\n"
             f"PREFECT_SERVER_DATABASE_CONNECTION_URL={postgres.url('prefect', 'postgresql+asyncpg')}\n"
-            f"MLFLOW_BACKEND_STORE_URI='{postgres.url('mlflow')}'\n"
-            "MLFLOW_ARTIFACTS_DESTINATION=s3://lab/mlflow\n"
-            f"MLFLOW_S3_ENDPOINT_URL={s3.endpoint}\nAWS_ACCESS_KEY_ID={s3.access_key}\n"
-            f"AWS_SECRET_ACCESS_KEY={s3.secret_key}\n")
+            f"MLFLOW_BACKEND_STORE_URI='{postgres.url('mlflow')}'\nMLFLOW_ARTIFACTS_DESTINATION=s3://lab/mlflow\n"
+            + "".join(f"{name}={value}\n" for name, value in keys.items()))
+        worker_secrets.write_text("".join(f"{name}={value}\n" for name, value in keys.items()))  # no database
+        worker_secrets.chmod(0o600)
         secrets_file.chmod(0o644)
-        env = {k: v for k, v in os.environ.items() if not k.startswith(("PREFECT_API", "MLFLOW_TRACKING"))}
+        env = {k: v for k, v in os.environ.items()
+               if not k.startswith(("PREFECT_API", "MLFLOW_TRACKING", "AWS_", "SIM2ACT_SHARD"))}
         refused = sim2act("up", "--workspace", ws, env={**env, "SIM2ACT_SECRETS_FILE": str(secrets_file)})
         assert refused.returncode == 2 and refused.stderr.strip() == (
             f"sim2act: secrets file {secrets_file}: expected mode 600 (only its owner reads it), got 644: "
@@ -50,6 +64,14 @@ def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finis
         up = sim2act("up", "--preset", "smoke", "--workspace", ws, *(f"--{name}-port={port}" for name, port in ports.items()),
                      env={**env, "SIM2ACT_SECRETS_FILE": str(secrets_file)})
         outputs.append(up.stdout + up.stderr)
+        shell = {**env, "SIM2ACT_SECRETS_FILE": str(worker_secrets)}
+
+        def command(*args: str) -> str:
+            done = sim2act(*args, env=shell, timeout=600)
+            outputs.append(done.stdout + done.stderr)
+            assert done.returncode == 0, f"sim2act {' '.join(args)}: {done.stdout[-2000:]}{done.stderr[-3000:]}"
+            return done.stdout
+
         try:
             assert up.returncode == 0, up.stdout[-3000:] + up.stderr[-3000:]
             processes = read_state(Workspace.at(workspace))["processes"]
@@ -61,42 +83,76 @@ def test_the_stack_on_postgresql_keeps_runs_there_and_the_password_nowhere(finis
                 "prefect": ["PREFECT_SERVER_DATABASE_CONNECTION_URL"], "mlflow": ["MLFLOW_BACKEND_STORE_URI"],
                 "dashboard": [], "deployments": []}
             assert environ["deployments"]["MLFLOW_TRACKING_URI"] == urls["mlflow"]
-            # from a shell without the secrets: the commands find the stack, and log through its MLflow server
-            trained = sim2act("train", "--preset", "smoke", "--workspace", ws, "--set", "train.steps=2",
-                              "--set", "train.seed=7", env=env)
-            outputs.append(trained.stdout + trained.stderr)
-            assert trained.returncode == 0, trained.stdout[-3000:] + trained.stderr[-3000:]
-            [model_key] = re.findall(r"^model (train-[0-9a-f]+):", trained.stdout, re.MULTILINE)
-            evaluated = sim2act("eval", "--preset", "smoke", "--workspace", ws, "--model", model_key,
-                                "--split", "seen", "--episodes", "1", env=env)
-            outputs.append(evaluated.stdout + evaluated.stderr)
-            assert evaluated.returncode == 0, evaluated.stdout[-3000:] + evaluated.stderr[-3000:]
 
-            # MLflow's runs are in PostgreSQL (the workspace's SQLite store never heard of them) ...
+            # the campaign, from a shell with the object store's keys only: it finds the stack and runs through it
+            command("run", "--preset", "smoke", "--workspace", ws, "--set", "train.epochs=1")
+
+            # Prefect's flow runs and deployments are in its PostgreSQL database
+            flow_runs = {name for (name,) in postgres.query("prefect", "SELECT name FROM flow_run")}
+            assert {"smoke", "smoke-iteration-0", "smoke-iteration-1"} <= flow_runs, flow_runs
+            assert {"nightly", "on-demand"} <= {name for (name,) in postgres.query("prefect", "SELECT name FROM deployment")}
+            # MLflow's runs and metrics are in its PostgreSQL database (the workspace's SQLite never heard of them) ...
             runs = dict(postgres.query("mlflow", "SELECT name, status FROM runs"))
-            assert runs["smoke"] == "RUNNING" and runs["smoke-iteration-1"] == "RUNNING", runs
-            assert [name for name in runs if name.startswith("eval ")] and set(runs.values()) <= {"RUNNING", "FINISHED"}
+            assert {"smoke", "smoke-iteration-0", "smoke-iteration-1"} <= set(runs), runs
             [(metric_count,)] = postgres.query("mlflow", "SELECT count(*) FROM metrics WHERE key LIKE 'train.%'")
             assert metric_count > 0
-            # ... their artifacts went through the server into its store: the bucket
+            # ... their artifacts went through the server into the bucket, none into the workspace
             [(location,)] = postgres.query("mlflow", "SELECT artifact_location FROM experiments WHERE name = 'sim2act'")
             assert location.startswith("mlflow-artifacts:"), location
-            [(eval_run,)] = postgres.query("mlflow", "SELECT run_uuid FROM runs WHERE name LIKE 'eval %'")
-            videos = [key for key in s3.keys("lab") if f"/{eval_run}/artifacts/evaluation/" in key and "/seen/" in key]
-            assert videos and all(key.startswith("mlflow/") and key.endswith(".mp4") for key in videos), s3.keys("lab")
-            assert not list(Workspace.at(workspace).artifact_root.glob(f"*/{eval_run}"))
-            # Prefect's deployments are in its PostgreSQL database
-            assert {"nightly", "on-demand"} <= {name for (name,) in postgres.query("prefect", "SELECT name FROM deployment")}
-            nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
+            videos = [key for key in s3.keys("lab") if key.startswith("mlflow/") and key.endswith(".mp4")]
+            assert any("/artifacts/evaluation/" in key for key in videos), s3.keys("lab")
+            assert not list(Workspace.at(workspace).artifact_root.rglob("*.mp4"))
 
-            # the password: in none of what the stack and the commands wrote, logged or showed
+            for name, value in keys.items():  # this process reads the catalog too
+                monkeypatch.setenv(name, value)
+            catalog = Catalog(Workspace.at(workspace).catalog)
+            assert catalog.store.url == STORE
+            # every registered shard is an object under the prefix; the folder has the catalog, no shard
+            registered = [path for (path,) in catalog.query("SELECT path FROM shards ORDER BY path")]
+            assert {table for (table,) in catalog.query("SELECT DISTINCT table_name FROM shards")} == {
+                "instructions", "episodes", "steps", "filter_decisions"}
+            assert [key for key in s3.keys("lab") if key.startswith("sim2act/shards/")] == [
+                f"sim2act/{path}" for path in registered]
+            assert not list((workspace / "warehouse").rglob("*.parquet"))
+            # iteration 1's rollout workers read the champion's checkpoint from the store, not the flow's folder
+            assert "sim2act/models/sim2act-smoke/1/policy.pt" in s3.keys("lab")
+            assert catalog.query("SELECT count(*) FROM episodes WHERE explorer LIKE 'policy:%'")[0][0] > 0
+
+            # every reader reads the objects
+            [(steps, steps_0)] = catalog.query("SELECT count(*), count(*) FILTER (WHERE iteration = 0) FROM steps")
+            assert command("sql", "--workspace", ws, "--format", "csv", "SELECT count(*) AS n FROM steps").split() == [
+                "n", str(steps)]
+            assert command("sql", "--workspace", ws, "--format", "csv", "--as-of-iteration", "0",
+                           "SELECT count(*) AS n FROM steps").split() == ["n", str(steps_0)] and 0 < steps_0 < steps
+            assert command("warehouse", "verify", "--workspace", ws, "--full").startswith(
+                f"{len(registered)} registered shard(s) verified (sha256 too), 0 quarantined to {STORE}/quarantine")
+            command("export", "lerobot", "--workspace", ws, str(tmp_path / "lerobot"))
+            info = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
+            [(kept,)] = catalog.query("SELECT count(DISTINCT episode_id) FROM kept_steps")
+            assert info["total_episodes"] == kept > 0 and list((tmp_path / "lerobot").rglob("*.mp4"))
+            [(episode,)] = catalog.query("SELECT episode_id FROM episodes WHERE success ORDER BY episode_id LIMIT 1")
+            command("replay", episode, "--workspace", ws, "--out", str(tmp_path / "replay.mp4"))
+            assert (tmp_path / "replay.mp4").stat().st_size > 0
+            # the stack's dashboard: a panel over the filter_decisions shards, an episode's video from its frames
+            rows = json.loads(_get(f"{urls['dashboard']}/api/panels/filter_pass_rates?campaign=smoke"))["rows"]
+            [(decided,)] = catalog.query("SELECT count(*) FROM filter_decisions")
+            assert sum(row["episodes"] for row in rows) == decided > 0, rows
+            assert len(_get(f"{urls['dashboard']}/api/episodes/{episode}/video")) > 1000
+
+            # the secrets: in none of what the stack and the commands wrote, logged or showed
             searched = post_json(f"{urls['mlflow']}/api/2.0/mlflow/runs/search",
                                  {"experiment_ids": [str(i) for i in range(0, 5)], "max_results": 500})[1]
             assert len(searched["runs"]) == len(runs)
+            nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
+            status, prefect_runs = post_json(f"{urls['prefect']}/api/flow_runs/filter", {})
+            assert status == 200 and prefect_runs
+            status, logs = post_json(f"{urls['prefect']}/api/logs/filter", {"limit": 200})
+            assert status == 200 and logs
             for secret in (postgres.password, s3.secret_key):
                 assert not [out for out in outputs if secret in out]
                 assert not [p for p in workspace.rglob("*") if p.is_file() and secret.encode() in p.read_bytes()]
-                assert secret not in str(searched) and secret not in str(nightly)
+                for answer in (searched, nightly, prefect_runs, logs):
+                    assert secret not in json.dumps(answer)
                 assert not [p.pid for p in psutil.process_iter(["cmdline"]) if secret in " ".join(p.info["cmdline"] or [])]
         finally:
             stopped = sim2act("down", "--workspace", ws, env=env)
