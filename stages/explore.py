@@ -45,7 +45,9 @@ class PolicyExplorer(BaseModel):
 
     name: str  # e.g. "policy:sim2act-smoke/1"
     model_key: str
-    checkpoint: str
+    checkpoint: str  # a file on the flow's host (evaluation and adaptation load it there)
+    # where rollout workers fetch it when the shard store is S3 (they share no folder with the flow)
+    worker_checkpoint: str | None = None
 
 
 class EpisodePlan(BaseModel):
@@ -230,7 +232,8 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     if unit.policy is not None:
         from policies.policy import Policy
 
-        checkpoint = open_store(Workspace.at(unit.workspace).warehouse, unit.shard_store).fetch(unit.policy.checkpoint)
+        checkpoint = open_store(Workspace.at(unit.workspace).warehouse, unit.shard_store).fetch(
+            unit.policy.worker_checkpoint or unit.policy.checkpoint)
         policy = Policy.load(checkpoint,
                              {text: np.asarray(vector, dtype=np.float32) for text, vector in unit.embeddings.items()})
     env = worker_env(unit.task, unit.render)

@@ -74,7 +74,8 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
         with _fluent_tracking(tracking_uri(workspace)):
             mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target))
-    checkpoint = str(target / "artifacts" / "policy.pt")
+    checkpoint, model_key = str(target / "artifacts" / "policy.pt"), model_version.tags[MODEL_KEY_TAG]
+    worker_checkpoint = None
     store = Catalog(workspace.catalog).store
     if store.url != FOLDER:  # rollout workers elsewhere share no folder with this one: they read the store
         import hashlib
@@ -82,14 +83,11 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         import pyarrow as pa
 
         data = Path(checkpoint).read_bytes()
-        rel = f"models/{name}/{version}/policy.pt"
+        rel = f"models/{model_key}/policy.pt"  # the model's key: a registry that numbers versions anew cannot collide
         store.put_new(rel, pa.py_buffer(data), hashlib.sha256(data).hexdigest())
-        checkpoint = store.location(rel)
-    return PolicyExplorer(
-        name=f"policy:{name}/{version}",
-        model_key=model_version.tags[MODEL_KEY_TAG],
-        checkpoint=checkpoint,
-    )
+        worker_checkpoint = store.location(rel)
+    return PolicyExplorer(name=f"policy:{name}/{version}", model_key=model_key, checkpoint=checkpoint,
+                          worker_checkpoint=worker_checkpoint)
 
 
 def input_example(catalog: Catalog, campaign: str):

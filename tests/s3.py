@@ -95,7 +95,7 @@ def start(server: S3Server) -> None:
     with server.log.open("a") as out:
         server.process = subprocess.Popen(server.command, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.monotonic() + 60
-    while not healthy(server):
+    while not ready(server):
         if server.process.poll() is not None:
             raise RuntimeError(f"weed exited {server.process.returncode}: {server.log.read_text()[-2000:]}")
         if time.monotonic() > deadline:
@@ -114,6 +114,18 @@ def stop(server: S3Server) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(server.process.pid, signal.SIGKILL)
             server.process.wait()
+
+
+def ready(server: S3Server) -> bool:
+    """The gateway answers S3 requests (its filer and volume behind it too: a restarted server answers
+    HTTP a moment before it can serve an object)."""
+    if not healthy(server):
+        return False
+    try:
+        server.filesystem().get_file_info("sim2act-readiness-probe/none")
+        return True
+    except OSError:
+        return False
 
 
 def healthy(server: S3Server) -> bool:

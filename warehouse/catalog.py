@@ -90,15 +90,23 @@ class Catalog:
         key = (self.path.resolve(), self.path.stat().st_ino)  # a catalog made anew at the same path is another
         if key in _RECORDED_STORES:
             return _RECORDED_STORES[key]
+        meta = self._meta()
+        if meta is None:
+            return None  # created, not initialised yet
+        _RECORDED_STORES[key] = meta.get("shard_store", FOLDER)
+        return _RECORDED_STORES[key]
+
+    def _meta(self) -> dict[str, str] | None:
+        """catalog_meta, on a connection of its own (None: no catalog, or not initialised yet)."""
+        if not self.path.exists():
+            return None
         con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(duckdb.connect, str(self.path), read_only=True)
         try:
             if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
-                return None  # created, not initialised yet
-            row = con.execute("SELECT value FROM catalog_meta WHERE key = 'shard_store'").fetchone()
+                return None
+            return dict(con.execute("SELECT key, value FROM catalog_meta").fetchall())
         finally:
             con.close()
-        _RECORDED_STORES[key] = row[0] if row else FOLDER
-        return _RECORDED_STORES[key]
 
     @property
     def quarantine_folder(self) -> Path:
@@ -144,6 +152,8 @@ class Catalog:
 
     def initialise(self) -> None:
         self.check_version()
+        # an S3 prefix another catalog keeps its shards under is refused before anything is written here
+        warehouse_id = self.store.claim((self._meta() or {}).get("warehouse_id"), self.path.resolve())
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.connect() as con:
             for name in CATALOG_TABLES:
@@ -152,6 +162,7 @@ class Catalog:
                 "INSERT INTO catalog_meta VALUES ('schema_version', ?) ON CONFLICT DO NOTHING", [str(SCHEMA_VERSION)]
             )
             con.execute("INSERT INTO catalog_meta VALUES ('shard_store', ?) ON CONFLICT DO NOTHING", [self.store.url])
+            con.execute("INSERT INTO catalog_meta VALUES ('warehouse_id', ?) ON CONFLICT DO NOTHING", [warehouse_id])
             for name, schema in SHARD_TABLES.items():
                 con.register("empty_shard", pa.Table.from_batches([], schema=schema))
                 con.execute(f"CREATE TABLE IF NOT EXISTS _empty_{name} AS SELECT * FROM empty_shard")

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 from schemas.errors import Sim2ActError
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
-from warehouse.store import ShardConflict, ShardStore, write_new_file
+from warehouse.store import ShardConflict, ShardStore, ShardStoreUnreachable, write_new_file
 
 __all__ = ["ShardConflict", "ShardFile", "SchemaMismatch", "ShardUnreadable", "DiskFull", "write_shard",
            "read_shard", "inspect_shard", "check_schema", "sha256_of"]
@@ -80,7 +80,9 @@ def _open_shard(table_name: str, path: Path, store: ShardStore | None) -> pq.Par
     """A whole Parquet file of the declared schema, opened (its footer read, no data)."""
     where = path if store is None else store.location(store.rel(path))
     try:
-        parquet = pq.ParquetFile(path if store is None else store.open(where))
+        parquet = pq.ParquetFile(path) if store is None else store.parquet(where)
+    except ShardStoreUnreachable:
+        raise  # the server, not the shard: nothing to quarantine
     except (OSError, pa.ArrowException) as exc:
         raise ShardUnreadable(f"{where}: not a readable Parquet file ({exc})") from None
     check_schema(table_name, parquet.schema_arrow)

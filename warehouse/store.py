@@ -21,6 +21,7 @@ import logging
 import os
 import shutil
 import threading
+import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
@@ -35,6 +36,7 @@ from schemas.retry import retrying
 SHARD_STORE_ENV = "SIM2ACT_SHARD_STORE"
 FOLDER = "folder"  # the recorded name of the default store: the warehouse folder itself
 _DUCKDB_SECRET = "sim2act_shard_store"
+CLAIM = "sim2act-warehouse.json"  # at an S3 prefix: which catalog's shards live under it
 # An S3 server that does not answer (restarting, a network blip) is waited for this long, trying again
 # with backoff, then the command stops with one line; every unit is keyed, so the same command resumes.
 STORE_WAIT_S = 60.0
@@ -115,6 +117,12 @@ class ShardStore(ABC):
     def read(self, rel: str) -> pa.NativeFile:
         return self.open(self.location(rel))
 
+    def parquet(self, location: str):
+        """A Parquet file at `location`, its footer read (row groups are read as asked for)."""
+        import pyarrow.parquet as pq
+
+        return pq.ParquetFile(self.open(location))
+
     def fetch(self, location: str) -> Path:
         """A local file holding `location` (a worker loads the champion's checkpoint from it)."""
         return Path(location)
@@ -125,6 +133,15 @@ class ShardStore(ABC):
 
     def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
         """Make `con` able to read this store's locations (nothing for a folder)."""
+
+    def claim(self, warehouse_id: str | None, catalog: Path) -> str:
+        """Make sure no other warehouse keeps its shards here (a folder belongs to its catalog already).
+        `warehouse_id`: the catalog's, None for a new one. Returns the id to record.
+
+        Raises:
+            ShardStoreError: another catalog claimed the place.
+        """
+        return warehouse_id or uuid.uuid4().hex
 
     def allowed(self) -> list[str]:
         """The prefixes a confined DuckDB connection may read (Catalog.connect)."""
@@ -250,9 +267,16 @@ class S3Store(ShardStore):
             tmp.replace(local)
         return local
 
+    def parquet(self, location: str):
+        """Ranged reads: the footer now (tried again while the server does not answer), the row groups
+        as they are asked for (a verify or a training reads no more of the object than it needs)."""
+        import pyarrow.parquet as pq
+
+        return self._patient(lambda: pq.ParquetFile(self.filesystem.open_input_file(location.removeprefix("s3://"))))
+
     def open(self, location: str) -> pa.NativeFile:
-        """The whole object, read into memory (a shard is a few MB): a server that blips mid-read is
-        waited for like any other request, never seen half-way through a footer."""
+        """The whole object, read into memory (for hashing and whole reads): a server that blips
+        mid-read is waited for like any other request."""
         def whole() -> pa.Buffer:
             with self.filesystem.open_input_file(location.removeprefix("s3://")) as handle:
                 return handle.read_buffer()
@@ -316,6 +340,31 @@ class S3Store(ShardStore):
 
     def allowed(self) -> list[str]:
         return [*super().allowed(), self.url + "/"]
+
+    def claim(self, warehouse_id: str | None, catalog: Path) -> str:
+        """A marker object at the prefix names the catalog whose shards live under it: a second
+        workspace pointed at the same prefix (one secrets file shared by two campaigns) would take the
+        first one's shards for orphans of its own, and delete them."""
+        import json
+        import socket
+
+        host = socket.gethostname()
+        if self.exists(CLAIM):
+            with self.read(CLAIM) as handle:
+                owner = json.loads(handle.read().decode())
+            ours = (owner.get("catalog"), owner.get("host")) == (str(catalog), host)
+            if owner.get("warehouse_id") == warehouse_id or (warehouse_id is None and ours):
+                return owner["warehouse_id"]  # (a new catalog whose first creation stopped after claiming)
+            raise ShardStoreError(f"{self.url} keeps the shards of another warehouse (catalog {owner.get('catalog')} "
+                                  f"on {owner.get('host')}): give this workspace its own prefix in {SHARD_STORE_ENV}")
+        warehouse_id = warehouse_id or uuid.uuid4().hex
+        marker = json.dumps({"warehouse_id": warehouse_id, "catalog": str(catalog), "host": host})
+
+        def write() -> None:
+            with self.filesystem.open_output_stream(self._path(CLAIM)) as out:
+                out.write(marker.encode())
+        self._patient(write)
+        return warehouse_id
 
 
 def _httpfs_extension() -> str:

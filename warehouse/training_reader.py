@@ -180,7 +180,7 @@ class StepBatches(IterableDataset):
     def _rows(self, path: str, spans: list[tuple[int, int]]) -> Iterator[dict]:
         """The selected rows of one file, reading only the row groups they fall in (and, for chunks,
         the look-ahead columns of the rows up to chunk-1 past them)."""
-        parquet = pq.ParquetFile(Path(path) if self.store is None else self.store.open(path))
+        parquet = pq.ParquetFile(Path(path)) if self.store is None else self.store.parquet(path)
         sizes = [parquet.metadata.row_group(g).num_rows for g in range(parquet.num_row_groups)]
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         for group, first in enumerate(starts[:-1]):

@@ -115,7 +115,8 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
                 f"sim2act/{path}" for path in registered]
             assert not list((workspace / "warehouse").rglob("*.parquet"))
             # iteration 1's rollout workers read the champion's checkpoint from the store, not the flow's folder
-            assert "sim2act/models/sim2act-smoke/1/policy.pt" in s3.keys("lab")
+            [(champion,)] = catalog.query("SELECT champion_model_key FROM deployments WHERE iteration = 0")
+            assert f"sim2act/models/{champion}/policy.pt" in s3.keys("lab")
             assert catalog.query("SELECT count(*) FROM episodes WHERE explorer LIKE 'policy:%'")[0][0] > 0
 
             # every reader reads the objects

@@ -56,7 +56,8 @@ def test_a_warehouse_on_s3_answers_as_one_in_its_folder(s3, tmp_path, monkeypatc
     assert catalog.store.url == "s3://shards/lab/one"
     # the shards are objects under the prefix, the same names as in a folder; the folder holds the catalog only
     registered = [path for (path,) in catalog.query("SELECT path FROM shards ORDER BY path")]
-    assert registered and s3.keys("shards") == [f"lab/one/{path}" for path in registered]
+    assert registered and s3.keys("shards") == sorted([f"lab/one/{path}" for path in registered]
+                                                      + ["lab/one/sim2act-warehouse.json"])  # and the prefix's claim
     assert [p.name for p in on_s3.warehouse.rglob("*") if p.is_file()] == ["catalog.duckdb"]
     # the same counts, snapshot, sim2act sql answer, selection and training rows
     assert _answers(catalog) == expected and expected[0][0][0] > 0
@@ -134,6 +135,8 @@ def test_a_store_that_restarts_is_waited_for_and_one_that_stays_down_is_one_line
     from warehouse import store as store_module
     from warehouse.store import ShardStoreUnreachable
 
+    workspace = _filled(tmp_path / "ws", s3.environ("s3://shards/down"), monkeypatch)  # to verify while it is down
+    catalog = Catalog(workspace.catalog)
     store = open_store(tmp_path, None, s3.environ("s3://shards/blip"))
     data = b"a shard's bytes" * 100
     stop(s3)  # killed; back in 3 s on the same ports and data
@@ -144,10 +147,27 @@ def test_a_store_that_restarts_is_waited_for_and_one_that_stays_down_is_one_line
     assert store.exists("shards/a.bin") and store.sha256("shards/a.bin") == hashlib.sha256(data).hexdigest()
     monkeypatch.setattr(store_module, "STORE_WAIT_S", 2.0)
     stop(s3)
+    registered = catalog.query("SELECT count(*) FROM shards")
     try:
         with pytest.raises(ShardStoreUnreachable, match=r"^the shard store s3://shards/blip \(127\.0\.0\.1:\d+\) did not "
                            r"answer for 2 s \(.*Could not connect to server\): start it, then run the same command "
                            r"again to resume$"):
             store.exists("shards/a.bin")
+        with pytest.raises(ShardStoreUnreachable):  # the server is down, not the shards: nothing quarantined
+            catalog.verify()
     finally:
         start(s3)
+        monkeypatch.setattr(store_module, "STORE_WAIT_S", 60.0)  # its patience back
+    assert catalog.query("SELECT count(*) FROM shards") == registered and catalog.verify() == []
+
+
+def test_a_second_warehouse_on_the_same_prefix_is_refused_before_it_writes(s3, tmp_path, monkeypatch):
+    first = _filled(tmp_path / "first", s3.environ("s3://shards/shared"), monkeypatch)
+    objects = s3.keys("shards")
+    second = Workspace.at(tmp_path / "second").create()
+    with pytest.raises(ShardStoreError, match=rf"^s3://shards/shared keeps the shards of another warehouse \(catalog "
+                       rf"{first.catalog.resolve()} on .*\): give this workspace its own prefix in SIM2ACT_SHARD_STORE$"):
+        Catalog(second.catalog).initialise()
+    assert not second.catalog.exists() and s3.keys("shards") == objects  # nothing written, nothing cleaned
+    Catalog(first.catalog).initialise()  # its owner opens it again as before
+    assert Catalog(first.catalog).clean_orphans() == [] and s3.keys("shards") == objects
