@@ -85,7 +85,8 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
             assert environ["deployments"]["MLFLOW_TRACKING_URI"] == urls["mlflow"]
 
             # the campaign, from a shell with the object store's keys only: it finds the stack and runs through it
-            command("run", "--preset", "smoke", "--workspace", ws, "--set", "train.epochs=1")
+            command("run", "--preset", "smoke", "--workspace", ws, "--set", "train.epochs=1", "--set",
+                    "explore.episodes_per_task=2")  # (half the smoke preset's: the suite's time)
 
             # Prefect's flow runs and deployments are in its PostgreSQL database
             flow_runs = {name for (name,) in postgres.query("prefect", "SELECT name FROM flow_run")}
