@@ -130,14 +130,22 @@ def _fluent_tracking(uri: str) -> Iterator[None]:
     the user's setting (schemas.settings.tracking_uri): another workspace's store. Set for the call,
     then put back as it was, the variable included."""
     import mlflow
-    from mlflow.tracking._tracking_service import utils  # the fluent API's global, restored below
+
+    with kept_tracking():
+        mlflow.set_tracking_uri(uri)
+        yield
+
+
+@contextmanager
+def kept_tracking() -> Iterator[None]:
+    """The process's MLflow tracking setting (the fluent global and MLFLOW_TRACKING_URI) as it was before."""
+    from mlflow.tracking._tracking_service import utils  # the fluent API's global
 
     before, before_env = utils._tracking_uri, os.environ.get(TRACKING_URI_ENV)
-    mlflow.set_tracking_uri(uri)
     try:
         yield
     finally:
-        mlflow.set_tracking_uri(before)
+        utils._tracking_uri = before
         if before_env is None:
             os.environ.pop(TRACKING_URI_ENV, None)
         else:

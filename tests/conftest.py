@@ -50,15 +50,10 @@ def _mlflow_tracking_restored() -> Iterator[None]:
     as the user's choice (schemas.settings.tracking_uri): a test that calls mlflow.set_tracking_uri would
     send every later test's runs, and the `sim2act` children they start, to its workspace (CI caught
     four tests logging into the campaign fixture's store). Each test gets the process's setting back."""
-    from mlflow.tracking._tracking_service import utils  # the fluent API's global
+    from stages.redeploy import kept_tracking
 
-    before, before_env = utils._tracking_uri, os.environ.get("MLFLOW_TRACKING_URI")
-    yield
-    utils._tracking_uri = before
-    if before_env is None:
-        os.environ.pop("MLFLOW_TRACKING_URI", None)
-    else:
-        os.environ["MLFLOW_TRACKING_URI"] = before_env
+    with kept_tracking():
+        yield
 
 
 def _free_port() -> int:

@@ -15,6 +15,7 @@ from schemas.errors import Sim2ActError
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
 from warehouse.store import ShardConflict, ShardStore, ShardStoreUnreachable, write_new_file
+from warehouse.store import sha256_of as store_sha256_of
 
 __all__ = ["ShardConflict", "ShardFile", "SchemaMismatch", "ShardUnreadable", "DiskFull", "write_shard",
            "read_shard", "inspect_shard", "check_schema", "sha256_of"]
@@ -51,11 +52,8 @@ class ShardFile:
 
 def sha256_of(path: Path) -> str:
     """A local file's sha256 (a shard in a store: ShardStore.sha256)."""
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    with pa.OSFile(str(path)) as handle:
+        return store_sha256_of(handle)
 
 
 def check_schema(table_name: str, schema: pa.Schema) -> None:

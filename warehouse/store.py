@@ -289,6 +289,9 @@ class S3Store(ShardStore):
                                     "names it")
             return
 
+        self._upload(rel, data)
+
+    def _upload(self, rel: str, data: pa.Buffer | bytes) -> None:
         def upload() -> None:
             with self.filesystem.open_output_stream(self._path(rel)) as out:  # the object appears whole, or not at all
                 out.write(data)
@@ -359,11 +362,7 @@ class S3Store(ShardStore):
                                   f"on {owner.get('host')}): give this workspace its own prefix in {SHARD_STORE_ENV}")
         warehouse_id = warehouse_id or uuid.uuid4().hex
         marker = json.dumps({"warehouse_id": warehouse_id, "catalog": str(catalog), "host": host})
-
-        def write() -> None:
-            with self.filesystem.open_output_stream(self._path(CLAIM)) as out:
-                out.write(marker.encode())
-        self._patient(write)
+        self._upload(CLAIM, marker.encode())
         return warehouse_id
 
 
