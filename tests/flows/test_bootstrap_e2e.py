@@ -190,7 +190,7 @@ KILL_POINTS = (
     r"explore it0: 4/12 episodes",
     r"filter it0: 6 shards",
     r"index it0: dataset",
-    r"train it0: epoch 2/",
+    r"train it0: epoch 1/",
     r"evaluate it0: 2/6 cases",
     r"evaluate it0: promote",
 )
