@@ -27,6 +27,20 @@ class PostgresServer:
     port: int
     password: str
     log: Path
+    pg_ctl: tuple[str, ...]  # pg_ctl -D <data>, as the cluster's owner
+    options: str  # the server's own: loopback, port, socket folder
+
+    def stop(self) -> None:
+        """The database goes away at once (`-m immediate`: no shutdown checkpoint, as a crash)."""
+        self._pg_ctl("-m", "immediate", "-w", "stop")
+
+    def start(self) -> None:
+        self._pg_ctl("-l", str(self.log), "-w", "-t", "60", "start", "-o", self.options)
+
+    def _pg_ctl(self, *args: str) -> None:
+        done = subprocess.run([*self.pg_ctl, *args], capture_output=True, text=True, timeout=90)
+        if done.returncode:
+            raise RuntimeError(f"pg_ctl {' '.join(args)} failed: {done.stdout[-1500:]}{done.stderr[-1500:]}")
 
     def url(self, database: str, driver: str = "postgresql") -> str:
         return f"{driver}://{USER}:{self.password}@{HOST}:{self.port}/{database}"
@@ -70,9 +84,9 @@ def postgres_server(databases: tuple[str, ...]) -> Iterator[PostgresServer]:
                        check=True)
         run(str(bindir / "initdb"), "-D", str(data), "-U", USER, f"--pwfile={password_file}", "--auth=scram-sha-256",
             "-E", "UTF8", "--no-instructions")
-        run(str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log), "-w", "-t", "60", "start",
-            "-o", f"-h {HOST} -p {port} -k {root} -c fsync=off")
-        server = PostgresServer(port, password, log)
+        server = PostgresServer(port, password, log, (*as_owner, str(bindir / "pg_ctl"), "-D", str(data)),
+                                f"-h {HOST} -p {port} -k {root} -c fsync=off")
+        server.start()
         for database in databases:
             import psycopg2
 

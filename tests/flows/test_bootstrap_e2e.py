@@ -119,7 +119,7 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         assert metrics["success.seen.ci_high"] - metrics["success.seen.ci_low"] > 0.2  # 3 episodes: a wide interval
         # a point every train.log_every steps as it trains, and one at its last step
         steps = [m.step for m in client.get_metric_history(child.info.run_id, "train.loss")]
-        assert len(steps) >= 4 and steps == sorted(set(steps)) and all(s % 20 == 0 for s in steps[:-1])
+        assert len(steps) >= 2 and steps == sorted(set(steps)) and all(s % 20 == 0 for s in steps[:-1])
         assert {"train.lr", "train.samples_per_s", "train.data_wait"} <= set(metrics)
         videos = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red/seen")]
         assert videos and all(path.endswith(("-success.mp4", "-failure.mp4")) for path in videos)

@@ -12,14 +12,20 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import subprocess
+import time
 
 import psutil
 import pytest
 
 from flows.service import read_state
+from schemas.settings import SECRETS_FILE_ENV
 from schemas.workspace import Workspace
-from tests.conftest import _free_port
+from tests.campaign import snapshot
+from tests.conftest import SIM2ACT, _free_port
+from tests.dask_hosts import dask_hosts
 from tests.flows.test_service import get_json, post_json, sim2act
 from tests.postgres import postgres_server
 from tests.s3 import s3_server
@@ -37,9 +43,51 @@ def _get(url: str, timeout: float = 120) -> bytes:
         return response.read()
 
 
-def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_secrets_nowhere(tmp_path, monkeypatch):
+def _run_across_two_hosts(ws: str, shell: dict[str, str], postgres, root, workers_env: dict[str, str]) -> dict:
+    """`sim2act run --preset smoke` with its rollouts on a Dask worker on each of two "hosts" (tests/dask_hosts.py:
+    own folder and HOME, the keys from their own secrets file, no workspace). Once iteration 1's explore has
+    given host B a shard, host B is SIGKILLed and the database under Prefect and MLflow is stopped for 5 s.
+    A run that then stops must say why in one line; the same command resumes it. -> what happened."""
+    from dask.distributed import Client
+
+    happened: dict = {"output": "", "runs": 0}
+    with dask_hosts(root, ("host-a", "host-b"), workers_env) as hosts, Client(hosts.address, timeout=60) as client:
+        command = [SIM2ACT, "run", "--preset", "smoke", "--workspace", ws, "--set", f"explore.dask_address={hosts.address}"]
+        began = time.monotonic()
+        while True:
+            happened["runs"] += 1
+            campaign = subprocess.Popen(command, env=shell, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                        start_new_session=True)
+            for line in campaign.stderr:
+                happened["output"] += line
+                if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", line):
+                    happened["held"] = hosts.wait_until_holding(client, "host-b", alive=lambda: campaign.poll() is None)
+                    hosts.kill("host-b")
+                    happened["killed_at"] = time.monotonic() - began
+                    postgres.stop()
+                    time.sleep(5)
+                    postgres.start()
+            happened["output"] += campaign.stdout.read()
+            campaign.wait(timeout=600)
+            if campaign.returncode == 0:
+                break
+            said = [line for line in happened["output"].splitlines() if line.startswith("sim2act: ")]
+            assert campaign.returncode == 2 and said, happened["output"][-5000:]
+            happened.setdefault("stopped", said[-1])
+            assert happened["runs"] < 3, happened["output"][-5000:]
+    happened["wall"] = time.monotonic() - began
+    assert happened["held"], happened
+    print(f"two-host campaign: host B killed {happened['killed_at']:.1f} s in, holding {len(happened['held'])} "
+          f"shard(s) of iteration 1; the database down 5 s; {happened['runs']} run(s) "
+          f"({happened.get('stopped', 'no stop')}); {happened['wall']:.1f} s in all")
+    return happened
+
+
+def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_secrets_nowhere(
+        finished_campaign, tmp_path, monkeypatch):
     workspace = tmp_path / "workspace"
     ws = str(workspace)
+    expected = snapshot(finished_campaign[0])  # (read before this process's environment names the S3 store)
     with postgres_server(("mlflow", "prefect")) as postgres, s3_server(("lab",)) as s3:
         keys = {**s3.environ(STORE), "MLFLOW_S3_ENDPOINT_URL": s3.endpoint}
         secrets_file, worker_secrets = tmp_path / "secrets.env", tmp_path / "worker.env"
@@ -84,9 +132,11 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
                 "dashboard": [], "deployments": []}
             assert environ["deployments"]["MLFLOW_TRACKING_URI"] == urls["mlflow"]
 
-            # the campaign, from a shell with the object store's keys only: it finds the stack and runs through it
-            command("run", "--preset", "smoke", "--workspace", ws, "--set", "train.epochs=1", "--set",
-                    "explore.episodes_per_task=2")  # (half the smoke preset's: the suite's time)
+            # the campaign, from a shell with the object store's keys only: it finds the stack and runs through it;
+            # its rollouts on two hosts' Dask workers (host B SIGKILLed holding an iteration-1 shard, which rolls the
+            # champion out from the store's copy), the database stopped for 5 s, then started again
+            drill = _run_across_two_hosts(ws, shell, postgres, tmp_path, {**env, SECRETS_FILE_ENV: str(worker_secrets)})
+            outputs.append(drill["output"])
 
             # Prefect's flow runs and deployments are in its PostgreSQL database
             flow_runs = {name for (name,) in postgres.query("prefect", "SELECT name FROM flow_run")}
@@ -108,6 +158,8 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
                 monkeypatch.setenv(name, value)
             catalog = Catalog(Workspace.at(workspace).catalog)
             assert catalog.store.url == STORE
+            # the rows and digests of the uninterrupted campaign on one machine (a folder, SQLite, local workers)
+            assert snapshot(workspace) == expected
             # every registered shard is an object under the prefix; the folder has the catalog, no shard
             registered = [path for (path,) in catalog.query("SELECT path FROM shards ORDER BY path")]
             assert {table for (table,) in catalog.query("SELECT DISTINCT table_name FROM shards")} == {

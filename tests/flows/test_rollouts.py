@@ -140,60 +140,31 @@ def test_two_hosts_sharing_no_folder_explore_into_s3_and_a_killed_host_costs_onl
     working folder and HOME, none of them the flow's workspace), shards on a real S3 server. Host B's
     worker is SIGKILLed once it holds a shard, and the object store is down for 3 s mid-run: the
     shards end byte-identical to the uninterrupted local run, the workspace holds only the catalog."""
-    import subprocess
-    import sys
-
     from dask.distributed import Client
 
-    from tests.conftest import _free_port
+    from tests.dask_hosts import dask_hosts
     from tests.s3 import s3_server, start, stop
 
-    dask = str(os.path.join(os.path.dirname(sys.executable), "dask"))
     expected = shard_bytes(reference[0])  # (read before the environment names a store the reference lacks)
     with s3_server(("lab",)) as s3:
         for name, value in s3.environ("s3://lab/drill").items():  # the flow's host: it registers the units
             monkeypatch.setenv(name, value)
-        port = _free_port()
-        processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                                    "--no-dashboard"], cwd=tmp_path, start_new_session=True,
-                                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)}
-        address = f"tcp://127.0.0.1:{port}"
-        hosts = {name: tmp_path / name for name in ("host-a", "host-b")}
-        for name, root in hosts.items():
-            (root / "home").mkdir(parents=True)
-            env = {k: v for k, v in os.environ.items() if k not in ("SIM2ACT_SHARD_STORE", "PWD")}
-            env.update(HOME=str(root / "home"), PYTHONPATH=os.pathsep.join(sys.path))  # the keys, not the store: units name it
-            processes[name] = subprocess.Popen(
-                [dask, "worker", address, "--nthreads", "1", "--nworkers", "1", "--no-nanny", "--name", name,
-                 "--no-dashboard", "--local-directory", str(root / "dask")], cwd=root, env=env, start_new_session=True,
-                stdout=(root / "worker.log").open("w"), stderr=subprocess.STDOUT)
-        try:
-            with Client(address, timeout=60) as client:
-                client.wait_for_workers(2, timeout=120)
-                names = {info["name"]: addr for addr, info in client.scheduler_info()["workers"].items()}
-                workspace = tmp_path / "flow-host" / "workspace"
-                config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(update={"dask_address": address})})
-                outcome, here = {}, contextvars.copy_context()
-                began = time.monotonic()
-                run = threading.Thread(target=lambda: outcome.update(result=here.run(explore, workspace, config)))
-                run.start()
-                deadline = time.monotonic() + 120
-                while not client.processing().get(names["host-b"]):
-                    assert run.is_alive() and time.monotonic() < deadline, "host B was never given a shard"
-                    time.sleep(0.05)
-                held = list(client.processing()[names["host-b"]])
-                os.killpg(processes["host-b"].pid, signal.SIGKILL)  # host B is gone, mid-explore
-                killed_at = time.monotonic() - began
-                stop(s3)  # and the object store, for 3 s
-                threading.Timer(3.0, start, [s3]).start()
-                run.join(timeout=400)
-                assert not run.is_alive()
-                wall = time.monotonic() - began
-        finally:
-            for process in processes.values():
-                if process.poll() is None:
-                    os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
+        workers_env = {k: v for k, v in os.environ.items() if k != "SIM2ACT_SHARD_STORE"}  # the keys: units name the store
+        with dask_hosts(tmp_path, ("host-a", "host-b"), workers_env) as hosts, Client(hosts.address, timeout=60) as client:
+            workspace = tmp_path / "flow-host" / "workspace"
+            config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(update={"dask_address": hosts.address})})
+            outcome, here = {}, contextvars.copy_context()
+            began = time.monotonic()
+            run = threading.Thread(target=lambda: outcome.update(result=here.run(explore, workspace, config)))
+            run.start()
+            held = hosts.wait_until_holding(client, "host-b", alive=run.is_alive)
+            hosts.kill("host-b")  # host B is gone, mid-explore
+            killed_at = time.monotonic() - began
+            stop(s3)  # and the object store, for 3 s
+            threading.Timer(3.0, start, [s3]).start()
+            run.join(timeout=400)
+            assert not run.is_alive()
+            wall = time.monotonic() - began
         result, flow_run_id = outcome["result"]
         assert result.episodes == 8 and held
         assert shard_bytes(workspace) == expected  # the same rows, the same bytes

@@ -1,0 +1,70 @@
+"""Rollout "hosts" on one machine for the scale-out drills: a Dask scheduler on a free loopback port and
+one `dask worker` per host, each in its own working folder with its own HOME (none of them a
+workspace), started as docs/scale-out.md says (`--nthreads 1 --no-nanny`), SIGKILLed afterwards."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from tests.conftest import _free_port
+
+
+@dataclass
+class DaskHosts:
+    address: str  # tcp://127.0.0.1:<port>, the scheduler
+    roots: dict[str, Path]  # host name -> its working folder
+    processes: dict[str, subprocess.Popen]  # "scheduler" and each host's worker
+
+    def kill(self, host: str) -> None:
+        """The host is gone: SIGKILL its worker's whole process group."""
+        os.killpg(self.processes[host].pid, signal.SIGKILL)
+        self.processes[host].wait()
+
+    def wait_until_holding(self, client, host: str, timeout: float = 120, alive=lambda: True) -> list[str]:
+        """Wait until the scheduler has given `host` a task; the keys it holds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            address = {info["name"]: a for a, info in client.scheduler_info()["workers"].items()}.get(host)
+            if held := list(client.processing().get(address, ())):
+                return held
+            assert alive() and time.monotonic() < deadline, f"{host} was never given a shard"
+            time.sleep(0.05)
+
+
+@contextmanager
+def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str]) -> Iterator[DaskHosts]:
+    """A scheduler and a worker per host, ready. `environ` is each worker's whole environment but for
+    HOME and PYTHONPATH (this checkout: the hosts run the same code, as `make setup` on each would)."""
+    dask = str(Path(sys.executable).parent / "dask")
+    port = _free_port()
+    processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                                "--no-dashboard"], cwd=root, start_new_session=True,
+                                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)}
+    address, roots = f"tcp://127.0.0.1:{port}", {name: root / name for name in hosts}
+    try:
+        for name, folder in roots.items():
+            (folder / "home").mkdir(parents=True)
+            env = {**environ, "HOME": str(folder / "home"), "PYTHONPATH": os.pathsep.join(sys.path)}
+            env.pop("PWD", None)
+            processes[name] = subprocess.Popen(
+                [dask, "worker", address, "--nthreads", "1", "--nworkers", "1", "--no-nanny", "--name", name,
+                 "--no-dashboard", "--local-directory", str(folder / "dask")], cwd=folder, env=env,
+                start_new_session=True, stdout=(folder / "worker.log").open("w"), stderr=subprocess.STDOUT)
+        from dask.distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(len(hosts), timeout=120)
+        yield DaskHosts(address, roots, processes)
+    finally:
+        for process in processes.values():
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
