@@ -19,8 +19,10 @@ from dashboards.report import plot_success_by_iteration, success_by_iteration
 from flows.artifacts import iteration_markdown, publish_iteration_artifacts
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.run_lock import exclusive_run
+from flows.service import log_to_running_stack
 from flows.tracking import Tracking
 from schemas.config import CampaignConfig
+from schemas.settings import apply_secrets_file
 from schemas.tasks import Split
 from schemas.workspace import Workspace
 from stages.adapt import AdaptResult, run_adapt
@@ -72,10 +74,18 @@ def explore_flow(
     ws = Workspace.at(workspace)
     embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
     artifact = create_progress_artifact(0.0, description=f"explore {config.name} iteration {iteration}: episodes done")
+
+    def show_progress(fraction: float) -> None:
+        # the bar in the UI is for people: a server that fails to store one value (its database restarting,
+        # past the client's retries) costs a warning, never the explore
+        try:
+            update_progress_artifact(artifact, 100.0 * fraction)
+        except Exception as exc:  # noqa: BLE001 - any API error; the next update tries again
+            log.warning("explore it%d: progress not shown in Prefect (%s)", iteration, type(exc).__name__)
+
     return run_explore(
         ws, config, iteration, load_tasks(ws, tasks_key), explorer, embeddings,
-        execute=as_prefect_tasks(config.explore),
-        on_progress=lambda fraction: update_progress_artifact(artifact, 100.0 * fraction),
+        execute=as_prefect_tasks(config.explore), on_progress=show_progress,
     )
 
 
@@ -203,7 +213,10 @@ def bootstrap(
         continue_campaign: run one iteration past the campaign's latest finished one (at least
             `config.iterations` in all): what the nightly deployment does.
     """
+    # started by a Prefect worker rather than the CLI: the host's secrets file and the workspace's stack all the same
+    apply_secrets_file()
     ws = Workspace.at(workspace).create()
+    log_to_running_stack(ws)
     with exclusive_run(ws, config.name):  # a second run on the workspace is refused before any work
         return _run_campaign(config, ws, continue_campaign)
 

@@ -148,6 +148,13 @@ def running_urls(workspace: Workspace) -> dict[str, str]:
     return urls
 
 
+def log_to_running_stack(workspace: Workspace) -> None:
+    """Where `sim2act up` runs on this workspace with an MLflow server of its own, this process logs
+    there unless MLFLOW_TRACKING_URI says otherwise: a flow run a Prefect worker started, as the CLI."""
+    if tracking := running_urls(workspace).get(TRACKING_URI_ENV):
+        os.environ.setdefault(TRACKING_URI_ENV, tracking)
+
+
 def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while not answers(spec.health_url):

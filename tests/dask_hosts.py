@@ -1,6 +1,7 @@
 """Rollout "hosts" on one machine for the scale-out drills: a Dask scheduler on a free loopback port and
-one `dask worker` per host, each in its own working folder with its own HOME (none of them a
-workspace), started as docs/scale-out.md says (`--nthreads 1 --no-nanny`), SIGKILLed afterwards."""
+one `dask worker` per host (and, given a work pool, a Prefect worker polling the host's own work
+queue), each in its own working folder with its own HOME (none of them a workspace), started as
+docs/scale-out.md says (`--nthreads 1 --no-nanny`), SIGKILLed afterwards."""
 
 from __future__ import annotations
 
@@ -21,12 +22,14 @@ from tests.conftest import _free_port
 class DaskHosts:
     address: str  # tcp://127.0.0.1:<port>, the scheduler
     roots: dict[str, Path]  # host name -> its working folder
-    processes: dict[str, subprocess.Popen]  # "scheduler" and each host's worker
+    processes: dict[str, subprocess.Popen]  # "scheduler", each host's Dask worker, "<host>/prefect" its Prefect worker
 
     def kill(self, host: str) -> None:
-        """The host is gone: SIGKILL its worker's whole process group."""
-        os.killpg(self.processes[host].pid, signal.SIGKILL)
-        self.processes[host].wait()
+        """The host is gone: SIGKILL its workers' whole process groups."""
+        for name in (host, f"{host}/prefect"):
+            if name in self.processes:
+                os.killpg(self.processes[name].pid, signal.SIGKILL)
+                self.processes[name].wait()
 
     def wait_until_holding(self, client, host: str, timeout: float = 120, alive=lambda: True) -> list[str]:
         """Wait until the scheduler has given `host` a task; the keys it holds."""
@@ -40,9 +43,12 @@ class DaskHosts:
 
 
 @contextmanager
-def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str]) -> Iterator[DaskHosts]:
-    """A scheduler and a worker per host, ready. `environ` is each worker's whole environment but for
-    HOME and PYTHONPATH (this checkout: the hosts run the same code, as `make setup` on each would)."""
+def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str],
+               prefect_pool: str | None = None) -> Iterator[DaskHosts]:
+    """A scheduler and a worker per host, ready; with `prefect_pool`, also `prefect worker start --pool
+    <pool> --work-queue <host>` per host (its output in <host>/prefect-worker.log). `environ` is each
+    worker's whole environment but for HOME and PYTHONPATH (this checkout: the hosts run the same code,
+    as `make setup` on each would). Prefect 3.8.8's worker ignores SIGTERM (docs/scale-out.md): SIGKILL."""
     dask = str(Path(sys.executable).parent / "dask")
     port = _free_port()
     processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
@@ -58,6 +64,11 @@ def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str]) -
                 [dask, "worker", address, "--nthreads", "1", "--nworkers", "1", "--no-nanny", "--name", name,
                  "--no-dashboard", "--local-directory", str(folder / "dask")], cwd=folder, env=env,
                 start_new_session=True, stdout=(folder / "worker.log").open("w"), stderr=subprocess.STDOUT)
+            if prefect_pool:
+                processes[f"{name}/prefect"] = subprocess.Popen(
+                    [str(Path(sys.executable).parent / "prefect"), "worker", "start", "--pool", prefect_pool,
+                     "--work-queue", name], cwd=folder, env=env, start_new_session=True,
+                    stdout=(folder / "prefect-worker.log").open("w"), stderr=subprocess.STDOUT)
         from dask.distributed import Client
 
         with Client(address, timeout=60) as client:

@@ -10,7 +10,14 @@ bad input costs one line.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+
+# Prefect's server answers 500 while its database does not (a restart, a failover): its client then
+# retries with backoff (2, 4, ... 32 s, PREFECT_CLIENT_MAX_RETRIES times) as it does for 502/503, instead
+# of failing the campaign. Read when prefect is first imported (below), inherited by every process
+# sim2act starts (the stack's servers and deployments, the flow runs).
+os.environ.setdefault("PREFECT_CLIENT_RETRY_EXTRA_CODES", "500")
 
 from flows.cli import bench, campaign, data, stack, tasks
 from schemas.errors import Sim2ActError
@@ -42,3 +49,26 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("sim2act: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
+    except Exception as exc:
+        said = _server_failure(exc)
+        if said is None:
+            raise
+        print(f"sim2act: {said}", file=sys.stderr)
+        return 2
+
+
+def _server_failure(exc: BaseException) -> str | None:
+    """A Prefect server that kept failing past its client's retries (its database down longer than
+    ~1 min): one line; the units done so far are registered, so the same command resumes."""
+    if "prefect" not in sys.modules:
+        return None
+    from prefect.exceptions import PrefectHTTPStatusError
+
+    while exc is not None and not isinstance(exc, PrefectHTTPStatusError):
+        exc = exc.__cause__ or exc.__context__
+    if exc is None:
+        return None
+    request = exc.request
+    return (f"the Prefect server answered {exc.response.status_code} to {request.method} {request.url.path} "
+            f"after its client's retries: check the server and its database, then run the same command again "
+            f"to resume")

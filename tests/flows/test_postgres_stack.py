@@ -16,23 +16,26 @@ import re
 import shutil
 import subprocess
 import time
+from pathlib import Path
 
 import psutil
 import pytest
 
 from flows.service import read_state
+from schemas.config import load_config
 from schemas.settings import SECRETS_FILE_ENV
 from schemas.workspace import Workspace
 from tests.campaign import snapshot
 from tests.conftest import SIM2ACT, _free_port
 from tests.dask_hosts import dask_hosts
-from tests.flows.test_service import get_json, post_json, sim2act
+from tests.flows.test_service import PREFECT, get_json, post_json, sim2act
 from tests.postgres import postgres_server
 from tests.s3 import s3_server
 from warehouse.catalog import Catalog
 
 pytestmark = pytest.mark.timeout(900)
 STORE = "s3://lab/sim2act"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _get(url: str, timeout: float = 120) -> bytes:
@@ -43,42 +46,63 @@ def _get(url: str, timeout: float = 120) -> bytes:
         return response.read()
 
 
-def _run_across_two_hosts(ws: str, shell: dict[str, str], postgres, root, workers_env: dict[str, str]) -> dict:
-    """`sim2act run --preset smoke` with its rollouts on a Dask worker on each of two "hosts" (tests/dask_hosts.py:
-    own folder and HOME, the keys from their own secrets file, no workspace). Once iteration 1's explore has
-    given host B a shard, host B is SIGKILLed and the database under Prefect and MLflow is stopped for 5 s.
-    A run that then stops must say why in one line; the same command resumes it. -> what happened."""
+def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_env: dict[str, str]) -> dict:
+    """The smoke campaign across two "hosts" (tests/dask_hosts.py: own folder and HOME, the object store's keys
+    from their own secrets file, no workspace), each running a Dask worker and a Prefect worker on its own work
+    queue of the process pool `sim2act`. The campaign is deployed to host A's queue (host A holds the workspace,
+    hence the catalog) with its rollouts on the Dask scheduler, and triggered through the API. Once iteration 1's
+    explore has given host B a shard, host B is SIGKILLed and the database under Prefect and MLflow is stopped
+    for 5 s. A flow run that then fails is triggered again (it resumes). -> what happened."""
     from dask.distributed import Client
 
-    happened: dict = {"output": "", "runs": 0}
-    with dask_hosts(root, ("host-a", "host-b"), workers_env) as hosts, Client(hosts.address, timeout=60) as client:
-        command = [SIM2ACT, "run", "--preset", "smoke", "--workspace", ws, "--set", f"explore.dask_address={hosts.address}"]
+    env = {**host_env, "PREFECT_API_URL": prefect_api}
+
+    def prefect(*args: str) -> str:
+        done = subprocess.run([PREFECT, *args], env=env, cwd=REPO, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+        return done.stdout
+
+    def flow_run_state(run_id: str) -> str:
+        try:
+            return get_json(f"{prefect_api}/flow_runs/{run_id}")["state_type"]
+        except OSError:  # the database (hence the server) may not answer this second
+            return "UNKNOWN"
+
+    happened: dict = {"runs": 0}
+    prefect("work-pool", "create", "sim2act", "--type", "process", "--overwrite")
+    for host in ("host-a", "host-b"):
+        prefect("work-queue", "create", host, "--pool", "sim2act")
+    with dask_hosts(root, ("host-a", "host-b"), env, prefect_pool="sim2act") as hosts, \
+            Client(hosts.address, timeout=60) as client:
+        config = load_config("smoke", None, {"explore": {"dask_address": hosts.address}}).model_dump(mode="json")
+        prefect("--no-prompt", "deploy", "flows/bootstrap.py:bootstrap", "--name", "campaign", "--pool", "sim2act",
+                "--work-queue", "host-a", "--params", json.dumps({"workspace": ws, "config": config}),
+                "--job-variable", json.dumps({"env": {"PREFECT_CLIENT_RETRY_EXTRA_CODES": "500"}}))  # as prefect.yaml
+        log = hosts.roots["host-a"] / "prefect-worker.log"
         began = time.monotonic()
         while True:
             happened["runs"] += 1
-            campaign = subprocess.Popen(command, env=shell, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                        start_new_session=True)
-            for line in campaign.stderr:
-                happened["output"] += line
-                if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", line):
-                    happened["held"] = hosts.wait_until_holding(client, "host-b", alive=lambda: campaign.poll() is None)
+            [run_id] = re.findall(r"UUID: ([0-9a-f-]{36})", prefect("deployment", "run", "bootstrap/campaign"))
+            deadline = time.monotonic() + 600
+            while (state := flow_run_state(run_id)) not in ("COMPLETED", "FAILED", "CRASHED"):
+                assert time.monotonic() < deadline, log.read_text()[-5000:]
+                if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", log.read_text()):
+                    happened["held"] = hosts.wait_until_holding(client, "host-b")
                     hosts.kill("host-b")
                     happened["killed_at"] = time.monotonic() - began
                     postgres.stop()
                     time.sleep(5)
                     postgres.start()
-            happened["output"] += campaign.stdout.read()
-            campaign.wait(timeout=600)
-            if campaign.returncode == 0:
+                time.sleep(0.2)
+            if state == "COMPLETED":
                 break
-            said = [line for line in happened["output"].splitlines() if line.startswith("sim2act: ")]
-            assert campaign.returncode == 2 and said, happened["output"][-5000:]
-            happened.setdefault("stopped", said[-1])
-            assert happened["runs"] < 3, happened["output"][-5000:]
+            happened.setdefault("stopped", get_json(f"{prefect_api}/flow_runs/{run_id}")["state"]["message"])
+            assert happened["runs"] < 3, log.read_text()[-5000:]
+        happened["output"] = "".join(p.read_text() for p in root.glob("host-*/*.log"))
     happened["wall"] = time.monotonic() - began
-    assert happened["held"], happened
+    assert happened["held"] and "campaign smoke done" in happened["output"], happened["output"][-5000:]
     print(f"two-host campaign: host B killed {happened['killed_at']:.1f} s in, holding {len(happened['held'])} "
-          f"shard(s) of iteration 1; the database down 5 s; {happened['runs']} run(s) "
+          f"shard(s) of iteration 1; the database down 5 s; {happened['runs']} flow run(s) "
           f"({happened.get('stopped', 'no stop')}); {happened['wall']:.1f} s in all")
     return happened
 
@@ -132,10 +156,11 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
                 "dashboard": [], "deployments": []}
             assert environ["deployments"]["MLFLOW_TRACKING_URI"] == urls["mlflow"]
 
-            # the campaign, from a shell with the object store's keys only: it finds the stack and runs through it;
-            # its rollouts on two hosts' Dask workers (host B SIGKILLed holding an iteration-1 shard, which rolls the
-            # champion out from the store's copy), the database stopped for 5 s, then started again
-            drill = _run_across_two_hosts(ws, shell, postgres, tmp_path, {**env, SECRETS_FILE_ENV: str(worker_secrets)})
+            # the campaign, by a Prefect worker on a host with the object store's keys only: it finds the stack and
+            # runs through it; its rollouts on two hosts' Dask workers (host B SIGKILLed holding an iteration-1 shard,
+            # which rolls the champion out from the store's copy), the database stopped for 5 s, then started again
+            drill = _run_across_two_hosts(ws, f"{urls['prefect']}/api", postgres, tmp_path,
+                                          {**env, SECRETS_FILE_ENV: str(worker_secrets)})
             outputs.append(drill["output"])
 
             # Prefect's flow runs and deployments are in its PostgreSQL database

@@ -1,0 +1,35 @@
+"""What `sim2act` says when a run fails for a reason outside the project (tests/flows/test_postgres_stack.py
+stops the database behind a real Prefect server for a few seconds: the client's retries carry the run)."""
+
+from __future__ import annotations
+
+import argparse
+
+import httpx
+import pytest
+from prefect.exceptions import PrefectHTTPStatusError
+
+import flows.cli as cli
+
+
+def test_a_prefect_server_failing_past_its_clients_retries_is_one_line_and_other_errors_are_not_hidden(
+        monkeypatch, capsys):
+    request = httpx.Request("POST", "http://127.0.0.1:4200/api/task_runs/1/set_state")
+
+    def explore(args: argparse.Namespace) -> int:
+        try:
+            raise PrefectHTTPStatusError("Server error '500 Internal Server Error'", request=request,
+                                         response=httpx.Response(500, request=request))
+        except PrefectHTTPStatusError as exc:  # as the engine raises it: wrapped by the flow that failed
+            raise RuntimeError("Flow run encountered an exception") from exc
+
+    parser = argparse.ArgumentParser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    parser.set_defaults(handler=explore)
+    assert cli.main([]) == 2
+    assert capsys.readouterr().err == (
+        "sim2act: the Prefect server answered 500 to POST /api/task_runs/1/set_state after its client's retries: "
+        "check the server and its database, then run the same command again to resume\n")
+    parser.set_defaults(handler=lambda args: 1 / 0)  # a bug stays a traceback
+    with pytest.raises(ZeroDivisionError):
+        cli.main([])
