@@ -48,6 +48,12 @@ def explore_shard(unit: ExploreUnit, local_pool: str | None) -> tuple[list[Shard
     if local_pool is not None:
         return _local_pools[local_pool].run(run_explore_unit, unit, unit_label(unit))
     _check_one_thread_per_dask_worker()
+    if unit.policy is not None:
+        import torch
+
+        # one torch thread, as in the local pool's workers (envs/pool.py): a policy's actions, hence the
+        # episode's bytes, come out the same on any host, whatever cores this worker process sees
+        torch.set_num_threads(1)
     started = time.monotonic()
     return run_explore_unit(unit), time.monotonic() - started
 

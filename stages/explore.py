@@ -233,13 +233,8 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
         apply_secrets_file()
     policy = None
     if unit.policy is not None:
-        import torch
-
         from policies.policy import Policy
 
-        # one thread, as in the local pool's workers (envs/pool.py): a policy's actions, hence the
-        # episode's rows, come out the same on any host, whatever threads its worker process was given
-        torch.set_num_threads(1)
         checkpoint = open_store(Workspace.at(unit.workspace).warehouse, unit.shard_store).fetch(
             unit.policy.worker_checkpoint or unit.policy.checkpoint)
         policy = Policy.load(checkpoint,
