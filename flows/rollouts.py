@@ -19,8 +19,10 @@ from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
 from envs.pool import RETRIES, WorkerLost, WorkerPool
 from schemas.config import ExploreConfig
+from schemas.settings import apply_secrets_file
 from stages.explore import Completed, Execute, ExploreUnit, run_explore_unit, unit_label
 from warehouse.shard_writer import ShardFile
+from warehouse.store import FOLDER
 
 # The local worker pools of the explore flows running in this process, by id: a task run finds
 # its flow's pool by the id it is given (a Dask worker process has none).
@@ -48,6 +50,9 @@ def explore_shard(unit: ExploreUnit, local_pool: str | None) -> tuple[list[Shard
     if local_pool is not None:
         return _local_pools[local_pool].run(run_explore_unit, unit, unit_label(unit))
     _check_one_thread_per_dask_worker()
+    # A Dask worker is started by the lab, not by sim2act (whose local workers inherit its environment):
+    if unit.shard_store != FOLDER:
+        apply_secrets_file()  # the host's keys to the shard store
     if unit.policy is not None:
         import torch
 

@@ -151,8 +151,10 @@ def running_urls(workspace: Workspace) -> dict[str, str]:
 def log_to_running_stack(workspace: Workspace) -> None:
     """Where `sim2act up` runs on this workspace with an MLflow server of its own, this process logs
     there unless MLFLOW_TRACKING_URI says otherwise: a flow run a Prefect worker started, as the CLI."""
+    if TRACKING_URI_ENV in os.environ:  # chosen already (the CLI links to the stack before the flow starts)
+        return
     if tracking := running_urls(workspace).get(TRACKING_URI_ENV):
-        os.environ.setdefault(TRACKING_URI_ENV, tracking)
+        os.environ[TRACKING_URI_ENV] = tracking
 
 
 def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> None:

@@ -23,7 +23,6 @@ from envs.rollout import Act, Explorer, rollout, worker_env
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, key_fields, unit_key
-from schemas.settings import apply_secrets_file
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -229,8 +228,6 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     """Worker: roll out the unit's episodes and write its episodes and steps shards."""
     from envs.randomisation import sample_randomisation
 
-    if unit.shard_store != FOLDER:  # a rollout host's keys: a Dask worker is started by the lab, not by sim2act
-        apply_secrets_file()
     policy = None
     if unit.policy is not None:
         from policies.policy import Policy
