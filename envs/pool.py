@@ -18,6 +18,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
@@ -145,6 +146,7 @@ class WorkerPool:
     blocks until its unit is done."""
 
     def __init__(self, workers: int):
+        self.size = workers
         self._context = multiprocessing.get_context("spawn")
         self._idle: queue.Queue[_Worker] = queue.Queue()
         self._lock = threading.Lock()
@@ -243,6 +245,57 @@ def run_with_retries(
     return again(pool.run, work, unit, label)
 
 
+# The pool lent to every stage while keep_workers() is open ([] until a stage first asks); None: each
+# stage starts and closes its own.
+_kept: list[WorkerPool] | None = None
+_kept_lock = threading.Lock()
+
+
+@contextmanager
+def keep_workers() -> Iterator[None]:
+    """Within it, the stages share one pool, started when first asked for and closed on leaving:
+    a campaign's explore, evaluate and baselines reuse the same worker processes, and the scenes
+    they built (~3 s a robosuite scene per worker), instead of each stage spawning its own.
+    Re-entrant: an inner one (a stage run inside a campaign) keeps the outer's pool."""
+    global _kept
+    if _kept is not None:
+        yield
+        return
+    _kept = []
+    try:
+        yield
+    finally:
+        with _kept_lock:
+            pools, _kept = _kept, None
+        for pool in pools:
+            pool.close()
+
+
+@contextmanager
+def borrowed_pool(workers: int) -> Iterator[WorkerPool]:
+    """A pool of at least `workers` processes: the kept one (grown if it is smaller) or, outside
+    keep_workers, a fresh one closed on return. A borrower that leaves early (an error, or its caller
+    stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one."""
+    if _kept is None:
+        with WorkerPool(workers) as pool:
+            yield pool
+        return
+    with _kept_lock:
+        if _kept and _kept[0].size < workers:
+            _kept.pop().close()
+        if not _kept:
+            _kept.append(WorkerPool(workers))
+        pool = _kept[0]
+    try:
+        yield pool
+    except BaseException:
+        with _kept_lock:
+            if _kept and _kept[0] is pool:
+                _kept.pop()
+        pool.close()
+        raise
+
+
 def run_in_pool(
     work: Callable[[Unit], Result], units: Sequence[Unit], workers: int, label: Callable[[Unit], str] = repr,
 ) -> Iterator[tuple[Unit, Result, float]]:
@@ -251,13 +304,12 @@ def run_in_pool(
     if not units:
         return
     count = min(workers, len(units))
-    pool = WorkerPool(count)
-    threads = ThreadPoolExecutor(max_workers=count, thread_name_prefix="sim2act-pool")
-    try:
-        futures = {threads.submit(run_with_retries, pool, work, unit, label(unit)): unit for unit in units}
-        for future in as_completed(futures):
-            result, seconds = future.result()
-            yield futures[future], result, seconds
-    finally:
-        threads.shutdown(wait=False, cancel_futures=True)
-        pool.close()
+    with borrowed_pool(count) as pool:
+        threads = ThreadPoolExecutor(max_workers=count, thread_name_prefix="sim2act-pool")
+        try:
+            futures = {threads.submit(run_with_retries, pool, work, unit, label(unit)): unit for unit in units}
+            for future in as_completed(futures):
+                result, seconds = future.result()
+                yield futures[future], result, seconds
+        finally:
+            threads.shutdown(wait=False, cancel_futures=True)

@@ -16,6 +16,7 @@ from prefect.cache_policies import NO_CACHE
 from pydantic import BaseModel
 
 from dashboards.report import plot_success_by_iteration, success_by_iteration
+from envs.pool import keep_workers
 from flows.artifacts import iteration_markdown, publish_iteration_artifacts
 from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.run_lock import exclusive_run
@@ -217,7 +218,8 @@ def bootstrap(
     apply_secrets_file()
     ws = Workspace.at(workspace).create()
     log_to_running_stack(ws)
-    with exclusive_run(ws, config.name):  # a second run on the workspace is refused before any work
+    # one pool of rollout workers for every stage, so their processes and scenes are built once
+    with exclusive_run(ws, config.name), keep_workers():  # a second run on the workspace is refused before any work
         return _run_campaign(config, ws, continue_campaign)
 
 

@@ -17,7 +17,7 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
-from envs.pool import RETRIES, WorkerLost, WorkerPool
+from envs.pool import RETRIES, WorkerLost, WorkerPool, borrowed_pool
 from schemas.config import ExploreConfig
 from schemas.settings import apply_secrets_file
 from stages.explore import Completed, Execute, ExploreUnit, run_explore_unit, unit_label
@@ -83,22 +83,27 @@ def rollout_task_runner(explore: ExploreConfig) -> TaskRunner:
     return ThreadPoolTaskRunner(max_workers=explore.workers)
 
 
+def _submitted(units: list[ExploreUnit], pool_id: str | None) -> Completed:
+    futures = [explore_shard.submit(unit, pool_id) for unit in units]
+    by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
+    for future in as_completed(futures):
+        shards, seconds = future.result()
+        yield by_run[future.task_run_id], shards, seconds
+
+
 def as_prefect_tasks(explore: ExploreConfig) -> Execute:
     """Submit every unit as an explore-shard task run (inside a flow using rollout_task_runner)."""
 
     def execute(units: list[ExploreUnit]) -> Completed:
-        pool_id = None
-        if explore.dask_address is None and units:
+        if explore.dask_address is not None or not units:
+            yield from _submitted(units, None)
+            return
+        with borrowed_pool(min(explore.workers, len(units))) as pool:  # the campaign's, under keep_workers
             pool_id = uuid.uuid4().hex
-            _local_pools[pool_id] = WorkerPool(min(explore.workers, len(units)))
-        try:
-            futures = [explore_shard.submit(unit, pool_id) for unit in units]
-            by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
-            for future in as_completed(futures):
-                shards, seconds = future.result()
-                yield by_run[future.task_run_id], shards, seconds
-        finally:
-            if pool_id is not None:
-                _local_pools.pop(pool_id).close()
+            _local_pools[pool_id] = pool
+            try:
+                yield from _submitted(units, pool_id)
+            finally:
+                del _local_pools[pool_id]
 
     return execute

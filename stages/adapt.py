@@ -18,6 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel
 
+from envs.pool import keep_workers
 from schemas.config import AdaptConfig, BaselinesConfig, CampaignConfig, RandomiseConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
@@ -96,6 +97,7 @@ def _score(evaluations: list[TaskEvaluation]) -> tuple[int, int]:
     return sum(e.successes for e in evaluations), sum(e.episodes for e in evaluations)
 
 
+@keep_workers()  # its explore and five evaluations on one pool of workers
 def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, source_checkpoint: str) -> AdaptResult:
     """The shifted domain's campaign (target_campaign) runs its own stages, each with its units, then
     fine-tuned and from-scratch models are trained and evaluated per `adapt.episodes_per_task`.

@@ -22,12 +22,12 @@ SELECT (SELECT count(*) FROM tasks), (SELECT count(*) FROM episodes), (SELECT co
 """
 
 
-def run_campaign(workspace: Path, prefect_api: str, kill_at: str | None = None) -> tuple[str, float]:
-    """Run `sim2act run --preset smoke`; with kill_at, SIGKILL the whole process group as soon
-    as a log line matches it. Returns (output, seconds)."""
+def run_campaign(workspace: Path, prefect_api: str, kill_at: str | None = None, *extra: str) -> tuple[str, float]:
+    """Run `sim2act run --preset smoke [extra]`; with kill_at, SIGKILL the whole process group as
+    soon as a log line matches it. Returns (output, seconds)."""
     started = time.monotonic()
     process = subprocess.Popen(
-        [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace)],
+        [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace), *extra],
         env=sim2act_env(prefect_api), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         start_new_session=True,
     )
@@ -47,10 +47,28 @@ def run_campaign(workspace: Path, prefect_api: str, kill_at: str | None = None) 
 
 
 def snapshot(workspace: Path) -> dict:
+    """The campaign's row counts, episodes, dataset digests and shard bytes (sha256)."""
     catalog = Catalog(Workspace.at(workspace).catalog)
     return {
         "counts": catalog.query(ROW_COUNTS)[0],
         "episodes": catalog.query("SELECT episode_id, explorer, num_steps, episode_return FROM episodes ORDER BY 1"),
         "digests": catalog.query("SELECT iteration, dataset_digest, triplets FROM iterations ORDER BY 1"),
         "shards": catalog.query("SELECT path, sha256 FROM shards WHERE table_name <> 'instructions' ORDER BY 1"),
+    }
+
+
+def iteration_zero_snapshot(workspace: Path) -> dict:
+    """Iteration 0's episodes, steps, shard bytes, dataset digest and model: equal in a campaign
+    stopped after iteration 0 (`--set iterations=1`) and in the reference that went on."""
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    return {
+        "episodes": catalog.query("SELECT episode_id, explorer, num_steps, episode_return FROM episodes "
+                                  "WHERE iteration = 0 ORDER BY 1"),
+        "steps": catalog.query("SELECT count(*) FROM steps WHERE iteration = 0"),
+        "shards": catalog.query("SELECT path, sha256 FROM shards WHERE iteration = 0 AND table_name <> 'instructions' "
+                                "ORDER BY 1"),
+        "digest": catalog.query("SELECT dataset_digest, triplets FROM iterations WHERE iteration = 0"),
+        "model": catalog.query("SELECT model_key FROM models WHERE iteration = 0"),
+        "evaluations": catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
+                                     "WHERE iteration = 0 ORDER BY ALL"),
     }

@@ -19,7 +19,7 @@ from mlflow import MlflowClient
 from schemas.config import load_config
 from schemas.workspace import Workspace
 from stages.baselines import exploration_steps, rl_units
-from tests.campaign import run_campaign, snapshot
+from tests.campaign import iteration_zero_snapshot, run_campaign, snapshot
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 from warehouse.priority import plan_priorities
@@ -198,20 +198,22 @@ KILL_POINTS = (
 
 def test_sigkill_in_every_stage_then_resume_gives_the_same_rows(finished_campaign, tmp_path, prefect_api):
     """One workspace, killed (SIGKILL, the whole process group) once in or at the start of each
-    stage in turn; each run resumes where the last was killed; the end is the reference's rows."""
+    stage of iteration 0 in turn; each run resumes where the last was killed; iteration 0 ends with the
+    reference's rows, shard bytes, dataset, model and evaluations (iteration 1 would only repeat it)."""
     reference, _, _ = finished_campaign
     workspace = tmp_path / "killed"
     outputs = []
     for kill_at in KILL_POINTS:
-        output, _ = run_campaign(workspace, prefect_api, kill_at=kill_at)
+        output, _ = run_campaign(workspace, prefect_api, kill_at, "--set", "iterations=1")
         outputs.append(output)
         if kill_at.startswith("explore"):
             partial = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM episodes")[0][0]
             assert 0 < partial < 12
     # the run after the explore kill kept the shards that were registered
     assert re.search(r"explore it0: 6 shards \([1-5] already registered\)", outputs[2]), outputs[2][-3000:]
-    run_campaign(workspace, prefect_api)
-    assert snapshot(workspace) == snapshot(reference)
+    run_campaign(workspace, prefect_api, None, "--set", "iterations=1")
+    assert iteration_zero_snapshot(workspace) == iteration_zero_snapshot(reference)
+    assert Catalog(Workspace.at(workspace).catalog).query("SELECT iteration FROM deployments") == [(0,)]
 
 
 NEW_TASKS = """
@@ -271,12 +273,15 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
     assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before
 
 
+RL_BUDGET = 128  # env steps per RL baseline: one PPO rollout, 116 SAC updates (SAC took 55 s at 300 here)
+
+
 def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_campaign, tmp_path, prefect_api):
     workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
     shutil.copytree(finished_campaign[0], workspace)
     ws, catalog = Workspace.at(workspace), Catalog(Workspace.at(workspace).catalog)
     with_baselines = [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace),
-                      "--set", "baselines.agents=[expert,ppo,sac]", "--set", "baselines.env_steps=300"]
+                      "--set", "baselines.agents=[expert,ppo,sac]", "--set", f"baselines.env_steps={RL_BUDGET}"]
     run = subprocess.run(with_baselines, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
 
@@ -291,14 +296,14 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     assert [(u.algorithm, u.family, u.env_steps) for u in planned] == [("ppo", "robosuite", explored),
                                                                       ("sac", "robosuite", explored)]
     assert all(u.tasks == [t for t in tasks if t.split == "seen"] for u in planned)
-    # (here 300 steps, to keep the test short)
+    # (here RL_BUDGET steps, to keep the test short)
     trained = {json.loads(s)["algorithm"]: (key, json.loads(s)) for key, s in catalog.query(
         "SELECT unit_key, summary FROM stage_runs WHERE stage = 'baselines'")}
     assert set(trained) == {"ppo", "sac"}
     for key, summary in trained.values():
-        assert summary["env_steps"] == 300 and summary["family"] == "robosuite"
-        assert 300 <= summary["steps_taken"] <= 302
-        assert summary["episodes"] >= 300 // 60  # episodes of at most the horizon, 60 steps
+        assert summary["env_steps"] == RL_BUDGET and summary["family"] == "robosuite"
+        assert RL_BUDGET <= summary["steps_taken"] <= RL_BUDGET + 2
+        assert summary["episodes"] >= RL_BUDGET // 60  # episodes of at most the horizon, 60 steps
         assert (ws.models / key / "agent.zip").stat().st_size > 100_000
     # every baseline meets the campaign's own evaluation cases, with the same seeds
     cases = catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
@@ -327,7 +332,7 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
     assert {"Sim2Act iteration 0 (BC on iteration-0 data)", "Sim2Act iteration 1", "scripted expert, noiseless (ceiling)",
             "PPO from scratch (robosuite)", "SAC from scratch (robosuite)"} <= set(rows)
-    assert "| 300 |" in rows["PPO from scratch (robosuite)"] and f"| {explored:,} |" in rows["Sim2Act iteration 1"]
+    assert f"| {RL_BUDGET} |" in rows["PPO from scratch (robosuite)"] and f"| {explored:,} |" in rows["Sim2Act iteration 1"]
     [(successes, episodes)] = catalog.query("SELECT sum(successes), sum(episodes) FROM evaluations "
                                             "WHERE model_key = 'expert' AND split = 'seen'")
     assert f"| {successes}/{episodes} = " in rows["scripted expert, noiseless (ceiling)"]

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from schemas.workspace import Workspace
-from tests.campaign import run_campaign, snapshot
+from tests.campaign import iteration_zero_snapshot, run_campaign, snapshot
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 
@@ -24,20 +24,6 @@ pytestmark = pytest.mark.timeout(1800)
 
 def _sim2act(prefect_api: str, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([SIM2ACT, *args], env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
-
-
-def _iteration_zero(workspace: Path) -> dict:
-    """Iteration 0's rows and shard bytes: the reference's, in a campaign stopped after it."""
-    catalog = Catalog(Workspace.at(workspace).catalog)
-    return {
-        "episodes": catalog.query("SELECT episode_id, explorer, num_steps, episode_return FROM episodes "
-                                  "WHERE iteration = 0 ORDER BY 1"),
-        "steps": catalog.query("SELECT count(*) FROM steps WHERE iteration = 0"),
-        "shards": catalog.query("SELECT path, sha256 FROM shards WHERE iteration = 0 AND table_name <> 'instructions' "
-                                "ORDER BY 1"),
-        "digest": catalog.query("SELECT dataset_digest, triplets FROM iterations WHERE iteration = 0"),
-        "model": catalog.query("SELECT model_key FROM models WHERE iteration = 0"),
-    }
 
 
 def _mount(*args: str) -> subprocess.CompletedProcess:
@@ -78,7 +64,7 @@ def test_a_full_disk_stops_the_run_in_one_line_and_the_next_run_resumes(finished
         assert resumed.returncode == 0, resumed.stderr[-3000:]
         assert re.search(rf"explore it0: 6 shards \({explored} already registered\)", resumed.stderr), \
             resumed.stderr[-3000:]
-        assert _iteration_zero(ws.root) == _iteration_zero(finished_campaign[0])
+        assert iteration_zero_snapshot(ws.root) == iteration_zero_snapshot(finished_campaign[0])
         assert catalog.verify(full=True) == []
     finally:
         subprocess.run(["umount", "--lazy", str(ws.shards)], capture_output=True)  # detached even if a run holds it
