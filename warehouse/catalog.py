@@ -137,10 +137,11 @@ class Catalog:
         con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
             duckdb.connect, str(self.path), read_only=read_only)
         try:
+            self._search_warehouse(con)
             store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
-            elif not self._in_place and self._moved(con):
+            elif confined or (not self._in_place and self._moved(con)):
                 self._follow_move(con, read_only)
             if confined:
                 self._confine(con)
@@ -272,10 +273,15 @@ class Catalog:
         bare `main.` resolves to the temporary catalog's schema too."""
         return f'"{con.execute("SELECT current_database()").fetchone()[0]}".main'
 
-    def _shard_source(self, con: duckdb.DuckDBPyConnection, table: str, as_of_iteration: int | None) -> str:
+    def _shard_source(self, con: duckdb.DuckDBPyConnection, table: str, as_of_iteration: int | None,
+                      temporary: bool) -> str:
+        """What a view of `table` reads. The catalog file's views name a folder's shards relative to it
+        (they hold when the workspace moves); a connection's temporary views name them by location,
+        which confinement (allowed_directories: absolute folders) can check."""
         persistent = self._persistent(con)
+        where = self.store.location if temporary else self.store.view_location
         paths = [
-            self.store.location(row[0])
+            where(row[0])
             for row in con.execute(
                 f"SELECT path FROM {persistent}.shards WHERE table_name = ? AND (? IS NULL OR iteration <= ?) ORDER BY path",
                 [table, as_of_iteration, as_of_iteration],
@@ -284,8 +290,8 @@ class Catalog:
         return f"read_parquet({paths!r})" if paths else f"{persistent}._empty_{table}"
 
     def _moved(self, con: duckdb.DuckDBPyConnection) -> bool:
-        """Whether the shard views name files under another folder than this warehouse (it was
-        copied or moved: views hold absolute paths, DuckDB has no paths relative to its file)."""
+        """Whether the views may name files under another folder than this warehouse: it was copied
+        or moved, and they were made before views named shards relative to it (or live on S3)."""
         if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
             return False  # not initialised yet
         root = con.execute(f"SELECT value FROM {self._persistent(con)}.catalog_meta WHERE key = 'root'").fetchone()
@@ -294,14 +300,28 @@ class Catalog:
 
     def _follow_move(self, con: duckdb.DuckDBPyConnection, read_only: bool) -> None:
         """Point the shard views at this folder's files: for good when writing, for this
-        connection (temporary views) when reading."""
+        connection (temporary views) when reading (a confined connection's always)."""
         if read_only:
             for name in SHARD_TABLES:
-                con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None)}")
+                con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None, True)}")
             return
         self._refresh_views(con, SHARD_TABLES)
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
         self._in_place = True
+
+    def _search_warehouse(self, con: duckdb.DuckDBPyConnection) -> None:
+        """Relative file names (the views' shards) resolve in the warehouse folder. Set on the DuckDB
+        instance (GLOBAL), which a confined connection then locks: later connections find it set."""
+        folder = self.warehouse.resolve().as_posix()
+        with _CONFINING:
+            [(locked, searched)] = con.execute(
+                "SELECT current_setting('lock_configuration'), current_setting('file_search_path')").fetchall()
+            if searched == folder:
+                return
+            if locked:
+                raise RuntimeError(f"expected this process's DuckDB instance to search {folder}, got a locked "
+                                   f"configuration searching {searched!r}")
+            con.execute("SET GLOBAL file_search_path = ?", [folder])
 
     def _confine(self, con: duckdb.DuckDBPyConnection) -> None:
         """After the views exist (they name the shard files): the warehouse folder only, then lock.
@@ -328,13 +348,13 @@ class Catalog:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.
         (The ready-made views name these views, so they need no refresh.)"""
         for name in tables:
-            con.execute(f"CREATE OR REPLACE VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None)}")
+            con.execute(f"CREATE OR REPLACE VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None, False)}")
 
     def _snapshot_views(self, con: duckdb.DuckDBPyConnection, iteration: int) -> None:
         """Temporary views shadow the persistent ones (DuckDB resolves temp first)."""
         for name in SHARD_TABLES:
             con.execute(
-                f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, iteration)}"
+                f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, iteration, True)}"
             )
         persistent = self._persistent(con)
         for name in ITERATION_TABLES:

@@ -89,6 +89,10 @@ class ShardStore(ABC):
     def location(self, rel: str) -> str:
         """What DuckDB's read_parquet reads for `rel` (and the training reader opens again)."""
 
+    def view_location(self, rel: str) -> str:
+        """What the catalog's views name for `rel`: its location (a folder's overrides it)."""
+        return self.location(rel)
+
     def rel_of(self, location: str) -> str:
         """The shard name a location (as read_parquet's `filename` gives it) holds."""
         return self.rel(location)
@@ -155,6 +159,12 @@ class FolderStore(ShardStore):
 
     def location(self, rel: str) -> str:
         return (self.warehouse / rel).as_posix()
+
+    def view_location(self, rel: str) -> str:
+        """The name relative to the warehouse folder, which every catalog connection searches
+        (Catalog.connect): the views stay true when the workspace is copied or moved, for any DuckDB
+        client opened in that folder or told it (`SET file_search_path`)."""
+        return rel
 
     def open(self, location: str) -> pa.NativeFile:
         return pa.OSFile(location)

@@ -140,11 +140,16 @@ def test_sql_formats(workspace):
     assert '"n": 4' in run_sql(catalog, "SELECT count(*) AS n FROM filter_decisions", "json")
 
 
-def test_catalog_opens_in_a_plain_duckdb_client(workspace):
+def test_catalog_opens_in_a_plain_duckdb_client(workspace, monkeypatch):
+    """The views name shards relative to the warehouse folder: a client opened there reads them, or
+    one told where they are (docs/warehouse.md)."""
     _register(workspace, "filter-a", 4)
-    con = duckdb.connect(str(workspace.catalog), read_only=True)
-    assert con.execute("SELECT count(*) FROM filter_decisions WHERE kept").fetchone() == (2,)
-    con.close()
+    with duckdb.connect(str(workspace.catalog), read_only=True) as con:
+        con.execute("SET file_search_path = ?", [str(workspace.warehouse)])
+        assert con.execute("SELECT count(*) FROM filter_decisions WHERE kept").fetchone() == (2,)
+    monkeypatch.chdir(workspace.warehouse)
+    with duckdb.connect("catalog.duckdb", read_only=True) as con:
+        assert con.execute("SELECT count(*) FROM filter_decisions WHERE kept").fetchone() == (2,)
 
 
 def test_missing_catalog_is_a_clear_error(tmp_path):
@@ -152,17 +157,21 @@ def test_missing_catalog_is_a_clear_error(tmp_path):
         Catalog(tmp_path / "nope.duckdb").query("SELECT 1")
 
 
-def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory):
-    """Views name shard files by absolute path: a copied or moved workspace must follow its own."""
+def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory, monkeypatch):
+    """A copied or moved workspace reads its own files, in sim2act and in a plain DuckDB client."""
     import shutil
 
     _register(workspace, "filter-a", 4)
     moved = Workspace.at(tmp_path_factory.mktemp("elsewhere") / "workspace")
     shutil.move(workspace.root, moved.root)  # nothing is left at the old path
+    with duckdb.connect(str(moved.catalog), read_only=True) as con:  # before sim2act opened it there
+        con.execute("SET file_search_path = ?", [str(moved.warehouse)])
+        assert con.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(4,)]
     catalog = Catalog(moved.catalog)
     assert catalog.query("SELECT count(*) FROM filter_decisions") == [(4,)]  # read-only: this connection's views
     assert catalog.query("SELECT count(*) FROM filter_decisions", as_of_iteration=0) == [(4,)]
     assert _register(moved, "filter-b", 2)  # a writer re-points the views for good
     assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'root'") == [(moved.warehouse.resolve().as_posix(),)]
-    with duckdb.connect(str(moved.catalog), read_only=True) as con:  # a plain client sees the moved files too
+    monkeypatch.chdir(moved.warehouse)
+    with duckdb.connect("catalog.duckdb", read_only=True) as con:  # a plain client sees the new one too
         assert con.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(6,)]
