@@ -1,4 +1,6 @@
+import re
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -99,6 +101,16 @@ def test_every_preset_loads_and_yields_its_tasks(preset):
     assert tasks and any(t.split == "seen" for t in tasks)
     if config.explore.curriculum:  # a curriculum needs a long-horizon task whose sub-tasks it can chain
         assert curriculum_subgoals(config, tasks)
+
+
+@pytest.mark.parametrize("path", sorted(Path(__file__).resolve().parents[2].glob("docs/quality/*.yaml")),
+                         ids=lambda path: path.name)
+def test_every_campaign_file_of_the_docs_loads_on_the_preset_its_commands_name(path):
+    """docs/quality's files are run by the commands in their own comments: those must work."""
+    presets = set(re.findall(r"--preset (\S+)", path.read_text()))
+    assert len(presets) == 1, f"{path.name}: expected its commands to name one preset, got {presets}"
+    config = load_config(presets.pop(), path)
+    assert generate_tasks(config.tasks, config.seed) and config.name == path.stem
 
 
 def test_each_split_gets_at_least_its_episodes_per_split():
