@@ -74,9 +74,15 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
         jobs = [Job(n=n, attempts_dir=str(tmp_path)) for n in range(first, first + 4)]
         return {pid for _, (_, pid), _ in run_in_pool(attempt, jobs, workers=2)}
 
-    def workers() -> set[int]:  # (not multiprocessing's resource tracker, nor a process already reaped)
-        return {p.pid for p in psutil.Process().children() if p.is_running() and p.status() != psutil.STATUS_ZOMBIE
-                and "spawn_main" in " ".join(p.cmdline())}
+    def workers() -> set[int]:  # spawned workers: not multiprocessing's resource tracker, nor other tests' servers
+        found = set()
+        for child in psutil.Process().children():
+            try:
+                if child.status() != psutil.STATUS_ZOMBIE and "spawn_main" in " ".join(child.cmdline()):
+                    found.add(child.pid)
+            except psutil.Error:  # ended meanwhile
+                pass
+        return found
 
     with keep_workers():
         explore = stage(0)
