@@ -245,9 +245,8 @@ def run_with_retries(
     return again(pool.run, work, unit, label)
 
 
-# The pool lent to every stage while keep_workers() is open ([] until a stage first asks); None: each
-# stage starts and closes its own.
-_kept: list[WorkerPool] | None = None
+_keeping = False  # inside keep_workers(): stages borrow _kept instead of starting their own pool
+_kept: WorkerPool | None = None  # the pool they share, started when a stage first asks
 _kept_lock = threading.Lock()
 
 
@@ -257,17 +256,17 @@ def keep_workers() -> Iterator[None]:
     a campaign's explore, evaluate and baselines reuse the same worker processes, and the scenes
     they built (~3 s a robosuite scene per worker), instead of each stage spawning its own.
     Re-entrant: an inner one (a stage run inside a campaign) keeps the outer's pool."""
-    global _kept
-    if _kept is not None:
+    global _keeping, _kept
+    if _keeping:
         yield
         return
-    _kept = []
+    _keeping = True
     try:
         yield
     finally:
         with _kept_lock:
-            pools, _kept = _kept, None
-        for pool in pools:
+            pool, _kept, _keeping = _kept, None, False
+        if pool is not None:
             pool.close()
 
 
@@ -276,22 +275,24 @@ def borrowed_pool(workers: int) -> Iterator[WorkerPool]:
     """A pool of at least `workers` processes: the kept one (grown if it is smaller) or, outside
     keep_workers, a fresh one closed on return. A borrower that leaves early (an error, or its caller
     stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one."""
-    if _kept is None:
+    global _kept
+    if not _keeping:
         with WorkerPool(workers) as pool:
             yield pool
         return
     with _kept_lock:
-        if _kept and _kept[0].size < workers:
-            _kept.pop().close()
-        if not _kept:
-            _kept.append(WorkerPool(workers))
-        pool = _kept[0]
+        if _kept is not None and _kept.size < workers:
+            _kept.close()
+            _kept = None
+        if _kept is None:
+            _kept = WorkerPool(workers)
+        pool = _kept
     try:
         yield pool
     except BaseException:
         with _kept_lock:
-            if _kept and _kept[0] is pool:
-                _kept.pop()
+            if _kept is pool:
+                _kept = None
         pool.close()
         raise
 
