@@ -225,6 +225,9 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             # the policy's mean per-step uncertainty: entropy (discrete) or log det Sigma (continuous)
             ("uncertainty", pa.float64()),
             ("success_video", pa.string()), ("failure_video", pa.string()),  # MP4s: first success, first failure
+            # per episode, seed order: the task the agent ended doing (the evaluated task when it succeeded,
+            # another task of the evaluated set whose goal it ended at, or null); null list: not recorded
+            ("episode_achieved", pa.list_(pa.string())),
         ]),
         ("unit_key",),
     ),

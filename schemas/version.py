@@ -14,6 +14,12 @@
    episodes.render.depth; evaluations.suite (the flow's, or `sim2act eval`'s task set), family,
    ci_low, ci_high (Wilson 95%), episode_lengths, episode_successes, success_video and
    failure_video (MP4s; were media_path, a GIF).
+7: evaluations.episode_achieved (per episode, the task the agent ended doing: the evaluated one, another
+   goal of the same scene, or none). A layout-6 catalog is brought to 7 in place (MIGRATIONS): no shard
+   table changed, so its shards stay as they are.
 """
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
+# layout -> (catalog table, column) added to bring a catalog of that layout to the next, in place;
+# the column's type is the one schemas/tables.py declares (the last of its table: ALTER TABLE appends)
+MIGRATIONS: dict[int, list[tuple[str, str]]] = {6: [("evaluations", "episode_achieved")]}

@@ -27,7 +27,7 @@ from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
 
-STAGE, VERSION = "evaluate", 4
+STAGE, VERSION = "evaluate", 5  # 5: episode_achieved
 log = logging.getLogger("sim2act.stages.evaluate")
 SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE, HELD_OUT_WORDING)  # the evaluation's splits, in report order
 
@@ -51,6 +51,9 @@ class EvalUnit(BaseModel):
     agent: Agent
     seeds: list[int]
     embedding: list[float]  # of the instruction
+    # the evaluated set's other tasks in the same environment: a failed episode may have ended doing one
+    # of them instead (the goal the words did not name: how well the policy reads them)
+    others: list[TaskRecord] = []
     video_stem: str | None  # <stem>-success.mp4 / <stem>-failure.mp4: the first episode of each outcome
 
 
@@ -70,6 +73,9 @@ class TaskEvaluation(BaseModel):
     uncertainty: float  # the Sim2Act policy's, per step, averaged over the episodes (policies.model.uncertainty); 0 for other agents
     success_video: str | None
     failure_video: str | None
+    # per episode: the task it ended doing (task_id on success, another task of the evaluated set, or
+    # None); None where not recorded (evaluations before layout 7)
+    episode_achieved: list[str | None] | None = None
 
     @property
     def success_rate(self) -> float:
@@ -246,6 +252,15 @@ def _episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
     return lambda seed: lambda obs: (agent.act(obs, embedding), 0.0)
 
 
+def ended_doing(env, others: list[TaskRecord]) -> str | None:
+    """The task of `others` whose goal a failed episode ended at, where the environment can tell
+    (navigation's `achieved`, as hindsight relabelling asks it); None otherwise."""
+    if not others or not hasattr(env, "achieved"):
+        return None
+    done = env.achieved(others)
+    return None if done is None else done.task_id
+
+
 def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     """Worker: the agent's mean (or most likely) action, episodes until success or the horizon;
     its uncertainty at every step; an MP4 of the first success and of the first failure."""
@@ -253,7 +268,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
 
     actor = _episode_actor(unit)
     env = worker_env(unit.task, unit.render)
-    returns, lengths, outcomes, uncertainties = [], [], [], []
+    returns, lengths, outcomes, uncertainties, achieved = [], [], [], [], []
     videos: dict[bool, str] = {}
 
     for seed in unit.seeds:
@@ -270,6 +285,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
         outcomes.append(bool(success))
+        achieved.append(unit.task.task_id if success else ended_doing(env, unit.others))
         if unit.video_stem and bool(success) not in videos and final.image.size:
             path = Path(f"{unit.video_stem}-{'success' if success else 'failure'}.mp4")
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -282,6 +298,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
         episodes=len(outcomes), successes=successes, ci_low=low, ci_high=high, mean_return=float(np.mean(returns)),
         mean_length=float(np.mean(lengths)), episode_lengths=lengths, episode_successes=outcomes,
         uncertainty=float(np.mean(uncertainties)), success_video=videos.get(True), failure_video=videos.get(False),
+        episode_achieved=achieved,
     )
 
 
@@ -289,6 +306,38 @@ def evaluated_key(model_key: str, weights: str) -> str:
     """Whom an evaluation names: the model with its registered weights, or `<key>:final` for its last
     weights (another agent: its own evaluation units)."""
     return model_key if weights == "registered" else f"{model_key}:{weights}"
+
+
+class GoalConfusion(BaseModel):
+    """A split's failed episodes by what they ended doing (the environments that can tell): the goal
+    of a task of the same spec in another colour (the colour misread), of another spec (the object
+    misread), or none named by any evaluated task."""
+
+    split: str
+    failures: int  # failed episodes whose end was recorded
+    same_spec: int  # ended at the goal of the same spec in another colour
+    other_spec: int  # ended at the goal of another spec
+    commonest: list[tuple[str, str, int]]  # (evaluated task, task done instead, episodes), most first
+
+
+def goal_confusions(evaluations: list[TaskEvaluation], spec_of: dict[str, str], top: int = 3) -> list[GoalConfusion]:
+    """Per split, in report order: what failed episodes ended doing, where any was recorded.
+    `spec_of`: task id -> its spec, for the evaluated tasks and those done instead."""
+    by_split: dict[str, list[tuple[str, str | None]]] = {}
+    for t in evaluations:
+        if t.episode_achieved is None:
+            continue
+        failed = [done for done, success in zip(t.episode_achieved, t.episode_successes) if not success]
+        by_split.setdefault(t.split, []).extend((t.task_id, done) for done in failed)
+    confusions = []
+    for split in sorted(by_split, key=lambda s: SPLITS.index(s) if s in SPLITS else len(SPLITS)):
+        pairs = by_split[split]
+        wrong = [(task, done) for task, done in pairs if done is not None]
+        same = sum(spec_of.get(done) == spec_of.get(task) for task, done in wrong)
+        confusions.append(GoalConfusion(
+            split=split, failures=len(pairs), same_spec=same, other_spec=len(wrong) - same,
+            commonest=[(task, done, n) for (task, done), n in Counter(wrong).most_common(top)]))
+    return confusions
 
 
 def episodes_per_split(config: CampaignConfig, cases: list[tuple[TaskRecord, str, str]]) -> dict[str, int]:
@@ -306,6 +355,15 @@ def evaluation_cases(tasks: list[TaskRecord], held_out_wordings: bool = False) -
     if held_out_wordings:
         cases += [(task, HELD_OUT_WORDING, held_out_wording(task.instruction)) for task in tasks if task.split == "seen"]
     return cases
+
+
+def others_of(task: TaskRecord, cases: list[tuple[TaskRecord, str, str]]) -> list[TaskRecord]:
+    """The cases' other one-goal tasks in `task`'s environment, each once, in case order."""
+    others: dict[str, TaskRecord] = {}
+    for other, _, _ in cases:
+        if other.env_name == task.env_name and other.task_id != task.task_id and len(other.object_colours) == 1:
+            others.setdefault(other.task_id, other)
+    return list(others.values())
 
 
 def evaluate_model(
@@ -343,7 +401,7 @@ def evaluate_model(
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
                               randomise=config.randomise, agent=agent, seeds=seeds,
-                              embedding=embeddings[instruction].tolist(),
+                              embedding=embeddings[instruction].tolist(), others=others_of(task, cases),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None))
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
@@ -357,7 +415,7 @@ def evaluate_model(
             row = {"unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "suite": suite,
                    "model_key": model_key,
                    **result.model_dump(), "success_rate": result.success_rate}
-            summary = {"model_key": model_key, **result.model_dump(exclude={"episode_lengths", "episode_successes"})}
+            summary = {"model_key": model_key, **result.model_dump(exclude={"episode_lengths", "episode_successes", "episode_achieved"})}
             ledger.register(unit.unit_key, UnitOutput(summary, rows={"evaluations": [row]}), seconds)
             progress.advance(1, result.episodes)
             log.info("evaluate it%d: %s (%s, %r) success %d/%d [%.0f%%, %.0f%%]", iteration, result.task_id,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -23,9 +24,11 @@ import pyarrow as pa
 from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
-from schemas.version import SCHEMA_VERSION
+from schemas.version import MIGRATIONS, SCHEMA_VERSION
 from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard
 from warehouse.store import FOLDER, ShardStore, open_store
+
+log = logging.getLogger("sim2act.warehouse.catalog")
 
 LOCK_WAIT_S = 120.0
 _CONFINING = threading.Lock()  # Catalog._confine: DuckDB's settings belong to the instance threads share
@@ -153,6 +156,7 @@ class Catalog:
 
     def initialise(self) -> None:
         self.check_version()
+        self.migrate()
         # an S3 prefix another catalog keeps its shards under is refused before anything is written here
         warehouse_id = self.store.claim((self._meta() or {}).get("warehouse_id"), self.path.resolve())
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -173,19 +177,45 @@ class Catalog:
                 con.execute(f"CREATE OR REPLACE VIEW {name} AS {query}")
         self.check_layout()
 
-    def check_version(self) -> None:
-        """Refuse a warehouse of another layout version, before any work (no-op if none exists)."""
+    def _stamped_version(self) -> int | None:
+        """The layout version the catalog was written with; None where there is no catalog yet."""
         if not self.path.exists():
-            return
+            return None
         with self.connect(read_only=True) as con:
             if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
-                return  # a first initialise that did not finish
+                return None  # a first initialise that did not finish
             stamped = con.execute("SELECT value FROM catalog_meta WHERE key = 'schema_version'").fetchone()
-        if stamped is not None and int(stamped[0]) != SCHEMA_VERSION:
-            raise CatalogVersionError(
-                f"the warehouse at {self.warehouse} has layout version {stamped[0]}, this sim2act writes "
-                f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
-            )
+        return None if stamped is None else int(stamped[0])
+
+    def check_version(self) -> None:
+        """Refuse a warehouse of another layout version, before any work (no-op if none exists); an
+        older layout that MIGRATIONS brings to this one in place is brought (`migrate`)."""
+        stamped = self._stamped_version()
+        if stamped is None or stamped == SCHEMA_VERSION:
+            return
+        if stamped < SCHEMA_VERSION and all(version in MIGRATIONS for version in range(stamped, SCHEMA_VERSION)):
+            self.migrate()
+            return
+        raise CatalogVersionError(
+            f"the warehouse at {self.warehouse} has layout version {stamped}, this sim2act writes "
+            f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
+        )
+
+    def migrate(self) -> None:
+        """Bring an older catalog to this layout in place, one version at a time, each version's
+        columns and new stamp in one transaction (a kill leaves the old layout or the new one)."""
+        stamped = self._stamped_version()
+        if stamped is None or stamped >= SCHEMA_VERSION:
+            return
+        with self.connect() as con:
+            for version in range(stamped, SCHEMA_VERSION):
+                con.execute("BEGIN TRANSACTION")
+                for table, column in MIGRATIONS[version]:
+                    field = CATALOG_TABLES[table].schema.field(column)
+                    con.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {column} {sql_type(field)}")
+                con.execute("UPDATE catalog_meta SET value = ? WHERE key = 'schema_version'", [str(version + 1)])
+                con.execute("COMMIT")
+        log.info("catalog %s: layout %d brought to %d in place", self.path, stamped, SCHEMA_VERSION)
 
     def check_layout(self) -> None:
         """Every catalog table has exactly the declared columns and types."""

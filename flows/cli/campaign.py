@@ -136,7 +136,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if skipped < len(evaluations):
             tracking.log_evaluation(run_id, evaluations)
         tracking.finish(run_id)
-        _print_evaluations(evaluations)
+        _print_evaluations(evaluations, {task.task_id: task.spec for task, _, _ in cases})
         by_model.append(evaluations)
     if len(models) > 1:
         from dashboards.protocol import protocol_success
@@ -156,8 +156,8 @@ def weights_of_checkpoint(path: str, weights: str) -> str:
     return weights_of(torch.load(path, map_location="cpu", weights_only=False), weights)
 
 
-def _print_evaluations(evaluations) -> None:
-    from stages.evaluate import group_success
+def _print_evaluations(evaluations, spec_of: dict[str, str]) -> None:
+    from stages.evaluate import goal_confusions, group_success
 
     def interval(low: float, high: float) -> str:
         return f"[{low:4.0%}, {high:4.0%}]"
@@ -170,6 +170,14 @@ def _print_evaluations(evaluations) -> None:
     for g in group_success(evaluations):
         print(f"{g.group:<53} {g.successes:>4}/{g.episodes:<4} {g.success_rate:>5.0%}  "
               f"{interval(g.ci_low, g.ci_high)}  {g.mean_length:6.1f}")
+    confusions = [c for c in goal_confusions(evaluations, spec_of) if c.same_spec + c.other_spec]
+    if confusions:
+        print("\nfailed episodes that ended at a goal the words did not name (the colour misread: same task "
+              "in another colour; the object misread: another task)")
+        for c in confusions:
+            commonest = ", ".join(f"{task} -> {done} x{n}" for task, done, n in c.commonest)
+            print(f"{c.split:<18} {c.failures:>4} failed: {c.same_spec:>4} colour misread, {c.other_spec:>4} "
+                  f"object misread   commonest: {commonest}")
 
 
 def cmd_report(args: argparse.Namespace) -> int:

@@ -52,3 +52,45 @@ def test_registry_references_name_a_model_version_or_alias(ref, parsed):
 def test_a_bad_reference_is_refused_naming_the_flag(ref):
     with pytest.raises(ConfigError, match="--model: .* is neither a model key"):
         parse_registry_ref(ref, "sim2act-c")
+
+
+def test_a_failed_episode_says_which_other_goal_it_ended_at_and_splits_count_the_misreadings():
+    """The words named the red ball; the agent ended at the green one: recorded per episode, counted as
+    the colour misread (same spec, another colour) in the split's confusions."""
+    import numpy as np
+
+    from envs.rollout import worker_env
+    from envs.suite import generate_tasks
+    from schemas.config import TasksConfig
+    from stages.evaluate import ended_doing, goal_confusions, others_of
+
+    tasks = {t.task_id: t for t in generate_tasks(TasksConfig(specs=["nav-ball", "nav-box"],
+                                                              colours=["red", "green", "blue"]), 0)}
+    red = tasks["nav-ball-red"]
+    cases = [(t, t.split, t.instruction) for t in tasks.values()]
+    others = others_of(red, cases)
+    assert [t.task_id for t in others] == ["nav-ball-green", "nav-ball-blue"]  # the same scene's goals, not itself
+    env = worker_env(red, None)
+    env.reset(red, seed=5)
+    assert ended_doing(env, others) is None  # the start is away from every goal
+    present = [t for t in others if ("ball", t.object_colours["target"]) in env.objects]
+    env.data.qpos[:2] = env.objects[("ball", present[0].object_colours["target"])]
+    assert ended_doing(env, others) == present[0].task_id
+    assert ended_doing(env, []) is None
+
+    def evaluation(task_id, split, successes, achieved):
+        case = _case(task_id, "navigation", split, successes)
+        return case.model_copy(update={"episode_achieved": achieved})
+
+    spec_of = {t.task_id: t.spec for t in tasks.values()}
+    confusions = goal_confusions([
+        evaluation("nav-ball-red", "seen", [True, False, False, False],
+                   ["nav-ball-red", "nav-ball-green", None, "nav-ball-green"]),
+        evaluation("nav-box-red", "seen", [False, False], ["nav-ball-red", "nav-box-blue"]),
+        evaluation("nav-ball-green", "unseen", [False], [None]),
+        _case("nav-box-blue", "navigation", "seen", [False]),  # not recorded (an evaluation before layout 7)
+    ], spec_of)
+    assert [(c.split, c.failures, c.same_spec, c.other_spec) for c in confusions] == [("seen", 5, 3, 1),
+                                                                                      ("unseen", 1, 0, 0)]
+    assert confusions[0].commonest[0] == ("nav-ball-red", "nav-ball-green", 2)
+    assert np.isclose(sum(n for *_, n in confusions[0].commonest), 4)

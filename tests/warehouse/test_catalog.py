@@ -175,3 +175,22 @@ def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory, monk
     monkeypatch.chdir(moved.warehouse)
     with duckdb.connect("catalog.duckdb", read_only=True) as con:  # a plain client sees the new one too
         assert con.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(6,)]
+
+
+def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(workspace):
+    """Layout 7 added evaluations.episode_achieved: a layout-6 catalog gains the column where any
+    command opens it (no new workspace), its rows kept with the new column null."""
+    from schemas.version import MIGRATIONS
+
+    assert SCHEMA_VERSION == 7 and MIGRATIONS[6] == [("evaluations", "episode_achieved")]
+    with duckdb.connect(str(workspace.catalog)) as con:  # what a layout-6 sim2act left
+        con.execute("ALTER TABLE evaluations DROP COLUMN episode_achieved")
+        con.execute("UPDATE catalog_meta SET value = '6' WHERE key = 'schema_version'")
+        con.execute("INSERT INTO evaluations (unit_key, task_id, successes) VALUES ('evaluate-old', 'lift-red', 3)")
+    catalog = Catalog(workspace.catalog)
+    catalog.check_version()
+    catalog.check_layout()  # every declared column, in order
+    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'schema_version'") == [("7",)]
+    assert catalog.query("SELECT unit_key, successes, episode_achieved FROM evaluations") == [("evaluate-old", 3, None)]
+    catalog.initialise()  # again: nothing left to do
+    assert catalog.query("SELECT count(*) FROM evaluations") == [(1,)]
