@@ -27,7 +27,7 @@ def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str],
             "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
             "ci_low": low, "ci_high": high, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
             "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
-            "failure_video": None, "success_rate": won / episodes})
+            "failure_video": None, "episode_achieved": None, "success_rate": won / episodes})
     catalog.register_unit(unit_key=f"evaluate-{iteration}", stage="evaluate", campaign=CAMPAIGN, iteration=iteration,
                           summary={}, rows={"evaluations": rows})
     catalog.register_unit(unit_key=f"redeploy-{iteration}", stage="redeploy", campaign=CAMPAIGN, iteration=iteration,
@@ -79,7 +79,7 @@ def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10) -> No
            "instruction": "nav-room-red", "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
            "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
            "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
-           "failure_video": None, "success_rate": won / episodes}
+           "failure_video": None, "episode_achieved": None, "success_rate": won / episodes}
     catalog.register_unit(unit_key=f"evaluate-{model}", stage="evaluate", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"evaluations": [row]})
 
@@ -99,6 +99,7 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
              "instruction": "proceed to the crimson chamber", "episodes": 10, "successes": 0, "ci_low": 0.0,
              "ci_high": 0.3, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * 10,
              "episode_successes": [False] * 10, "uncertainty": 0.0, "success_video": None, "failure_video": None,
+             "episode_achieved": None,
              "success_rate": 0.0}  # a split only seed 0 met (sim2act eval --split): left out of the pooling
     catalog.register_unit(unit_key="evaluate-extra", stage="evaluate", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"evaluations": [extra]})
