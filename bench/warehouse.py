@@ -7,13 +7,17 @@
   explore writes them, and (reference) the same rows in 1M-row files;
 - training reads: decoded samples/s through the DataLoader (SQL selection, 2 workers, shuffle
   buffer, frames decoded) vs iterating an in-memory NumPy array of the same frames;
-- bytes per triplet on disk.
+- bytes per triplet on disk;
+- registration: one more explore unit registered into a catalog already holding N units (the
+  10,000th by default) vs into an empty catalog — the registrar's cost must stay flat in N.
 """
 
 from __future__ import annotations
 
 import datetime
+import json
 import resource
+import statistics
 import shutil
 import tempfile
 import time
@@ -27,6 +31,7 @@ from pydantic import BaseModel
 from bench.synthetic import TASKS, explore_unit, register_explore_unit
 from bench.tables import table as markdown_table
 from schemas.tables import STEPS
+from schemas.version import SCHEMA_VERSION
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ZSTD_LEVEL, write_shard
@@ -43,11 +48,13 @@ class BenchSizes(BaseModel):
     batch_size: int = 64
     shuffle_buffer: int = 2_048
     steps_per_episode: int = 100
+    registered_units: int = 10_000  # the registration measure times the units after this many
 
 
 # seconds, for tests and a smoke check; the figures mean little at these sizes
 QUICK = BenchSizes(ingest_triplets=800, sql_steps=[20_000], sql_shard_steps=1_000, read_samples=800,
-                   shuffle_buffer=256)
+                   shuffle_buffer=256, registered_units=200)
+REGISTRATION_TIMED = 10  # units registered and timed one by one, at each end
 
 
 class Measure(BaseModel):
@@ -111,6 +118,54 @@ def bench_ingest(root: Path, sizes: BenchSizes) -> list[Measure]:
         Measure(name="bytes per triplet on disk", value=disk_bytes / rows, unit="bytes",
                 note="84x84 frames, zstd; episodes shards included (rendered robosuite frames: see docs/warehouse.md)"),
     ]
+
+
+def bench_registration(root: Path, sizes: BenchSizes) -> list[Measure]:
+    """register_unit's wall time for small explore units (steps + episodes shards) into an empty catalog
+    (the reference) and into one already holding `registered_units` - 1 units. The units in between are
+    registered in bulk for the setup's speed: the rows and shard files register_unit would have written
+    (one transaction; the bench, not the product, reaches into the catalog for it)."""
+    from warehouse.catalog import _insert, check_rows
+
+    workspace = Workspace.at(root / "registration").create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+
+    def shards_of(key: str, seed: int) -> list:
+        tables = explore_unit(key, seed=seed, episodes=1, steps=4, unique_frames=1)
+        return [write_shard(name, table, workspace.shard_path(name, 0, key), catalog.store) for name, table in tables.items()]
+
+    def timed(keys: list[str]) -> float:
+        seconds = []
+        for key in keys:
+            shards = shards_of(key, len(seconds))
+            started = time.perf_counter()
+            catalog.register_unit(unit_key=key, stage="explore", campaign="bench", iteration=0, summary={}, shards=shards)
+            seconds.append(time.perf_counter() - started)
+        return statistics.median(seconds)
+
+    empty_s = timed([f"explore-first-{u:02d}" for u in range(REGISTRATION_TIMED)])
+    bulk = [(f"explore-bulk-{u:06d}", shards_of(f"explore-bulk-{u:06d}", u))
+            for u in range(sizes.registered_units - 1 - REGISTRATION_TIMED)]
+    now = datetime.datetime.now(datetime.timezone.utc).replace(tzinfo=None)
+    with catalog._transaction() as con:
+        _insert(con, "stage_runs", check_rows("stage_runs", [
+            {"unit_key": key, "stage": "explore", "campaign": "bench", "iteration": 0, "finished_at": now,
+             "wall_s": 0.0, "summary": json.dumps({})} for key, _ in bulk]))
+        _insert(con, "shards", check_rows("shards", [
+            {"path": shard.path.relative_to(catalog.warehouse).as_posix(), "table_name": shard.table, "unit_key": key,
+             "campaign": "bench", "iteration": 0, "num_rows": shard.num_rows, "num_bytes": shard.num_bytes,
+             "sha256": shard.sha256, "schema_version": SCHEMA_VERSION, "view_part": None}
+            for key, shards in bulk for shard in shards]))
+        catalog._refresh_views(con, {"steps", "episodes"}, everything=True)
+    nth = sizes.registered_units
+    full_s = timed([f"explore-last-{u:02d}" for u in range(REGISTRATION_TIMED)])
+    [(shards,)] = catalog.query("SELECT count(*) FROM shards")
+    return [Measure(
+        name=f"registration: unit {nth:,} (after {nth - 1:,})", value=full_s * 1000, unit="ms",
+        reference=empty_s * 1000, ratio=empty_s / full_s, target="ratio >= 0.5 (flat in the units registered)",
+        note=f"median of {REGISTRATION_TIMED} explore units (steps + episodes shards) each side; {shards:,} shards "
+             f"registered at the end; reference: the first {REGISTRATION_TIMED} units of an empty catalog")]
 
 
 def _sql_steps(n: int, seed: int) -> pa.Table:
@@ -228,7 +283,7 @@ def bench_warehouse(sizes: BenchSizes, scratch: Path | None = None) -> list[Meas
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
     try:  # reads first: their workers fork this process, which the SQL measure's tables would swell
         reads = bench_reads(root, sizes)
-        return bench_ingest(root, sizes) + bench_sql(root, sizes) + reads
+        return bench_ingest(root, sizes) + bench_registration(root, sizes) + bench_sql(root, sizes) + reads
     finally:
         shutil.rmtree(root, ignore_errors=True)
 

@@ -162,6 +162,9 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             ("table_name", pa.string()), ("unit_key", pa.string()), ("campaign", pa.string()),
             ("iteration", pa.int32()), ("num_rows", pa.int64()), ("num_bytes", pa.int64()), ("sha256", pa.string()),
             ("schema_version", pa.int32()),
+            # which of its table's part views names this shard (Catalog._refresh_views): parts fill in
+            # registration order, VIEW_PART_SHARDS each, so a registration rewrites one small view
+            ("view_part", pa.int32()),
         ]),
         ("path",),
     ),

@@ -17,9 +17,12 @@
 7: evaluations.episode_achieved (per episode, the task the agent ended doing: the evaluated one, another
    goal of the same scene, or none). A layout-6 catalog is brought to 7 in place (MIGRATIONS): no shard
    table changed, so its shards stay as they are.
+8: shards.view_part (the catalog's shard views in parts of at most VIEW_PART_SHARDS files: a
+   registration rewrites one part, not a view naming every shard). Brought in place from 7; the
+   next command that writes assigns the existing shards their parts.
 """
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 # layout -> (catalog table, column) added to bring a catalog of that layout to the next, in place;
 # the column's type is the one schemas/tables.py declares (the last of its table: ALTER TABLE appends)
-MIGRATIONS: dict[int, list[tuple[str, str]]] = {6: [("evaluations", "episode_achieved")]}
+MIGRATIONS: dict[int, list[tuple[str, str]]] = {6: [("evaluations", "episode_achieved")], 7: [("shards", "view_part")]}

@@ -31,6 +31,7 @@ from warehouse.store import FOLDER, ShardStore, open_store
 log = logging.getLogger("sim2act.warehouse.catalog")
 
 LOCK_WAIT_S = 120.0
+VIEW_PART_SHARDS = 500  # shard files per part view: what a registration's view rewrite names at most
 _CONFINING = threading.Lock()  # Catalog._confine: DuckDB's settings belong to the instance threads share
 _RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its recorded store: fixed once it exists
 
@@ -172,7 +173,7 @@ class Catalog:
                 con.register("empty_shard", pa.Table.from_batches([], schema=schema))
                 con.execute(f"CREATE TABLE IF NOT EXISTS _empty_{name} AS SELECT * FROM empty_shard")
                 con.unregister("empty_shard")
-            self._refresh_views(con, SHARD_TABLES)
+            self._refresh_views(con, SHARD_TABLES, everything=True)
             for name, query in VIEWS.items():
                 con.execute(f"CREATE OR REPLACE VIEW {name} AS {query}")
         self.check_layout()
@@ -276,6 +277,7 @@ class Catalog:
             "path": shard.path.relative_to(self.warehouse).as_posix(), "table_name": shard.table,
             "unit_key": unit_key, "campaign": campaign, "iteration": iteration, "num_rows": shard.num_rows,
             "num_bytes": shard.num_bytes, "sha256": shard.sha256, "schema_version": SCHEMA_VERSION,
+            "view_part": None,  # given by _refresh_views, in the same transaction
         } for shard in shards])
         with self._transaction() as con:
             if con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone():
@@ -335,7 +337,7 @@ class Catalog:
             for name in SHARD_TABLES:
                 con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None, True)}")
             return
-        self._refresh_views(con, SHARD_TABLES)
+        self._refresh_views(con, SHARD_TABLES, everything=True)
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
         self._in_place = True
 
@@ -374,11 +376,60 @@ class Catalog:
             con.execute("SET enable_external_access = false")
             con.execute("SET lock_configuration = true")
 
-    def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str]) -> None:
+    def _refresh_views(self, con: duckdb.DuckDBPyConnection, tables: Sequence[str] | set[str],
+                       emptied: Mapping[str, set[int]] | None = None, everything: bool = False) -> None:
         """Views over exactly the registered shards of `tables`: unregistered files are invisible.
-        (The ready-made views name these views, so they need no refresh.)"""
+
+        A table's view is the UNION ALL of its part views (`_<table>_part_<n>`), each naming at most
+        VIEW_PART_SHARDS files; shards join the last part in registration order. Rewriting one view
+        that named every shard cost a registration time in proportion to the shards registered (1 s
+        at the 10,000th unit); now a registration rewrites the parts its shards joined, and the
+        table's view only when a part is added. `emptied`: parts that lost shards (quarantine), also
+        rewritten; `everything` rewrites every part and the view (initialise, a moved warehouse). (The ready-made views
+        name these views, so they need no refresh.)"""
         for name in tables:
-            con.execute(f"CREATE OR REPLACE VIEW {name} AS SELECT * FROM {self._shard_source(con, name, None, False)}")
+            before = self._last_part(con, name)
+            parts = self._assign_parts(con, name, before)
+            if everything:
+                parts = set(range(self._last_part(con, name) + 1))
+            for part in sorted(parts | set((emptied or {}).get(name, ()))):
+                con.execute(f"CREATE OR REPLACE VIEW _{name}_part_{part:05d} AS SELECT * FROM "
+                            f"{self._part_source(con, name, part)}")
+            last = self._last_part(con, name)
+            if everything or last != before:
+                union = " UNION ALL ".join(f"SELECT * FROM _{name}_part_{part:05d}" for part in range(last + 1))
+                con.execute(f"CREATE OR REPLACE VIEW {name} AS {union or f'SELECT * FROM _empty_{name}'}")
+
+    @staticmethod
+    def _last_part(con: duckdb.DuckDBPyConnection, table: str) -> int:
+        """The table's highest view part; -1 before any."""
+        return con.execute(f"SELECT coalesce(max(view_part), -1) FROM {Catalog._persistent(con)}.shards "
+                           "WHERE table_name = ?", [table]).fetchone()[0]
+
+    def _assign_parts(self, con: duckdb.DuckDBPyConnection, table: str, last: int) -> set[int]:
+        """Give the table's shards without a part (just registered; or all, after the layout-8
+        migration) the last part while it has room, then new ones, in path order. -> the parts given."""
+        waiting = [path for (path,) in con.execute(
+            "SELECT path FROM shards WHERE table_name = ? AND view_part IS NULL ORDER BY path", [table]).fetchall()]
+        if not waiting:
+            return set()
+        held = con.execute("SELECT count(*) FROM shards WHERE table_name = ? AND view_part = ?", [table, last]).fetchone()[0]
+        part, room, given = (last, VIEW_PART_SHARDS - held, []) if last >= 0 else (0, VIEW_PART_SHARDS, [])
+        for path in waiting:
+            if room == 0:
+                part, room = part + 1, VIEW_PART_SHARDS
+            given.append((part, path))
+            room -= 1
+        con.executemany("UPDATE shards SET view_part = ? WHERE path = ?", given)
+        return {part for part, _ in given}
+
+    def _part_source(self, con: duckdb.DuckDBPyConnection, table: str, part: int) -> str:
+        """What a part view reads: its shards, named relative to the warehouse (the views hold when the
+        workspace moves)."""
+        paths = [self.store.view_location(path) for (path,) in con.execute(
+            f"SELECT path FROM {self._persistent(con)}.shards WHERE table_name = ? AND view_part = ? ORDER BY path",
+            [table, part]).fetchall()]
+        return f"read_parquet({paths!r})" if paths else f"_empty_{table}"
 
     def _snapshot_views(self, con: duckdb.DuckDBPyConnection, iteration: int) -> None:
         """Temporary views shadow the persistent ones (DuckDB resolves temp first)."""
@@ -447,9 +498,13 @@ class Catalog:
                 "path": p, "table_name": t, "unit_key": unit, "iteration": i,
                 "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
             } for p, t, i in siblings]))
+            parts: dict[str, set[int]] = {}
+            for table, part in con.execute("SELECT table_name, view_part FROM shards WHERE unit_key = ?", [unit]).fetchall():
+                if part is not None:
+                    parts.setdefault(table, set()).add(part)
             con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
             con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
-            self._refresh_views(con, {t for _, t, _ in siblings})
+            self._refresh_views(con, {t for _, t, _ in siblings}, emptied=parts)
         for p, _, _ in siblings:
             if self.store.exists(p):
                 self.store.move(p, f"quarantine/{p}")

@@ -18,6 +18,9 @@ def test_bench_warehouse_reports_each_measure_with_its_reference(tmp_path, capsy
     assert sql["unit"] == "ms" and sql["value"] > 0 and sql["reference"] > 0
     reads = measures["training reads: DataLoader over the warehouse"]
     assert reads["value"] > 0 and reads["reference"] > reads["value"]  # nothing beats frames already in memory
+    registration = measures["registration: unit 200 (after 199)"]
+    assert registration["value"] > 0 and registration["reference"] > 0
+    assert "418 shards registered" in registration["note"]  # (10 timed + 189 in bulk + 10 timed) units x 2 shards
     assert list(tmp_path.iterdir()) == []  # the throwaway warehouses are gone
 
 

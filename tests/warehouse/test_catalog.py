@@ -178,19 +178,57 @@ def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory, monk
 
 
 def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(workspace):
-    """Layout 7 added evaluations.episode_achieved: a layout-6 catalog gains the column where any
-    command opens it (no new workspace), its rows kept with the new column null."""
+    """Layout 7 added evaluations.episode_achieved, 8 shards.view_part: a layout-6 catalog gains both
+    where any command opens it (no new workspace), its rows kept, the new columns null until used."""
     from schemas.version import MIGRATIONS
 
-    assert SCHEMA_VERSION == 7 and MIGRATIONS[6] == [("evaluations", "episode_achieved")]
+    assert SCHEMA_VERSION == 8 and MIGRATIONS[6] == [("evaluations", "episode_achieved")]
+    _register_filter(workspace, "explore-before", 3)
     with duckdb.connect(str(workspace.catalog)) as con:  # what a layout-6 sim2act left
         con.execute("ALTER TABLE evaluations DROP COLUMN episode_achieved")
+        con.execute("ALTER TABLE shards DROP COLUMN view_part")
         con.execute("UPDATE catalog_meta SET value = '6' WHERE key = 'schema_version'")
         con.execute("INSERT INTO evaluations (unit_key, task_id, successes) VALUES ('evaluate-old', 'lift-red', 3)")
     catalog = Catalog(workspace.catalog)
     catalog.check_version()
     catalog.check_layout()  # every declared column, in order
-    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'schema_version'") == [("7",)]
+    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'schema_version'") == [("8",)]
     assert catalog.query("SELECT unit_key, successes, episode_achieved FROM evaluations") == [("evaluate-old", 3, None)]
-    catalog.initialise()  # again: nothing left to do
-    assert catalog.query("SELECT count(*) FROM evaluations") == [(1,)]
+    assert catalog.query("SELECT count(*), count(view_part) FROM shards") == [(1, 0)]
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(3,)]  # the old view still reads
+    catalog.initialise()  # the next writer gives the old shards their part
+    assert catalog.query("SELECT count(*), count(view_part) FROM shards") == [(1, 1)]
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(3,)]
+
+
+def _register_filter(workspace, key: str, rows: int) -> None:
+    path = workspace.shard_path("filter_decisions", 0, key)
+    Catalog(workspace.catalog).register_unit(unit_key=key, stage="filter", campaign="t", iteration=0, summary={},
+                                             shards=[write_shard("filter_decisions", _decisions(rows, key), path)])
+
+
+def test_views_come_in_parts_and_a_registration_rewrites_only_the_last(workspace, monkeypatch):
+    """Parts of at most VIEW_PART_SHARDS shards, filled in registration order: registering rewrites
+    the part its shard joined (and the table's view when a part is added); every row stays visible,
+    and a quarantine rewrites the part that lost its shard."""
+    import warehouse.catalog as catalog_module
+
+    monkeypatch.setattr(catalog_module, "VIEW_PART_SHARDS", 2)
+    catalog = Catalog(workspace.catalog)
+    for n in range(5):
+        _register_filter(workspace, f"filter-{n}", n + 1)
+    parts = catalog.query("SELECT path, view_part FROM shards ORDER BY view_part, path")
+    assert [part for _, part in parts] == [0, 0, 1, 1, 2]
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(15,)]
+    views = dict(catalog.query("SELECT view_name, sql FROM duckdb_views() WHERE view_name LIKE '_filter_decisions_part_%'"))
+    assert sorted(views) == ["_filter_decisions_part_00000", "_filter_decisions_part_00001",
+                             "_filter_decisions_part_00002"]
+    assert all(views[f"_filter_decisions_part_{p:05d}"].count(".parquet") == n for p, n in ((0, 2), (1, 2), (2, 1)))
+    catalog.quarantine(parts[0][0], "test")  # filter-0 (one row) leaves part 0
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(14,)]
+    _register_filter(workspace, "filter-5", 6)  # part 2 had room for one more
+    assert catalog.query("SELECT view_part FROM shards WHERE unit_key = 'filter-5'") == [(2,)]
+    assert catalog.query("SELECT count(*) FROM filter_decisions") == [(20,)]
+    with duckdb.connect(str(workspace.catalog), read_only=True) as con:  # a plain client reads them too
+        con.execute("SET file_search_path = ?", [str(workspace.warehouse.resolve())])
+        assert con.execute("SELECT count(*) FROM filter_decisions").fetchone() == (20,)
