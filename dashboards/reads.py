@@ -107,7 +107,7 @@ def task_evaluations(catalog: Catalog, campaign: str, task_id: str) -> Rows:
                CASE WHEN m.model_key IS NOT NULL THEN 'policy' ELSE coalesce(b.summary->>'algorithm', e.model_key) END
                    AS agent,
                e.split, e.instruction, e.successes, e.episodes, e.success_video, e.failure_video
-        FROM evaluations e
+        FROM current_evaluations e
         LEFT JOIN models m ON m.model_key = e.model_key
         LEFT JOIN stage_runs b ON b.unit_key = e.model_key AND b.stage = 'baselines'
         WHERE e.campaign = $campaign AND e.task_id = $task

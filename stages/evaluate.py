@@ -109,11 +109,13 @@ class GroupSuccess(BaseModel):
         return self.successes / self.episodes
 
 
-def read_evaluations(catalog: Catalog, lead: str, rest: str, params: list) -> list[tuple[Any, TaskEvaluation]]:
+def read_evaluations(catalog: Catalog, lead: str, rest: str, params: list,
+                     table: str = "current_evaluations") -> list[tuple[Any, TaskEvaluation]]:
     """(the `lead` column, the row as a TaskEvaluation) for each row of `SELECT lead, ... FROM
-    evaluations v <rest>`: rest joins, filters and orders, the table aliased v."""
+    <table> v <rest>`: rest joins, filters and orders, the table aliased v. The current evaluation of
+    each case by default (a case evaluated twice counts once); `evaluations` for every row."""
     fields = list(TaskEvaluation.model_fields)
-    rows = catalog.query(f"SELECT {lead}, {', '.join('v.' + f for f in fields)} FROM evaluations v {rest}", params)
+    rows = catalog.query(f"SELECT {lead}, {', '.join('v.' + f for f in fields)} FROM {table} v {rest}", params)
     return [(lead_value, TaskEvaluation(**dict(zip(fields, values)))) for lead_value, *values in rows]
 
 
@@ -193,7 +195,8 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
         return Promotion(promote=True, reason="no champion yet", success=success, champion_success=None)
     rows = dict(
         ((task_id, split), rate) for task_id, split, rate in catalog.query(
-            "SELECT task_id, split, success_rate FROM evaluations WHERE model_key = ?", [champion[0][0]])
+            "SELECT task_id, split, success_rate FROM current_evaluations WHERE model_key = ? AND suite = ?",
+            [champion[0][0], CAMPAIGN_SUITE])
     )
     shared = [t for t in evaluations if (t.task_id, t.split) in rows]
     if not shared:
@@ -424,7 +427,7 @@ def evaluate_model(
     finally:
         progress.close()
     by_key = dict(read_evaluations(catalog, "v.unit_key", "WHERE list_contains(?, v.unit_key)",
-                                   [[u.unit_key for u in units]]))
+                                   [[u.unit_key for u in units]], table="evaluations"))
     return [by_key[u.unit_key] for u in units], done
 
 

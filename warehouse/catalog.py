@@ -216,6 +216,8 @@ class Catalog:
                     con.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {column} {sql_type(field)}")
                 con.execute("UPDATE catalog_meta SET value = ? WHERE key = 'schema_version'", [str(version + 1)])
                 con.execute("COMMIT")
+            for name, query in VIEWS.items():  # the ready-made views of this layout (initialise makes them too)
+                con.execute(f"CREATE OR REPLACE VIEW {name} AS {query}")
         log.info("catalog %s: layout %d brought to %d in place", self.path, stamped, SCHEMA_VERSION)
 
     def check_layout(self) -> None:

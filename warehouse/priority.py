@@ -60,7 +60,7 @@ def plan_priorities(catalog: Catalog, campaign: str, champion_key: str, tasks: l
     seen = [t for t in tasks if t.split == "seen"]
     evaluated = {
         task_id: (success, uncertainty) for task_id, success, uncertainty in catalog.query(
-            "SELECT task_id, success_rate, uncertainty FROM evaluations "
+            "SELECT task_id, success_rate, uncertainty FROM current_evaluations "
             "WHERE campaign = ? AND model_key = ? AND suite = ? AND split = 'seen'", [campaign, champion_key, CAMPAIGN_SUITE])
     }
     scores = priority_scores(evaluated, seen)

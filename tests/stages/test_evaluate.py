@@ -94,3 +94,33 @@ def test_a_failed_episode_says_which_other_goal_it_ended_at_and_splits_count_the
                                                                                       ("unseen", 1, 0, 0)]
     assert confusions[0].commonest[0] == ("nav-ball-red", "nav-ball-green", 2)
     assert np.isclose(sum(n for *_, n in confusions[0].commonest), 4)
+
+
+def test_a_case_evaluated_twice_counts_once_where_evaluations_are_summed(tmp_path):
+    """A case evaluated again (a new stage version, `sim2act eval --episodes`) keeps both rows, on the
+    same episode seeds: the reports read the one of most episodes (then the latest), never both."""
+    from schemas.workspace import Workspace
+    from stages.evaluate import read_evaluations
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(tmp_path).create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+
+    def register(unit: str, task_id: str, outcomes: list[bool]) -> None:
+        case = _case(task_id, "navigation", "seen", outcomes)
+        row = {"unit_key": unit, "campaign": "c", "iteration": 0, "suite": "campaign", "model_key": "train-m",
+               **case.model_dump(), "success_rate": case.success_rate}
+        catalog.register_unit(unit_key=unit, stage="evaluate", campaign="c", iteration=0, summary={},
+                              rows={"evaluations": [row]})
+
+    register("evaluate-a", "nav-ball-red", [True] * 5 + [False] * 5)
+    register("evaluate-b", "nav-ball-red", [True] * 12 + [False] * 8)  # more episodes: this one stands
+    register("evaluate-c", "nav-ball-red", [True] * 1 + [False] * 9)  # later, fewer episodes
+    register("evaluate-d", "nav-box-red", [True] * 3)
+    current = read_evaluations(catalog, "v.unit_key", "WHERE v.model_key = ? ORDER BY v.unit_key", ["train-m"])
+    assert [(unit, e.successes, e.episodes) for unit, e in current] == [("evaluate-b", 12, 20), ("evaluate-d", 3, 3)]
+    every = read_evaluations(catalog, "v.unit_key", "WHERE v.model_key = ?", ["train-m"], table="evaluations")
+    assert len(every) == 4
+    groups = {g.group: g for g in group_success([e for _, e in current])}
+    assert (groups["seen"].successes, groups["seen"].episodes) == (15, 23)
