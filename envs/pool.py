@@ -57,6 +57,7 @@ class Progress:
         self.logger, self.label, self.total = logger, label, total
         self.count_name, self.rate_name, self.on_update = count_name, rate_name, on_update
         self.done = self.amount = 0
+        self.done_before = 0  # done by an earlier run this one resumes: not part of this run's pace
         self.started = time.monotonic()
         # disable=None: drawn only on a terminal; logs and Prefect get the lines below
         self.bar = tqdm(total=total, desc=label, unit=count_name, disable=None, leave=False, file=sys.stderr)
@@ -67,7 +68,8 @@ class Progress:
         self.amount += amount
         elapsed = max(time.monotonic() - self.started, 1e-6)
         rate = self.amount / elapsed
-        eta = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
+        ran = self.done - self.done_before
+        eta = elapsed / ran * (self.total - self.done) if ran > 0 else float("nan")
         self.bar.update(count)
         self.bar.set_postfix_str(f"{rate:.1f} {self.rate_name}/s", refresh=False)
         if log:
@@ -77,6 +79,14 @@ class Progress:
             )
         if self.on_update is not None:
             self.on_update(self.done / max(self.total, 1))
+
+    def resume_at(self, done: int) -> None:
+        """Move to `done`, the units between finished by an earlier run (a resumed checkpoint): the
+        ETA paces the rest on what this run did itself."""
+        skipped = done - self.done
+        self.bar.update(skipped)
+        self.done += skipped
+        self.done_before += skipped
 
     def close(self) -> None:
         self.bar.close()

@@ -374,7 +374,7 @@ def _train_member(run: _Run, member: int) -> _Member:
         earlier_wall_s = state.get("wall_s", 0.0)  # states saved before it was recorded: unknown, not counted
         log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
     resumed_at = step
-    run.progress.done = offset + step
+    run.progress.resume_at(offset + step)
     log.info("train it%d: %s%.2fM parameters", run.iteration, which, sum(p.numel() for p in model.parameters()) / 1e6)
     if step == total_steps:
         return _Member(model, average, history, resumed_at, earlier_wall_s)

@@ -95,3 +95,21 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
         fresh = workers()
         assert after <= fresh and not fresh & kept
     assert not workers()  # closed on leaving, none left behind
+
+
+def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
+    """A training resumed at step 1,600 of 9,056 that ran 20 steps in 10 s has ~3,700 s to go, not the
+    ~60 s that counting the earlier run's steps as this run's would say."""
+    import logging
+
+    import envs.pool as pool
+
+    clock = iter([0.0, 10.0])
+    monkeypatch.setattr(pool.time, "monotonic", lambda: next(clock))
+    lines = []
+    logger = logging.getLogger("test-progress")
+    monkeypatch.setattr(logger, "info", lambda fmt, *args: lines.append(fmt % args))
+    progress = pool.Progress(logger, "train", 9056, "steps", "samples")
+    progress.resume_at(1600)
+    progress.advance(20, 5120)
+    assert lines == ["train: 1620/9056 steps, 5120 samples, 512.0 samples/s, ETA 3718s"]
