@@ -418,7 +418,8 @@ def evaluate_model(
             row = {"unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "suite": suite,
                    "model_key": model_key,
                    **result.model_dump(), "success_rate": result.success_rate}
-            summary = {"model_key": model_key, **result.model_dump(exclude={"episode_lengths", "episode_successes", "episode_achieved"})}
+            summary = {"model_key": model_key,
+                       **result.model_dump(exclude={"episode_lengths", "episode_successes", "episode_achieved"})}
             ledger.register(unit.unit_key, UnitOutput(summary, rows={"evaluations": [row]}), seconds)
             progress.advance(1, result.episodes)
             log.info("evaluate it%d: %s (%s, %r) success %d/%d [%.0f%%, %.0f%%]", iteration, result.task_id,

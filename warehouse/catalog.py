@@ -156,8 +156,7 @@ class Catalog:
     # -- writer side -----------------------------------------------------------------------
 
     def initialise(self) -> None:
-        self.check_version()
-        self.migrate()
+        self.check_version()  # an older layout is brought to this one here
         # an S3 prefix another catalog keeps its shards under is refused before anything is written here
         warehouse_id = self.store.claim((self._meta() or {}).get("warehouse_id"), self.path.resolve())
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -190,24 +189,21 @@ class Catalog:
 
     def check_version(self) -> None:
         """Refuse a warehouse of another layout version, before any work (no-op if none exists); an
-        older layout that MIGRATIONS brings to this one in place is brought (`migrate`)."""
+        older layout that MIGRATIONS brings to this one in place is brought (`_migrate`)."""
         stamped = self._stamped_version()
         if stamped is None or stamped == SCHEMA_VERSION:
             return
         if stamped < SCHEMA_VERSION and all(version in MIGRATIONS for version in range(stamped, SCHEMA_VERSION)):
-            self.migrate()
+            self._migrate(stamped)
             return
         raise CatalogVersionError(
             f"the warehouse at {self.warehouse} has layout version {stamped}, this sim2act writes "
             f"{SCHEMA_VERSION}: use a new --workspace (the old one stays readable with `sim2act sql`)"
         )
 
-    def migrate(self) -> None:
-        """Bring an older catalog to this layout in place, one version at a time, each version's
-        columns and new stamp in one transaction (a kill leaves the old layout or the new one)."""
-        stamped = self._stamped_version()
-        if stamped is None or stamped >= SCHEMA_VERSION:
-            return
+    def _migrate(self, stamped: int) -> None:
+        """Bring a catalog of layout `stamped` to this one in place, one version at a time, each
+        version's columns and new stamp in one transaction (a kill leaves the old layout or the new one)."""
         with self.connect() as con:
             for version in range(stamped, SCHEMA_VERSION):
                 con.execute("BEGIN TRANSACTION")
@@ -387,17 +383,17 @@ class Catalog:
         that named every shard cost a registration time in proportion to the shards registered (1 s
         at the 10,000th unit); now a registration rewrites the parts its shards joined, and the
         table's view only when a part is added. `emptied`: parts that lost shards (quarantine), also
-        rewritten; `everything` rewrites every part and the view (initialise, a moved warehouse). (The ready-made views
-        name these views, so they need no refresh.)"""
+        rewritten; `everything` rewrites every part and the view (initialise, a moved warehouse).
+        (The ready-made views name these views, so they need no refresh.)"""
         for name in tables:
             before = self._last_part(con, name)
             parts = self._assign_parts(con, name, before)
+            last = max(parts, default=before)  # parts are given from the last one on
             if everything:
-                parts = set(range(self._last_part(con, name) + 1))
+                parts = set(range(last + 1))
             for part in sorted(parts | set((emptied or {}).get(name, ()))):
                 con.execute(f"CREATE OR REPLACE VIEW _{name}_part_{part:05d} AS SELECT * FROM "
                             f"{self._part_source(con, name, part)}")
-            last = self._last_part(con, name)
             if everything or last != before:
                 union = " UNION ALL ".join(f"SELECT * FROM _{name}_part_{part:05d}" for part in range(last + 1))
                 con.execute(f"CREATE OR REPLACE VIEW {name} AS {union or f'SELECT * FROM _empty_{name}'}")
@@ -494,20 +490,21 @@ class Catalog:
             if found is None:
                 return
             unit = found[0]
-            siblings = con.execute("SELECT path, table_name, iteration FROM shards WHERE unit_key = ?", [unit]).fetchall()
+            siblings = con.execute("SELECT path, table_name, iteration, view_part FROM shards WHERE unit_key = ?",
+                                   [unit]).fetchall()
             now = datetime.now(timezone.utc).replace(tzinfo=None)
             _insert(con, "quarantine", check_rows("quarantine", [{
                 "path": p, "table_name": t, "unit_key": unit, "iteration": i,
                 "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
-            } for p, t, i in siblings]))
+            } for p, t, i, _ in siblings]))
             parts: dict[str, set[int]] = {}
-            for table, part in con.execute("SELECT table_name, view_part FROM shards WHERE unit_key = ?", [unit]).fetchall():
+            for _, table, _, part in siblings:
                 if part is not None:
                     parts.setdefault(table, set()).add(part)
             con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
             con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
-            self._refresh_views(con, {t for _, t, _ in siblings}, emptied=parts)
-        for p, _, _ in siblings:
+            self._refresh_views(con, {t for _, t, _, _ in siblings}, emptied=parts)
+        for p, _, _, _ in siblings:
             if self.store.exists(p):
                 self.store.move(p, f"quarantine/{p}")
 
