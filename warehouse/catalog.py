@@ -141,11 +141,14 @@ class Catalog:
         con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
             duckdb.connect, str(self.path), read_only=read_only)
         try:
-            self._search_warehouse(con)
+            # a read that joins an instance another thread confined (the dashboard answers requests
+            # concurrently; settings are per instance) can no longer read the views' relative names:
+            # it reads as a confined one, by location
+            joined_confined = self._search_warehouse(con)
             store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
-            elif confined or (not self._in_place and self._moved(con)):
+            elif confined or joined_confined or (not self._in_place and self._moved(con)):
                 self._follow_move(con, read_only)
             if confined:
                 self._confine(con)
@@ -339,19 +342,21 @@ class Catalog:
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
         self._in_place = True
 
-    def _search_warehouse(self, con: duckdb.DuckDBPyConnection) -> None:
+    def _search_warehouse(self, con: duckdb.DuckDBPyConnection) -> bool:
         """Relative file names (the views' shards) resolve in the warehouse folder. Set on the DuckDB
-        instance (GLOBAL), which a confined connection then locks: later connections find it set."""
+        instance (GLOBAL), which a confined connection then locks: later connections find it set.
+        -> whether the instance is locked (confined) already."""
         folder = self.warehouse.resolve().as_posix()
         with _CONFINING:
             [(locked, searched)] = con.execute(
                 "SELECT current_setting('lock_configuration'), current_setting('file_search_path')").fetchall()
             if searched == folder:
-                return
+                return bool(locked)
             if locked:
                 raise RuntimeError(f"expected this process's DuckDB instance to search {folder}, got a locked "
                                    f"configuration searching {searched!r}")
             con.execute("SET GLOBAL file_search_path = ?", [folder])
+            return False
 
     def _confine(self, con: duckdb.DuckDBPyConnection) -> None:
         """After the views exist (they name the shard files): the warehouse folder only, then lock.
