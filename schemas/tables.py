@@ -165,6 +165,22 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             # which of its table's part views names this shard (Catalog._refresh_views): parts fill in
             # registration order, VIEW_PART_SHARDS each, so a registration rewrites one small view
             ("view_part", pa.int32()),
+            # after `sim2act compact`: the compacted file (`compacted.path`) that now holds this shard's rows,
+            # from its row `row_offset` on (path, sha256 and unit stay: lineage and dataset digests hold);
+            # NULL while the shard is its own file
+            ("stored_in", pa.string()), ("row_offset", pa.int64()),
+        ]),
+        ("path",),
+    ),
+    # Files `sim2act compact` wrote: a finished iteration's small shards of one table and campaign,
+    # concatenated in path order (warehouse/compaction.py). Their sources' rows say where they went.
+    "compacted": CatalogTable(
+        pa.schema([
+            ("path", pa.string()),  # relative to the warehouse folder
+            ("table_name", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
+            ("num_rows", pa.int64()), ("num_bytes", pa.int64()), ("sha256", pa.string()),
+            ("sources", pa.int32()),  # shard files it replaced
+            ("compacted_at", pa.timestamp("us")),
         ]),
         ("path",),
     ),
@@ -260,7 +276,8 @@ def catalog_ddl(name: str) -> str:
 
 
 # Tables a snapshot (`--as-of-iteration K`) cuts at iteration K. `tasks` are per campaign.
-ITERATION_TABLES = ("stage_runs", "shards", "quarantine", "iterations", "models", "deployments", "evaluations")
+ITERATION_TABLES = ("stage_runs", "shards", "compacted", "quarantine", "iterations", "models", "deployments",
+                    "evaluations")
 
 # Views over the tables above, ready for `sim2act sql` and the dashboards.
 VIEWS = {

@@ -20,9 +20,17 @@
 8: shards.view_part (the catalog's shard views in parts of at most VIEW_PART_SHARDS files: a
    registration rewrites one part, not a view naming every shard). Brought in place from 7; the
    next command that writes assigns the existing shards their parts.
+9: shards.stored_in and shards.row_offset, and the `compacted` table (`sim2act compact` concatenates a
+   finished iteration's small shards into large files; the shards' rows say where their rows went).
+   Brought in place from 8: no shard moves until a compaction.
 """
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 # layout -> (catalog table, column) added to bring a catalog of that layout to the next, in place;
-# the column's type is the one schemas/tables.py declares (the last of its table: ALTER TABLE appends)
-MIGRATIONS: dict[int, list[tuple[str, str]]] = {6: [("evaluations", "episode_achieved")], 7: [("shards", "view_part")]}
+# the column's type is the one schemas/tables.py declares (the last of its table: ALTER TABLE appends); a
+# table a layout adds is created whole (Catalog._migrate)
+MIGRATIONS: dict[int, list[tuple[str, str]]] = {
+    6: [("evaluations", "episode_achieved")],
+    7: [("shards", "view_part")],
+    8: [("shards", "stored_in"), ("shards", "row_offset")],
+}

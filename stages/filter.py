@@ -21,7 +21,7 @@ from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from warehouse.catalog import Catalog
-from warehouse.shard_writer import read_shard, write_shard
+from warehouse.shard_writer import write_shard
 
 STAGE, VERSION = "filter", 2
 STEP_COLUMNS = ["episode_id", "image", "depth", "proprio", "action", "reward"]
@@ -120,11 +120,9 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
         if key not in pending:
             continue
         started = time.monotonic()
-        [(episodes_path, _)] = catalog.shard_paths("episodes", "unit_key = ?", [explore_key])
-        [(steps_path, _)] = catalog.shard_paths("steps", "unit_key = ?", [explore_key])
-        steps = _steps_by_episode(read_shard("steps", steps_path, STEP_COLUMNS, catalog.store))
+        steps = _steps_by_episode(catalog.read_unit_shard("steps", explore_key, STEP_COLUMNS))
         decisions = []
-        for episode in read_shard("episodes", episodes_path, store=catalog.store).to_pylist():
+        for episode in catalog.read_unit_shard("episodes", explore_key).to_pylist():
             bounds = action_bounds(families[episode["task_id"]])
             facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size,
                                   config.render.depth)

@@ -25,13 +25,14 @@ from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
 from schemas.version import MIGRATIONS, SCHEMA_VERSION
-from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard
+from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, read_shard, read_shard_rows
 from warehouse.store import FOLDER, ShardStore, open_store
 
 log = logging.getLogger("sim2act.warehouse.catalog")
 
 LOCK_WAIT_S = 120.0
 VIEW_PART_SHARDS = 500  # shard files per part view: what a registration's view rewrite names at most
+COMPACTED_PART = -1  # shards.view_part of a compacted shard: its table's `_<table>_compacted` view reads it
 _CONFINING = threading.Lock()  # Catalog._confine: DuckDB's settings belong to the instance threads share
 _RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its recorded store: fixed once it exists
 
@@ -213,6 +214,8 @@ class Catalog:
                 for table, column in MIGRATIONS[version]:
                     field = CATALOG_TABLES[table].schema.field(column)
                     con.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {column} {sql_type(field)}")
+                for name in CATALOG_TABLES:  # a table the layout adds (9: compacted), whole
+                    con.execute(catalog_ddl(name))
                 con.execute("UPDATE catalog_meta SET value = ? WHERE key = 'schema_version'", [str(version + 1)])
                 con.execute("COMMIT")
             for name, query in VIEWS.items():  # the ready-made views of this layout (initialise makes them too)
@@ -279,6 +282,7 @@ class Catalog:
             "unit_key": unit_key, "campaign": campaign, "iteration": iteration, "num_rows": shard.num_rows,
             "num_bytes": shard.num_bytes, "sha256": shard.sha256, "schema_version": SCHEMA_VERSION,
             "view_part": None,  # given by _refresh_views, in the same transaction
+            "stored_in": None, "row_offset": None,  # its own file until a compaction
         } for shard in shards])
         with self._transaction() as con:
             if con.execute("SELECT 1 FROM stage_runs WHERE unit_key = ?", [unit_key]).fetchone():
@@ -287,6 +291,34 @@ class Catalog:
                 _insert(con, table, arrow)
             self._refresh_views(con, {shard.table for shard in shards})
         return True
+
+    def register_compacted(self, *, path: str, table: str, campaign: str, iteration: int, num_rows: int,
+                           num_bytes: int, sha256: str, offsets: Sequence[tuple[str, int]]) -> None:
+        """Commit a compacted file (warehouse/compaction.py): its `compacted` row, and each source
+        shard (path, its first row in the file) re-pointed at it, with the table's views, atomically.
+        The sources' files are the caller's to delete after.
+
+        Raises:
+            ShardUnreadable: the file is not the rows and bytes the compaction reported.
+            ValueError: a source is not a registered shard of `table` that is still its own file."""
+        if (inspect_shard(table, self.warehouse / path, self.store) != num_rows
+                or self.store.sha256(path) != sha256):
+            raise ShardUnreadable(f"{self.store.location(path)}: differs from what the compaction wrote; not registered")
+        now = datetime.now(timezone.utc).replace(tzinfo=None)
+        with self._transaction() as con:
+            sources = [p for p, _ in offsets]
+            [(found,)] = con.execute("SELECT count(*) FROM shards WHERE list_contains(?, path) AND table_name = ? "
+                                     "AND stored_in IS NULL", [sources, table]).fetchall()
+            if found != len(sources):
+                raise ValueError(f"expected {len(sources)} registered {table} shards still their own files, got {found}")
+            _insert(con, "compacted", check_rows("compacted", [{
+                "path": path, "table_name": table, "campaign": campaign, "iteration": iteration, "num_rows": num_rows,
+                "num_bytes": num_bytes, "sha256": sha256, "sources": len(sources), "compacted_at": now}]))
+            con.register("compacted_offsets", pa.table({"path": sources, "row_offset": [o for _, o in offsets]}))
+            con.execute("UPDATE shards SET stored_in = ?, row_offset = o.row_offset, view_part = ? FROM compacted_offsets o "
+                        "WHERE shards.path = o.path", [path, COMPACTED_PART])
+            con.unregister("compacted_offsets")
+            self._refresh_views(con, {table}, everything=True)
 
     @contextmanager
     def _transaction(self) -> Iterator[duckdb.DuckDBPyConnection]:
@@ -308,19 +340,42 @@ class Catalog:
 
     def _shard_source(self, con: duckdb.DuckDBPyConnection, table: str, as_of_iteration: int | None,
                       temporary: bool) -> str:
-        """What a view of `table` reads. The catalog file's views name a folder's shards relative to it
-        (they hold when the workspace moves); a connection's temporary views name them by location,
-        which confinement (allowed_directories: absolute folders) can check."""
+        """What a view of `table` reads: its registered shards (of iterations <= `as_of_iteration`)."""
+        return self._source(con, table, "? IS NULL OR s.iteration <= ?", [as_of_iteration, as_of_iteration], temporary)
+
+    def _source(self, con: duckdb.DuckDBPyConnection, table: str, where: str, params: Sequence[Any],
+                temporary: bool) -> str:
+        """A FROM item over the registered shards of `table` that `where` (SQL over `shards s`) picks:
+        the files of those still their own, and the compacted files that hold the others, read whole,
+        or cut to the rows still registered where a quarantine after the compaction took a unit out.
+
+        The catalog file's views name a folder's files relative to it (they hold when the workspace
+        moves); a connection's temporary views name them by location, which confinement
+        (allowed_directories: absolute folders) can check."""
         persistent = self._persistent(con)
-        where = self.store.location if temporary else self.store.view_location
-        paths = [
-            where(row[0])
-            for row in con.execute(
-                f"SELECT path FROM {persistent}.shards WHERE table_name = ? AND (? IS NULL OR iteration <= ?) ORDER BY path",
-                [table, as_of_iteration, as_of_iteration],
-            ).fetchall()
-        ]
-        return f"read_parquet({paths!r})" if paths else f"{persistent}._empty_{table}"
+        locate = self.store.location if temporary else self.store.view_location
+        rows = con.execute(
+            f"SELECT coalesce(s.stored_in, s.path), s.row_offset, s.num_rows, c.num_rows "
+            f"FROM {persistent}.shards s LEFT JOIN {persistent}.compacted c ON c.path = s.stored_in "
+            f"WHERE s.table_name = ? AND ({where}) ORDER BY 1, 2", [table, *params]).fetchall()
+        whole, cut = [], []
+        for file, group in itertools.groupby(rows, key=lambda row: row[0]):
+            group = list(group)
+            held, total = sum(row[2] for row in group), group[0][3]
+            if total is None or held == total:  # its own file, or a compacted one all of whose rows count
+                whole.append(locate(file))
+            else:
+                cut.append((locate(file), [(offset, offset + n) for _, offset, n, _ in group]))
+        sources = [f"SELECT * FROM read_parquet({whole!r})"] if whole else []
+        for file, ranges in cut:
+            keep = " OR ".join(f"file_row_number BETWEEN {a} AND {b - 1}" for a, b in ranges)
+            sources.append(f"SELECT * EXCLUDE (file_row_number) FROM read_parquet({file!r}, file_row_number = true) "
+                           f"WHERE {keep}")
+        if not sources:
+            return f"{persistent}._empty_{table}" if temporary else f"_empty_{table}"
+        if not cut:
+            return f"read_parquet({whole!r})"
+        return "(" + " UNION ALL ".join(sources) + ")"
 
     def _moved(self, con: duckdb.DuckDBPyConnection) -> bool:
         """Whether the views may name files under another folder than this warehouse: it was copied
@@ -394,13 +449,16 @@ class Catalog:
             before = self._last_part(con, name)
             parts = self._assign_parts(con, name, before)
             last = max(parts, default=before)  # parts are given from the last one on
+            compacted = con.execute(f"SELECT count(*) > 0 FROM {self._persistent(con)}.shards "
+                                    "WHERE table_name = ? AND view_part = ?", [name, COMPACTED_PART]).fetchone()[0]
             if everything:
-                parts = set(range(last + 1))
+                parts = set(range(last + 1)) | ({COMPACTED_PART} if compacted else set())
             for part in sorted(parts | set((emptied or {}).get(name, ()))):
-                con.execute(f"CREATE OR REPLACE VIEW _{name}_part_{part:05d} AS SELECT * FROM "
+                con.execute(f"CREATE OR REPLACE VIEW {self._part_view(name, part)} AS SELECT * FROM "
                             f"{self._part_source(con, name, part)}")
             if everything or last != before:
-                union = " UNION ALL ".join(f"SELECT * FROM _{name}_part_{part:05d}" for part in range(last + 1))
+                union = " UNION ALL ".join(f"SELECT * FROM {self._part_view(name, part)}" for part in
+                                           [*([COMPACTED_PART] if compacted else []), *range(last + 1)])
                 con.execute(f"CREATE OR REPLACE VIEW {name} AS {union or f'SELECT * FROM _empty_{name}'}")
 
     @staticmethod
@@ -428,11 +486,12 @@ class Catalog:
 
     def _part_source(self, con: duckdb.DuckDBPyConnection, table: str, part: int) -> str:
         """What a part view reads: its shards, named relative to the warehouse (the views hold when the
-        workspace moves)."""
-        paths = [self.store.view_location(path) for (path,) in con.execute(
-            f"SELECT path FROM {self._persistent(con)}.shards WHERE table_name = ? AND view_part = ? ORDER BY path",
-            [table, part]).fetchall()]
-        return f"read_parquet({paths!r})" if paths else f"_empty_{table}"
+        workspace moves); COMPACTED_PART's are the compacted files."""
+        return self._source(con, table, "s.view_part = ?", [part], temporary=False)
+
+    @staticmethod
+    def _part_view(table: str, part: int) -> str:
+        return f"_{table}_compacted" if part == COMPACTED_PART else f"_{table}_part_{part:05d}"
 
     def _snapshot_views(self, con: duckdb.DuckDBPyConnection, iteration: int) -> None:
         """Temporary views shadow the persistent ones (DuckDB resolves temp first)."""
@@ -451,7 +510,8 @@ class Catalog:
         known: set[str] = set()
         if self.path.exists():
             with self.connect(read_only=True) as con:
-                known = {row[0] for row in con.execute("SELECT path FROM shards").fetchall()}
+                known = {row[0] for row in con.execute(  # a compacted shard's own file is gone, or soon
+                    "SELECT path FROM shards WHERE stored_in IS NULL UNION ALL SELECT path FROM compacted").fetchall()}
         removed = []
         for rel in self.store.files("shards"):
             if rel not in known:
@@ -462,18 +522,20 @@ class Catalog:
     # -- corruption ------------------------------------------------------------------------
 
     def verify(self, full: bool = False, paths: Sequence[str] | None = None) -> list[tuple[str, str]]:
-        """Check the registered shards (all, or those at `paths`): present, a whole Parquet file
-        of the declared schema and row count, with `full` its sha256 too. The bad ones are
-        quarantined. -> [(path, reason)]."""
+        """Check the registered files (all, or those at `paths`): the shards still their own and the
+        compacted files: present, a whole Parquet file of the declared schema and row count, with
+        `full` its sha256 too. The bad ones are quarantined (a compacted file: every unit it holds).
+        -> [(path, reason)]."""
         if not self.path.exists():
             return []
         with self.connect(read_only=True) as con:
-            shards = con.execute(
-                "SELECT path, table_name, num_rows, sha256 FROM shards WHERE ? IS NULL OR list_contains(?, path) "
-                "ORDER BY path", [paths, paths],
+            files = con.execute(
+                "SELECT path, table_name, num_rows, sha256 FROM (SELECT path, table_name, num_rows, sha256 FROM shards "
+                "WHERE stored_in IS NULL UNION ALL SELECT path, table_name, num_rows, sha256 FROM compacted) "
+                "WHERE ? IS NULL OR list_contains(?, path) ORDER BY path", [paths, paths],
             ).fetchall()
         bad = []
-        for path, table, num_rows, sha in shards:
+        for path, table, num_rows, sha in files:
             where = self.store.location(path)
             try:
                 if inspect_shard(table, self.warehouse / path, self.store) != num_rows:
@@ -487,36 +549,41 @@ class Catalog:
         return bad
 
     def quarantine(self, path: str, reason: str) -> None:
-        """Unregister the unit whose shard `path` is bad, with all its shards, and move the
-        files to warehouse/quarantine/: queries keep working without them, and the next run
-        redoes the unit (same seeds, same data)."""
+        """Unregister the unit whose file `path` is bad, with all its shards (a compacted file: every
+        unit it holds), and move the files to warehouse/quarantine/: queries keep working without them,
+        and the next run redoes the units (same seeds, same data). A compacted file that still holds
+        other units' rows stays, its views cut to those rows; one that holds none goes too."""
         with self._transaction() as con:
-            found = con.execute("SELECT unit_key FROM shards WHERE path = ?", [path]).fetchone()
-            if found is None:
+            units = [unit for (unit,) in con.execute(
+                "SELECT DISTINCT unit_key FROM shards WHERE path = ? OR stored_in = ? ORDER BY 1", [path, path]).fetchall()]
+            if not units:
                 return
-            unit = found[0]
-            siblings = con.execute("SELECT path, table_name, iteration, view_part FROM shards WHERE unit_key = ?",
-                                   [unit]).fetchall()
+            siblings = con.execute("SELECT path, table_name, iteration, view_part, unit_key, stored_in FROM shards "
+                                   "WHERE list_contains(?, unit_key)", [units]).fetchall()
             now = datetime.now(timezone.utc).replace(tzinfo=None)
             _insert(con, "quarantine", check_rows("quarantine", [{
                 "path": p, "table_name": t, "unit_key": unit, "iteration": i,
-                "reason": reason if p == path else f"sibling of {path}", "quarantined_at": now,
-            } for p, t, i, _ in siblings]))
+                "reason": reason if path in (p, stored) else f"sibling of {path}", "quarantined_at": now,
+            } for p, t, i, _, unit, stored in siblings]))
             parts: dict[str, set[int]] = {}
-            for _, table, _, part in siblings:
+            for _, table, _, part, _, _ in siblings:
                 if part is not None:
                     parts.setdefault(table, set()).add(part)
-            con.execute("DELETE FROM shards WHERE unit_key = ?", [unit])
-            con.execute("DELETE FROM stage_runs WHERE unit_key = ?", [unit])
-            self._refresh_views(con, {t for _, t, _, _ in siblings}, emptied=parts)
-        for p, _, _, _ in siblings:
+            con.execute("DELETE FROM shards WHERE list_contains(?, unit_key)", [units])
+            con.execute("DELETE FROM stage_runs WHERE list_contains(?, unit_key)", [units])
+            emptied = [file for (file,) in con.execute(
+                "DELETE FROM compacted WHERE path NOT IN (SELECT stored_in FROM shards WHERE stored_in IS NOT NULL) "
+                "RETURNING path").fetchall()]
+            self._refresh_views(con, {t for _, t, _, _, _, _ in siblings}, emptied=parts)
+        for p in [p for p, _, _, _, _, stored in siblings if stored is None] + emptied:
             if self.store.exists(p):
                 self.store.move(p, f"quarantine/{p}")
 
     def registered_shard_in(self, message: str) -> str | None:
-        """The registered shard a DuckDB error message names, if any."""
+        """The registered file (a shard's own, or a compacted one) a DuckDB error message names, if any."""
         with self.connect(read_only=True) as con:
-            for (path,) in con.execute("SELECT path FROM shards").fetchall():
+            for (path,) in con.execute(
+                    "SELECT path FROM shards WHERE stored_in IS NULL UNION ALL SELECT path FROM compacted").fetchall():
                 if path in message:
                     return path
         return None
@@ -534,8 +601,16 @@ class Catalog:
         with self.connect(read_only=True, as_of_iteration=as_of_iteration, confined=confined) as con:
             return con.execute(sql, list(params)).to_arrow_table()
 
-    def shard_paths(self, table: str, where: str = "TRUE", params: Sequence[Any] = ()) -> list[tuple[Path, str]]:
-        rows = self.query(
-            f"SELECT path, sha256 FROM shards WHERE table_name = ? AND ({where}) ORDER BY path", [table, *params]
-        )
-        return [(self.warehouse / path, sha) for path, sha in rows]
+    def read_unit_shard(self, table: str, unit_key: str, columns: list[str] | None = None) -> pa.Table:
+        """The rows unit `unit_key` wrote into `table`, from its own file or the compacted one holding them.
+
+        Raises:
+            KeyError: the unit has no registered shard of that table."""
+        found = self.query("SELECT path, stored_in, row_offset, num_rows FROM shards WHERE table_name = ? AND unit_key = ?",
+                           [table, unit_key])
+        if not found:
+            raise KeyError(f"expected a registered {table} shard of unit {unit_key}, got none")
+        [(path, stored_in, offset, rows)] = found
+        if stored_in is None:
+            return read_shard(table, self.warehouse / path, columns, self.store)
+        return read_shard_rows(table, self.warehouse / stored_in, offset, offset + rows, columns, self.store)

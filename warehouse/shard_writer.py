@@ -18,7 +18,7 @@ from warehouse.store import ShardConflict, ShardStore, ShardStoreUnreachable, wr
 from warehouse.store import sha256_of as store_sha256_of
 
 __all__ = ["ShardConflict", "ShardFile", "SchemaMismatch", "ShardUnreadable", "DiskFull", "write_shard",
-           "read_shard", "inspect_shard", "check_schema", "sha256_of"]
+           "read_shard", "read_shard_rows", "inspect_shard", "check_schema", "sha256_of"]
 
 # Rows per Parquet row group: DuckDB scans row groups in parallel and is 5-10x slower per row
 # below ~5K rows; a shard of a few episodes is a single group.
@@ -122,3 +122,19 @@ def write_shard(table_name: str, rows: pa.Table, path: Path, store: ShardStore |
 
 def read_shard(table_name: str, path: Path, columns: list[str] | None = None, store: ShardStore | None = None) -> pa.Table:
     return _open_shard(table_name, path, store).read(columns=columns)
+
+
+def read_shard_rows(table_name: str, path: Path, start: int, stop: int, columns: list[str] | None = None,
+                    store: ShardStore | None = None) -> pa.Table:
+    """Rows `start` to `stop` (one past the last) of a shard file, reading only the row groups they fall in."""
+    parquet = _open_shard(table_name, path, store)
+    groups, first, skip = [], 0, None
+    for group in range(parquet.num_row_groups):
+        size = parquet.metadata.row_group(group).num_rows
+        if first < stop and first + size > start:
+            groups.append(group)
+            skip = first if skip is None else skip
+        first += size
+    if not groups:
+        return parquet.schema_arrow.empty_table().select(columns) if columns else parquet.schema_arrow.empty_table()
+    return parquet.read_row_groups(groups, columns=columns).slice(start - skip, stop - start)

@@ -25,6 +25,7 @@ from typing import Any
 
 import duckdb
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 from torch.utils.data import IterableDataset, get_worker_info
 
@@ -43,9 +44,14 @@ class SelectionError(Sim2ActError, ValueError):
 
 @dataclass(frozen=True)
 class RowRange:
-    path: str
-    start: int  # first file row number
+    """Consecutive selected rows of one shard, numbered within the shard. A compacted shard's rows
+    live in `file` from row `offset` on: the selection, its order and so every batch are the same
+    before and after `sim2act compact`; only where the rows are read from differs."""
+    path: str  # the shard's location
+    start: int  # first row number within the shard
     stop: int  # one past the last
+    file: str = ""  # where its rows are read ("": the shard's own file, `path`)
+    offset: int = 0  # the shard's first row in `file`
 
 
 Segment = tuple[str, int, int]  # (path, first row, one past the last)
@@ -58,38 +64,50 @@ def select_rows(
     units: Sequence[str] | None = None,
 ) -> list[RowRange]:
     """The registered steps rows matching `where` (SQL over the steps columns; subqueries may use
-    any catalog table or view), as runs of consecutive rows per shard file; with `units`, only
-    the steps shards those units wrote are read."""
+    any catalog table or view), as runs of consecutive rows per shard; with `units`, only the steps
+    shards those units wrote are read. A compacted shard's rows are found in its compacted file and
+    numbered within the shard again (RowRange)."""
+    location = catalog.store.location
     with catalog.connect(read_only=True, as_of_iteration=as_of_iteration, confined=True) as con:  # `where`: a user's SQL
-        paths = [
-            catalog.store.location(p)
-            for (p,) in con.execute(
-                "SELECT path FROM shards WHERE table_name = 'steps' AND (?::VARCHAR[] IS NULL OR list_contains(?, unit_key)) "
-                "ORDER BY path", [units, units]).fetchall()
+        shards = [
+            (location(path), location(stored_in or path), offset or 0, rows)
+            for path, stored_in, offset, rows in con.execute(
+                "SELECT path, stored_in, row_offset, num_rows FROM shards WHERE table_name = 'steps' "
+                "AND (?::VARCHAR[] IS NULL OR list_contains(?, unit_key)) ORDER BY path", [units, units]).fetchall()
         ]
-        if not paths:
+        if not shards:
             raise SelectionError("the warehouse holds no steps yet")
+        files = sorted({file for _, file, _, _ in shards})
+        con.register("selected_shards", pa.table({name: column for name, column in zip(
+            ["shard", "file", "row_offset", "num_rows"], map(list, zip(*shards)))}))
         try:
             rows = con.execute(
                 f"""
                 WITH picked AS (
                     SELECT filename, file_row_number AS n
-                    FROM read_parquet({paths!r}, filename = true, file_row_number = true) AS steps
-                    WHERE ({where}))
-                SELECT filename, min(n), max(n) + 1 FROM (
-                    SELECT filename, n, n - row_number() OVER (PARTITION BY filename ORDER BY n) AS run FROM picked)
-                GROUP BY filename, run ORDER BY filename, 2""",
+                    FROM read_parquet({files!r}, filename = true, file_row_number = true) AS steps
+                    WHERE ({where})),
+                placed AS (  -- the shard each picked row belongs to (a compacted file holds many, in row order)
+                    SELECT s.shard, s.file, s.row_offset, p.n - s.row_offset AS n
+                    FROM picked p ASOF JOIN selected_shards s ON p.filename = s.file AND p.n >= s.row_offset
+                    WHERE p.n < s.row_offset + s.num_rows)
+                SELECT shard, min(n), max(n) + 1, any_value(file), any_value(row_offset) FROM (
+                    SELECT *, n - row_number() OVER (PARTITION BY shard ORDER BY n) AS run FROM placed)
+                GROUP BY shard, run ORDER BY shard, 2""",
                 list(params),
             ).fetchall()
         except duckdb.Error as exc:
             raise SelectionError(f"training selection {where!r}: {str(exc).splitlines()[0]}") from None
-    return [RowRange(path, int(start), int(stop)) for path, start, stop in rows]
+    return [RowRange(path, int(start), int(stop), "" if file == path else file, int(offset))
+            for path, start, stop, file, offset in rows]
 
 
 def partition(ranges: list[RowRange], workers: int, piece_rows: int) -> list[list[Piece]]:
     """Each worker's pieces: the selection in order, cut into pieces of at most `piece_rows` rows
     dealt round-robin, every worker getting exactly total // workers rows (so every worker yields
-    as many batches; the last total % workers rows of the selection are left out)."""
+    as many batches; the last total % workers rows of the selection are left out). Pieces are cut
+    in shard order and numbering; their segments name the file and rows the rows are read from."""
+    stored = {r.path: (r.file or r.path, r.offset) for r in ranges}
     quota = sum(r.stop - r.start for r in ranges) // workers
     remaining, parts = [quota] * workers, [[] for _ in range(workers)]
     spans = iter(sorted((r.path, r.start, r.stop) for r in ranges))
@@ -103,7 +121,8 @@ def partition(ranges: list[RowRange], workers: int, piece_rows: int) -> list[lis
                 path, start, stop = next(spans)
                 continue
             take = min(want, stop - start)
-            piece.append((path, start, start + take))
+            file, offset = stored[path]
+            piece.append((file, offset + start, offset + start + take))
             start, want = start + take, want - take
         if piece:
             parts[worker].append(piece)

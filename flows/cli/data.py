@@ -1,9 +1,10 @@
-"""The warehouse: `sim2act sql`, `export lerobot`, `replay`, `warehouse verify`."""
+"""The warehouse: `sim2act sql`, `export lerobot`, `replay`, `warehouse verify`, `warehouse compact`."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 from flows.cli.common import Commands, add_workspace_option, open_catalog
@@ -59,10 +60,40 @@ def cmd_warehouse_verify(args: argparse.Namespace) -> int:
     bad = catalog.verify(full=args.full)
     for path, reason in bad:
         print(f"quarantined {path}: {reason}")
-    [(shards,)] = catalog.query("SELECT count(*) FROM shards")
-    print(f"{shards} registered shard(s) verified{' (sha256 too)' if args.full else ''}, {len(bad)} quarantined "
+    [(files,)] = catalog.query("SELECT (SELECT count(*) FROM shards WHERE stored_in IS NULL) + (SELECT count(*) FROM compacted)")
+    print(f"{files} registered file(s) verified{' (sha256 too)' if args.full else ''}, {len(bad)} quarantined "
           f"to {catalog.quarantine_location}; the next `sim2act run` redoes their units")
     return 1 if bad else 0
+
+
+def cmd_warehouse_compact(args: argparse.Namespace) -> int:
+    from flows.run_lock import exclusive_run
+    from warehouse.compaction import compact
+
+    if args.iteration is not None and any(k < 0 for k in args.iteration):
+        raise ConfigError(f"warehouse compact: --iteration must be 0 or more, got {args.iteration}")
+    workspace, catalog = open_catalog(args)
+    if not catalog.path.exists():
+        raise ConfigError(f"warehouse compact: no warehouse at {workspace.warehouse} (run `sim2act run` first)")
+    started = time.monotonic()
+
+    def report(done: int, total: int, plan) -> None:
+        rate = done / max(time.monotonic() - started, 1e-9)
+        print(f"[{done}/{total}] {plan.table} iteration {plan.iteration}: {len(plan.sources)} shards, "
+              f"{plan.num_rows:,} rows; {rate:.2f} files/s, ETA {(total - done) / rate:.0f}s", flush=True)
+
+    with exclusive_run(workspace, "warehouse compact"):  # nothing trains from or writes the warehouse meanwhile
+        catalog.clean_orphans()  # a killed compaction's unregistered file, or its sources left behind
+        summary = compact(catalog, args.iteration, progress=report)
+    for path, reason in summary.quarantined:
+        print(f"quarantined {path}: {reason}")
+    if not summary.files:
+        print("nothing to compact: every iteration's shards are compacted already (or one per table)")
+        return 1 if summary.quarantined else 0
+    print(f"{summary.sources:,} shards ({summary.bytes_before / 1e6:.1f} MB) compacted into {summary.files} files "
+          f"({summary.bytes_after / 1e6:.1f} MB, {summary.rows:,} rows) in {summary.wall_s:.1f} s; queries, "
+          "snapshots and trainings read them as before")
+    return 1 if summary.quarantined else 0
 
 
 def register(commands: Commands) -> None:
@@ -95,3 +126,7 @@ def register(commands: Commands) -> None:
     verify = warehouse_commands.add_parser("verify", help="check every registered shard, quarantine bad ones")
     verify.add_argument("--full", action="store_true", help="also compare each file's sha256 with the catalog's")
     add_workspace_option(verify).set_defaults(handler=cmd_warehouse_verify)
+    compact = warehouse_commands.add_parser(
+        "compact", help="concatenate each iteration's small shards into large files (faster queries at scale)")
+    compact.add_argument("--iteration", type=int, nargs="+", metavar="K", help="only these iterations (default: all)")
+    add_workspace_option(compact).set_defaults(handler=cmd_warehouse_compact)

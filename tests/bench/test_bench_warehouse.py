@@ -16,6 +16,10 @@ def test_bench_warehouse_reports_each_measure_with_its_reference(tmp_path, capsy
     assert 100 < measures["bytes per triplet on disk"]["value"] < 20_000
     sql = measures["SQL: success per task over 20,000 steps"]
     assert sql["unit"] == "ms" and sql["value"] > 0 and sql["reference"] > 0
+    compacted = measures["SQL: success per task over 20,000 steps, compacted"]
+    assert compacted["reference"] == sql["reference"] and "40 shards into 2 files" in compacted["note"]  # steps, episodes
+    tasks = measures["SQL: task_success over 20,000 steps, compacted"]
+    assert tasks["value"] > 0 and tasks["ratio"] == pytest.approx(tasks["reference"] / tasks["value"])
     reads = measures["training reads: DataLoader over the warehouse"]
     assert reads["value"] > 0 and reads["reference"] > reads["value"]  # nothing beats frames already in memory
     registration = measures["registration: unit 200 (after 199)"]

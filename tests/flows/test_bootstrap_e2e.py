@@ -183,6 +183,31 @@ def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api)
     assert seconds < 0.5 * first_seconds, (seconds, first_seconds)
 
 
+def test_a_compacted_campaign_reruns_without_work_and_goes_on(finished_campaign, tmp_path, prefect_api):
+    """`sim2act warehouse compact` between runs: the rows, digests and shard rows are what they were, a
+    rerun does no work, and a third iteration explores, filters and trains on the compacted warehouse."""
+    workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
+    shutil.copytree(finished_campaign[0], workspace)
+    before = snapshot(workspace)
+    compacted = subprocess.run([SIM2ACT, "warehouse", "compact", "--workspace", str(workspace)],
+                               env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+    assert compacted.returncode == 0 and "compacted into" in compacted.stdout, compacted.stderr[-3000:]
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    assert catalog.query("SELECT count(*) FROM shards WHERE stored_in IS NULL AND table_name <> 'instructions'") == [(0,)]
+    assert snapshot(workspace) == before
+    output, _ = run_campaign(workspace, prefect_api)
+    assert output.count("stages that ran: 0/7") == 2, output[-3000:]
+    run_campaign(workspace, prefect_api, None, "--set", "iterations=3")
+    # no unit of the compacted iterations ran again; iteration 2 ran every stage
+    assert catalog.query("SELECT DISTINCT iteration FROM stage_runs WHERE finished_at > (SELECT max(compacted_at) "
+                         "FROM compacted)") == [(2,)]
+    assert {stage for (stage,) in catalog.query("SELECT DISTINCT stage FROM stage_runs WHERE iteration = 2")} == {
+        "explore", "filter", "index", "train", "evaluate", "redeploy"}
+    [(triplets_2, triplets_1)] = catalog.query(
+        "SELECT max(triplets) FILTER (WHERE iteration = 2), max(triplets) FILTER (WHERE iteration = 1) FROM iterations")
+    assert triplets_2 > triplets_1  # iteration 2 trained on the compacted iterations' rows and its own
+
+
 # Where each kill lands: inside generate_tasks (before it registers), explore, train and evaluate,
 # and at the seams where filter, index and redeploy start (those take a second or less).
 KILL_POINTS = (

@@ -109,7 +109,7 @@ def test_a_corrupt_shard_is_quarantined_by_a_query_and_by_verify_and_the_next_ru
     [quarantined, summary] = verified.stdout.splitlines()
     assert quarantined.startswith(f"quarantined {truncated}: {cut}: not a readable Parquet file ("), quarantined
     [(left,)] = catalog.query("SELECT count(*) FROM shards")
-    assert summary == (f"{left} registered shard(s) verified, 1 quarantined to {catalog.quarantine_folder}; "
+    assert summary == (f"{left} registered file(s) verified, 1 quarantined to {catalog.quarantine_folder}; "
                        "the next `sim2act run` redoes their units")
     assert catalog.query("SELECT count(*) FROM quarantine") == [(4,)]  # each bad steps shard and its episodes sibling
 

@@ -204,7 +204,7 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
             assert command("sql", "--workspace", ws, "--format", "csv", "--as-of-iteration", "0",
                            "SELECT count(*) AS n FROM steps").split() == ["n", str(steps_0)] and 0 < steps_0 < steps
             assert command("warehouse", "verify", "--workspace", ws, "--full").startswith(
-                f"{len(registered)} registered shard(s) verified (sha256 too), 0 quarantined to {STORE}/quarantine")
+                f"{len(registered)} registered file(s) verified (sha256 too), 0 quarantined to {STORE}/quarantine")
             command("export", "lerobot", "--workspace", ws, str(tmp_path / "lerobot"))
             info = json.loads((tmp_path / "lerobot" / "meta" / "info.json").read_text())
             [(kept,)] = catalog.query("SELECT count(DISTINCT episode_id) FROM kept_steps")

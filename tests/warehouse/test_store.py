@@ -66,6 +66,12 @@ def test_a_warehouse_on_s3_answers_as_one_in_its_folder(s3, tmp_path, monkeypatc
     for sql in ("SELECT * FROM read_csv('/etc/passwd')", "SELECT * FROM read_parquet('s3://shards/lab/other/x.parquet')"):
         with pytest.raises(duckdb.Error, match="file system operations are disabled"):
             run_sql(catalog, sql)
+    # compacted on S3: the objects replaced by a few, the same answers
+    from warehouse.compaction import compact
+
+    assert compact(catalog).files == 6
+    assert len([key for key in s3.keys("shards") if "/shards/" in key]) == 6 and _answers(catalog) == expected
+    assert catalog.verify(full=True) == [] and catalog.clean_orphans() == []
 
 
 def test_verify_quarantines_and_clean_orphans_deletes_objects_on_s3(s3, tmp_path, monkeypatch):
