@@ -124,7 +124,7 @@ class Catalog:
 
     @contextmanager
     def connect(self, read_only: bool = False, as_of_iteration: int | None = None,
-                confined: bool = False) -> Iterator[duckdb.DuckDBPyConnection]:
+                confined: bool = False, follow_move: bool = True) -> Iterator[duckdb.DuckDBPyConnection]:
         """Open briefly and close: DuckDB lets one process write, so nobody holds it for long.
 
         With `as_of_iteration=K` the connection sees the warehouse as it was after iteration K:
@@ -132,6 +132,8 @@ class Catalog:
         `confined` (read-only connections that run someone's SQL: `sim2act sql`, the dashboard): the
         connection reads files in the warehouse folder and nowhere else, no ATTACH, no extension, and
         its configuration is locked, so a query cannot read `/etc/passwd` or undo the confinement.
+        `follow_move=False`: the layout migration's connection, which must not rewrite a moved
+        warehouse's views before the columns they read exist.
         """
         if confined and not read_only:
             raise ValueError("a confined connection is a read-only one")
@@ -149,7 +151,7 @@ class Catalog:
             store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
-            elif confined or joined_confined or (not self._in_place and self._moved(con)):
+            elif confined or joined_confined or (follow_move and not self._in_place and self._moved(con)):
                 self._follow_move(con, read_only)
             if confined:
                 self._confine(con)
@@ -208,7 +210,7 @@ class Catalog:
     def _migrate(self, stamped: int) -> None:
         """Bring a catalog of layout `stamped` to this one in place, one version at a time, each
         version's columns and new stamp in one transaction (a kill leaves the old layout or the new one)."""
-        with self.connect() as con:
+        with self.connect(follow_move=False) as con:
             for version in range(stamped, SCHEMA_VERSION):
                 con.execute("BEGIN TRANSACTION")
                 for table, column in MIGRATIONS[version]:
@@ -354,10 +356,14 @@ class Catalog:
         (allowed_directories: absolute folders) can check."""
         persistent = self._persistent(con)
         locate = self.store.location if temporary else self.store.view_location
-        rows = con.execute(
-            f"SELECT coalesce(s.stored_in, s.path), s.row_offset, s.num_rows, c.num_rows "
-            f"FROM {persistent}.shards s LEFT JOIN {persistent}.compacted c ON c.path = s.stored_in "
-            f"WHERE s.table_name = ? AND ({where}) ORDER BY 1, 2", [table, *params]).fetchall()
+        # a catalog of a layout before 9 (read as it is: `sim2act sql`, or before its migration) has no compaction
+        compacted = con.execute("SELECT count(*) > 0 FROM duckdb_tables() WHERE table_name = 'compacted' "
+                                "AND NOT temporary").fetchone()[0]
+        held = ("coalesce(s.stored_in, s.path), s.row_offset, s.num_rows, c.num_rows FROM {p}.shards s "
+                "LEFT JOIN {p}.compacted c ON c.path = s.stored_in" if compacted else
+                "s.path, NULL, s.num_rows, NULL FROM {p}.shards s").format(p=persistent)
+        rows = con.execute(f"SELECT {held} WHERE s.table_name = ? AND ({where}) ORDER BY 1, 2",
+                           [table, *params]).fetchall()
         whole, cut = [], []
         for file, group in itertools.groupby(rows, key=lambda row: row[0]):
             group = list(group)

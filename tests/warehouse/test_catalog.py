@@ -181,7 +181,7 @@ def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory, monk
         assert con.execute("SELECT count(*) FROM filter_decisions").fetchall() == [(6,)]
 
 
-def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(workspace):
+def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(workspace, tmp_path):
     """Layout 7 added evaluations.episode_achieved, 8 shards.view_part, 9 shards.stored_in/row_offset and
     the compacted table: a layout-6 catalog gains them all where any command opens it (no new workspace),
     its rows kept, the new columns null until used."""
@@ -197,6 +197,11 @@ def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(
         con.execute("DROP TABLE compacted")
         con.execute("UPDATE catalog_meta SET value = '6' WHERE key = 'schema_version'")
         con.execute("INSERT INTO evaluations (unit_key, task_id, successes) VALUES ('evaluate-old', 'lift-red', 3)")
+    import shutil
+
+    moved = Workspace.at(tmp_path / "copied")  # a copy elsewhere: its views are followed before it is migrated
+    shutil.copytree(workspace.root, moved.root)
+    workspace = moved
     catalog = Catalog(workspace.catalog)
     catalog.check_version()
     catalog.check_layout()  # every declared column, in order

@@ -45,6 +45,8 @@ def _shard_files(workspace: Workspace) -> list[str]:
 def test_compaction_changes_where_rows_live_and_nothing_a_reader_sees(filled):
     catalog = Catalog(filled.catalog)
     before, batches, files = _seen(catalog), _batches(catalog), _shard_files(filled)
+    some = ["explore-i0u0", "explore-i0u2"]  # the middle unit's rows lie between theirs once compacted
+    chosen = [(r.path, r.start, r.stop) for r in select_rows(catalog, "TRUE", units=some)]
     shards = catalog.query("SELECT path, unit_key, sha256, num_rows FROM shards ORDER BY path")
     assert len(files) == 2 * 3 * 3  # iterations x units x (episodes, steps, filter_decisions)
 
@@ -66,6 +68,8 @@ def test_compaction_changes_where_rows_live_and_nothing_a_reader_sees(filled):
     assert _seen(catalog) == before  # queries and snapshots
     assert _batches(catalog) == batches  # the training stream, batch for batch
     assert catalog.verify(full=True) == [] and catalog.clean_orphans() == []
+    # a dataset of some units reads only theirs, though their compacted file holds the others' rows too
+    assert [(r.path, r.start, r.stop) for r in select_rows(catalog, "TRUE", units=some)] == chosen
     unit = shards[0][1]
     assert catalog.read_unit_shard("steps", unit).num_rows == dict(
         catalog.query("SELECT unit_key, num_rows FROM shards WHERE table_name = 'steps'"))[unit]
