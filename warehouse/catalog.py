@@ -455,14 +455,16 @@ class Catalog:
             before = self._last_part(con, name)
             parts = self._assign_parts(con, name, before)
             last = max(parts, default=before)  # parts are given from the last one on
-            compacted = con.execute(f"SELECT count(*) > 0 FROM {self._persistent(con)}.shards "
-                                    "WHERE table_name = ? AND view_part = ?", [name, COMPACTED_PART]).fetchone()[0]
+            rewrite_view = everything or last != before
+            compacted = rewrite_view and con.execute(  # asked only where the table's view is rewritten
+                f"SELECT count(*) > 0 FROM {self._persistent(con)}.shards WHERE table_name = ? AND view_part = ?",
+                [name, COMPACTED_PART]).fetchone()[0]
             if everything:
                 parts = set(range(last + 1)) | ({COMPACTED_PART} if compacted else set())
             for part in sorted(parts | set((emptied or {}).get(name, ()))):
                 con.execute(f"CREATE OR REPLACE VIEW {self._part_view(name, part)} AS SELECT * FROM "
                             f"{self._part_source(con, name, part)}")
-            if everything or last != before:
+            if rewrite_view:
                 union = " UNION ALL ".join(f"SELECT * FROM {self._part_view(name, part)}" for part in
                                            [*([COMPACTED_PART] if compacted else []), *range(last + 1)])
                 con.execute(f"CREATE OR REPLACE VIEW {name} AS {union or f'SELECT * FROM _empty_{name}'}")

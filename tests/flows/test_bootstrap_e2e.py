@@ -184,8 +184,9 @@ def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api)
 
 
 def test_a_compacted_campaign_reruns_without_work_and_goes_on(finished_campaign, tmp_path, prefect_api):
-    """`sim2act warehouse compact` between runs: the rows, digests and shard rows are what they were, a
-    rerun does no work, and a third iteration explores, filters and trains on the compacted warehouse."""
+    """`sim2act warehouse compact` between runs: the rows, digests and shard rows are what they were, the
+    next run redoes no unit of the compacted iterations, and its third iteration explores, filters and
+    trains on the compacted warehouse."""
     workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
     shutil.copytree(finished_campaign[0], workspace)
     before = snapshot(workspace)
@@ -195,10 +196,8 @@ def test_a_compacted_campaign_reruns_without_work_and_goes_on(finished_campaign,
     catalog = Catalog(Workspace.at(workspace).catalog)
     assert catalog.query("SELECT count(*) FROM shards WHERE stored_in IS NULL AND table_name <> 'instructions'") == [(0,)]
     assert snapshot(workspace) == before
-    output, _ = run_campaign(workspace, prefect_api)
-    assert output.count("stages that ran: 0/7") == 2, output[-3000:]
     run_campaign(workspace, prefect_api, None, "--set", "iterations=3")
-    # no unit of the compacted iterations ran again; iteration 2 ran every stage
+    # no unit of the compacted iterations ran again (their keys hold); iteration 2 ran every stage
     assert catalog.query("SELECT DISTINCT iteration FROM stage_runs WHERE finished_at > (SELECT max(compacted_at) "
                          "FROM compacted)") == [(2,)]
     assert {stage for (stage,) in catalog.query("SELECT DISTINCT stage FROM stage_runs WHERE iteration = 2")} == {
