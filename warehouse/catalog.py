@@ -35,6 +35,9 @@ VIEW_PART_SHARDS = 500  # shard files per part view: what a registration's view 
 COMPACTED_PART = -1  # shards.view_part of a compacted shard: its table's `_<table>_compacted` view reads it
 _CONFINING = threading.Lock()  # Catalog._confine: DuckDB's settings belong to the instance threads share
 _RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its recorded store: fixed once it exists
+# catalog files this process has opened confined: DuckDB shares one instance per file, so a plain reader of
+# one may find the instance confined, or see it confined under it mid-query (Catalog.connect)
+_CONFINED_FILES: set[str] = set()
 
 
 class CatalogMissing(Sim2ActError, FileNotFoundError):
@@ -140,14 +143,17 @@ class Catalog:
         if read_only and not self.path.exists():
             raise CatalogMissing(f"no warehouse catalog at {self.path} (run `sim2act run` first)")
         store = self.store  # before the connection: it may read the catalog's record on one of its own
+        key = str(self.path.resolve())
+        if confined:
+            _CONFINED_FILES.add(key)  # before it locks anything
         # another process holds DuckDB's write lock for a moment: wait for it, a while at most
         con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
             duckdb.connect, str(self.path), read_only=read_only)
         try:
-            # a read that joins an instance another thread confined (the dashboard answers requests
-            # concurrently; settings are per instance) can no longer read the views' relative names:
-            # it reads as a confined one, by location
-            joined_confined = self._search_warehouse(con)
+            # a read beside a confined one (the dashboard answers requests concurrently; settings are per
+            # instance) cannot count on reading the views' relative names: the instance is confined, or may
+            # be confined under it mid-query. It reads as a confined one does, by location.
+            joined_confined = self._search_warehouse(con) or (read_only and key in _CONFINED_FILES)
             store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
