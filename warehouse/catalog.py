@@ -153,7 +153,8 @@ class Catalog:
             # a read beside a confined one (the dashboard answers requests concurrently; settings are per
             # instance) cannot count on reading the views' relative names: the instance is confined, or may
             # be confined under it mid-query. It reads as a confined one does, by location.
-            joined_confined = self._search_warehouse(con) or (read_only and key in _CONFINED_FILES)
+            self._search_warehouse(con)
+            joined_confined = read_only and key in _CONFINED_FILES  # only this process's confined ones lock it
             store.prepare(con)  # S3: httpfs and the store's key, before any view is read
             if as_of_iteration is not None:
                 self._snapshot_views(con, as_of_iteration)
@@ -409,21 +410,19 @@ class Catalog:
         con.execute("INSERT OR REPLACE INTO catalog_meta VALUES ('root', ?)", [self.warehouse.resolve().as_posix()])
         self._in_place = True
 
-    def _search_warehouse(self, con: duckdb.DuckDBPyConnection) -> bool:
+    def _search_warehouse(self, con: duckdb.DuckDBPyConnection) -> None:
         """Relative file names (the views' shards) resolve in the warehouse folder. Set on the DuckDB
-        instance (GLOBAL), which a confined connection then locks: later connections find it set.
-        -> whether the instance is locked (confined) already."""
+        instance (GLOBAL), which a confined connection then locks: later connections find it set."""
         folder = self.warehouse.resolve().as_posix()
         with _CONFINING:
             [(locked, searched)] = con.execute(
                 "SELECT current_setting('lock_configuration'), current_setting('file_search_path')").fetchall()
             if searched == folder:
-                return bool(locked)
+                return
             if locked:
                 raise RuntimeError(f"expected this process's DuckDB instance to search {folder}, got a locked "
                                    f"configuration searching {searched!r}")
             con.execute("SET GLOBAL file_search_path = ?", [folder])
-            return False
 
     def _confine(self, con: duckdb.DuckDBPyConnection) -> None:
         """After the views exist (they name the shard files): the warehouse folder only, then lock.
