@@ -7,7 +7,9 @@ episode seeds, so the same expert noise draws):
   `robosuite.make` with its defaults otherwise (hard reset, shadows, reflections, multisampling);
 - (b) the same loop without renderer or camera: robosuite's physics, the floor of any wrapper;
 - (c) our explore stage end to end (`run_explore`: pool start, env creation, rollouts, Parquet
-  shards, catalog registration) on a fresh workspace, with 1 worker and with 2.
+  shards, catalog registration) on a fresh workspace, with 1 worker and with 2;
+- (d) (c) with 1 worker at `render.mesh_detail` < 1: the visual meshes decimated (envs/mesh_detail.py),
+  the same physics, hence the same episodes and successes, different pixels.
 
 The policy is the task's scripted expert with the campaign's action noise; in (a) and (b) it
 reads robosuite's raw observation through the adapter's own `observe`. (a) and (b) each run in
@@ -43,6 +45,7 @@ class RolloutSizes(BaseModel):
     episodes_per_shard: int = 4  # the campaign default
     horizon: int | None = None  # None: the spec's own; episodes also end on success
     image_size: int = 84
+    mesh_detail: float = 0.1  # (d)'s render.mesh_detail: the fraction of visual mesh faces drawn
 
 
 # seconds, for tests and a smoke check; the figures mean little at these sizes
@@ -60,7 +63,7 @@ class LoopCase(BaseModel):
 
 
 class RolloutRow(BaseModel):
-    case: str  # a, b, c1, c2
+    case: str  # a, b, c1, c2, d
     name: str
     workers: int
     episodes: int
@@ -156,9 +159,10 @@ def _row(case: str, name: str, workers: int, episodes: int, successes: int, step
                       other_load=other_load, note=note)
 
 
-def _config(sizes: RolloutSizes, workers: int) -> CampaignConfig:
+def _config(sizes: RolloutSizes, workers: int, mesh_detail: float = 1.0) -> CampaignConfig:
     return CampaignConfig(
-        name="bench-rollout", tasks=_tasks_config(sizes), render=RenderConfig(image_size=sizes.image_size),
+        name="bench-rollout", tasks=_tasks_config(sizes),
+        render=RenderConfig(image_size=sizes.image_size, mesh_detail=mesh_detail),
         explore=ExploreConfig(episodes_per_task=sizes.episodes, episodes_per_shard=sizes.episodes_per_shard,
                               workers=workers),
     )
@@ -168,24 +172,39 @@ def _tasks_config(sizes: RolloutSizes) -> TasksConfig:
     return TasksConfig(specs=[sizes.spec], horizon={sizes.spec: sizes.horizon} if sizes.horizon else {})
 
 
-def run_stage(task: TaskRecord, sizes: RolloutSizes, workers: int, root: Path) -> RolloutRow:
-    """(c): the explore stage on a fresh workspace, timed from the call to its return."""
+def run_stage(task: TaskRecord, sizes: RolloutSizes, workers: int, root: Path, mesh_detail: float = 1.0) -> RolloutRow:
+    """(c) and (d): the explore stage on a fresh workspace, timed from the call to its return."""
     from stages.explore import run_explore
     from warehouse.catalog import Catalog
 
-    workspace = Workspace.at(root / f"workers-{workers}").create()
+    workspace = Workspace.at(root / f"workers-{workers}-detail-{mesh_detail}").create()
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
     meter = LoadMeter()
-    result = run_explore(workspace, _config(sizes, workers), 0, [task], None, {})
+    result = run_explore(workspace, _config(sizes, workers, mesh_detail), 0, [task], None, {})
     wall_s = time.perf_counter() - meter.wall
     cpu_s = meter.ours()  # the pool's workers are reaped by now
     [(successes, shards)] = catalog.query(
         "SELECT (SELECT count(*) FILTER (WHERE success) FROM episodes), (SELECT count(*) FROM shards)"
     )
-    return _row(f"c{workers}", f"sim2act explore stage, {workers} worker{'s' * (workers > 1)}", workers,
-                result.episodes, successes, result.steps, wall_s, cpu_s, meter.other_load(),
-                f"{shards} Parquet shards written and registered; pool start, imports and env creation counted")
+    detail = "" if mesh_detail == 1.0 else f", visual meshes at {mesh_detail:g} of their faces"
+    return _row("d" if detail else f"c{workers}", f"sim2act explore stage, {workers} worker{'s' * (workers > 1)}{detail}",
+                workers, result.episodes, successes, result.steps, wall_s, cpu_s, meter.other_load(),
+                f"{shards} Parquet shards written and registered; pool start, imports and env creation counted"
+                + ("; the decimated meshes cached beforehand (made once per host)" if detail else ""))
+
+
+def _make_and_close(render: RenderConfig) -> int:
+    from envs.registry import make_env
+
+    make_env("robosuite", "Lift", render).close()
+    return 0
+
+
+def _fill_mesh_cache(sizes: RolloutSizes) -> None:
+    """Decimate (d)'s meshes before its clock starts (a host does it once, not once per campaign), in
+    a worker process: renderers are made there, never in this one."""
+    run_in_pool(_make_and_close, [RenderConfig(image_size=sizes.image_size, mesh_detail=sizes.mesh_detail)], workers=1)
 
 
 def _ratio(name: str, value: float, target: float | None = None) -> Ratio:
@@ -216,13 +235,16 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
                              done["cpu_s"], meter.other_load(),
                              f"robosuite.make defaults (hard_reset); resets {done['reset_s']:.1f} s"))
         rows += [run_stage(task, sizes, workers, root) for workers in (1, 2)]
+        _fill_mesh_cache(sizes)
+        rows.append(run_stage(task, sizes, 1, root, sizes.mesh_detail))
     finally:
         shutil.rmtree(root, ignore_errors=True)
-    a, b, c1, c2 = rows
+    a, b, c1, c2, d = rows
     ratios = [
         _ratio("(c, 1 worker) / (a), per core", c1.steps_per_s_per_core / a.steps_per_s_per_core, 2.0),
         _ratio("(c, 2 workers) / (c, 1 worker)", c2.steps_per_s / c1.steps_per_s, 1.8),
         _ratio("(c, 1 worker) / (b), per core", c1.steps_per_s_per_core / b.steps_per_s_per_core),
+        _ratio("(d) / (c, 1 worker)", d.steps_per_s / c1.steps_per_s, 2.0),
     ]
     return RolloutBench(task_id=task.task_id, env=task.env_name, image_size=sizes.image_size, horizon=task.horizon,
                         episodes=len(seeds), policy=POLICY, expert_noise=config.explore.noise_of(0), rows=rows,
@@ -237,8 +259,8 @@ def markdown(bench: RolloutBench, command: str) -> str:
         f"({bench.env}), {bench.image_size}px agentview, {bench.episodes} episodes of at most {bench.horizon} steps "
         f"(ending on success), the same episode seeds in every case; policy: the {bench.policy} with action noise "
         f"{bench.expert_noise}, reading robosuite's raw observation through the adapter's `observe` in (a) and (b). "
-        "(a) and (b) are timed from `robosuite.make` in a fresh process; (c) from the stage call, everything "
-        "included. The stage randomises each episode's scene (its default); the plain loops do not. "
+        "(a) and (b) are timed from `robosuite.make` in a fresh process; (c) and (d) from the stage call, everything "
+        "included; (d) has the same physics as (c), so the same episodes and successes. The stage randomises each episode's scene (its default); the plain loops do not. "
         "Cores busy = our CPU time / wall time; other load = cores the machine's other processes kept busy "
         "meanwhile (above ~0.1, the figures are slowed by them).",
         "",

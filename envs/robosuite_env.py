@@ -199,6 +199,8 @@ class RobosuiteEnv:
             seed=MODEL_SEED,
             **self.scene.options,
         )
+        if render is not None and render.mesh_detail < 1.0:
+            self._simplify_visual_meshes(render.mesh_detail)
         if render is not None:
             self._apply_render_settings()
         model = self.env.sim.model._model
@@ -207,6 +209,16 @@ class RobosuiteEnv:
             model, render.camera if render else None,
             task_geoms=[model.geom(g).id for geoms in self.scene.colourable.values() for g in geoms], object_bodies=free_bodies(model),
         )
+
+    def _simplify_visual_meshes(self, keep: float) -> None:
+        """Rebuild the simulation from robosuite's own XML with its visual-only meshes decimated
+        (envs/mesh_detail.py); the collision meshes, hence the physics, are the same."""
+        from envs.mesh_detail import simplify_visual_meshes
+        from schemas.settings import cache_dir
+
+        xml, _, _ = simplify_visual_meshes(self.env.model.get_xml(), self.env.sim.model._model, keep,
+                                           cache_dir() / "meshes")
+        self.env.reset_from_xml_string(xml)
 
     def _apply_render_settings(self) -> None:
         model = self.env.sim.model

@@ -44,13 +44,26 @@ def load_encoder(name: str):
 
 
 @functools.lru_cache(maxsize=2)
-def _frozen(name: str):
-    return load_encoder(name)
+def _frozen(name: str) -> Callable[[list[str]], np.ndarray]:
+    """The frozen encoder's `encode`: plain torch for a BERT with mean pooling (policies/frozen_bert.py:
+    no ~7 s sentence-transformers import in every process that embeds a few instructions), else
+    sentence-transformers."""
+    from pathlib import Path
+
+    from policies.frozen_bert import FrozenBert, is_frozen_bert
+
+    if name not in ENCODERS:
+        raise ValueError(f"unknown language encoder {name!r} (known: {', '.join(ENCODERS)})")
+    folder = Path(ENCODERS[name].weights())
+    if is_frozen_bert(folder):
+        return FrozenBert(folder).encode
+    model = load_encoder(name)
+    return lambda texts: model.encode(texts, batch_size=64, normalize_embeddings=True, convert_to_numpy=True)
 
 
 def encode(name: str, texts: list[str]) -> np.ndarray:
     """(len(texts), dim) float32, L2-normalised, by the pretrained (frozen) encoder."""
-    return _frozen(name).encode(texts, batch_size=64, normalize_embeddings=True, convert_to_numpy=True).astype(np.float32)
+    return np.asarray(_frozen(name)(texts), dtype=np.float32)
 
 
 class TextEncoder(nn.Module):

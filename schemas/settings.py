@@ -21,6 +21,7 @@ from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
 
 SECRETS_FILE_ENV = "SIM2ACT_SECRETS_FILE"
+CACHE_DIR_ENV = "SIM2ACT_CACHE_DIR"
 # MLflow's: where runs are logged (default: the workspace's SQLite file); an http(s) URL is an MLflow server.
 TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"
 # MLflow's, read by `sim2act up`'s MLflow server: its database (default: the workspace's SQLite file)
@@ -80,6 +81,14 @@ def apply_secrets_file(environ: MutableMapping[str, str] | None = None) -> list[
     for key in added:
         environ[key] = loaded[key]
     return added
+
+
+def cache_dir() -> Path:
+    """Where derived files that any workspace may reuse live (decimated meshes): SIM2ACT_CACHE_DIR, else
+    $XDG_CACHE_HOME/sim2act, else ~/.cache/sim2act. Per host: a rollout worker on another machine fills its own."""
+    if os.environ.get(CACHE_DIR_ENV):
+        return Path(os.environ[CACHE_DIR_ENV])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "sim2act"
 
 
 def tracking_uri(workspace: Workspace) -> str:

@@ -20,7 +20,7 @@ from pydantic import BaseModel
 from envs.observation import Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import Act, Explorer, rollout, worker_env
-from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
+from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
 from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, key_fields, unit_key
 from schemas.tables import EPISODES, STEPS
@@ -131,7 +131,8 @@ def plan_explore(
     explored only by the policy chaining them, so not at all before there is one."""
     explore = config.explore
     reads = {
-        "campaign": config.name, "seed": config.seed, "iteration": iteration, "render": config.render,
+        "campaign": config.name, "seed": config.seed, "iteration": iteration,
+        "render": key_fields(config.render, set(), RENDER_LEGACY_VALUES),
         "randomise": config.randomise, "explore": key_fields(explore, {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }

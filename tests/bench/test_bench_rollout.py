@@ -7,7 +7,8 @@ import pytest
 from flows.cli import main
 
 
-def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, capsys):
+def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "docs" / "bench-rollout.md"
     scratch = tmp_path / "scratch"
     scratch.mkdir()
@@ -15,8 +16,10 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
     bench = json.loads(capsys.readouterr().out)
     assert bench["env"] == "Lift" and bench["image_size"] == 84 and bench["policy"] == "scripted expert"
     rows = {r["case"]: r for r in bench["rows"]}
-    assert list(rows) == ["a", "b", "c1", "c2"]
-    assert [rows[c]["workers"] for c in rows] == [1, 1, 1, 2]
+    assert list(rows) == ["a", "b", "c1", "c2", "d"]
+    assert [rows[c]["workers"] for c in rows] == [1, 1, 1, 2, 1]
+    # fewer triangles, the same physics: the same episodes end the same way
+    assert (rows["d"]["steps"], rows["d"]["successes"]) == (rows["c1"]["steps"], rows["c1"]["successes"])
     for row in rows.values():
         assert row["episodes"] == bench["episodes"] == 2  # the same episodes in every case
         assert 0 < row["steps"] <= bench["episodes"] * bench["horizon"]
@@ -30,6 +33,8 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
     scaling = ratios["(c, 2 workers) / (c, 1 worker)"]
     assert scaling["value"] == pytest.approx(rows["c2"]["steps_per_s"] / rows["c1"]["steps_per_s"])
     assert scaling["target"] == 1.8 and scaling["met"] == (scaling["value"] >= 1.8)
+    meshes = ratios["(d) / (c, 1 worker)"]
+    assert meshes["value"] == pytest.approx(rows["d"]["steps_per_s"] / rows["c1"]["steps_per_s"])
     table = out.read_text()
     assert "`sim2act bench rollout --quick --json" in table
     assert all(f"\n| {case} | " in table for case in rows) and "(c, 2 workers) / (c, 1 worker)" in table

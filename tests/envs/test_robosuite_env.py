@@ -182,3 +182,45 @@ def test_the_scene_experts_solve_door_nut_and_bin_tasks_under_randomisation(spec
             assert env.env.sim.data.qpos[env.env.hinge_qpos_addr] > 0.3
     finally:
         env.close()
+
+
+def test_simplified_visual_meshes_change_pixels_not_physics(lift_env, tmp_path, monkeypatch):
+    """render.mesh_detail < 1: the visual-only meshes are decimated (and cached), the collision
+    geometry is not, so an expert's episode has the same states and actions; its frames differ
+    a little (the same scene, fewer triangles)."""
+    import mujoco
+
+    from envs.mesh_detail import simplify_visual_meshes, visual_only_meshes
+    from schemas.config import RENDER_LEGACY_VALUES
+    from schemas.keys import key_fields
+
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path))
+
+    def episode(env: RobosuiteEnv) -> list:
+        expert = PickPlaceExpert(noise=0.1, rng=np.random.default_rng(3))
+        rows, _, _ = rollout(env, _lift("green"), seed=3, act=expert.act)
+        return rows
+
+    coarse = RobosuiteEnv("Lift", RenderConfig(mesh_detail=0.1))
+    try:
+        model = coarse.env.sim.model._model
+        drawn = {mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_MESH, model.geom_dataid[g]): model.geom_contype[g]
+                 for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH}
+        simplified = visual_only_meshes(lift_env.env.sim.model._model)  # of the full model: 1,000+ faces
+        assert simplified and all(drawn[name] == 0 for name in simplified)  # never a colliding geom's mesh
+        full, fewer = episode(lift_env), episode(coarse)
+    finally:
+        coarse.close()
+    assert [(r["qpos"], r["action"], r["reward"]) for r in full] == [(r["qpos"], r["action"], r["reward"]) for r in fewer]
+    frames = [(a["image"].astype(int), b["image"].astype(int)) for a, b in zip(full, fewer)]
+    differences = [np.abs(a - b).mean() for a, b in frames]
+    assert 0 < max(differences) < 12  # grey levels of 255 per pixel, on average: the same scene
+    cached = sorted(tmp_path.glob("meshes/*.stl"))
+    assert len(cached) == len(simplified)
+    # a second environment (another worker) reuses the cache: same files, none rewritten
+    stamps = [p.stat().st_mtime_ns for p in cached]
+    xml, before, after = simplify_visual_meshes(lift_env.env.model.get_xml(), lift_env.env.sim.model._model, 0.1,
+                                                tmp_path / "meshes")
+    assert [p.stat().st_mtime_ns for p in cached] == stamps and after < 0.2 * before and xml.count(str(tmp_path)) >= 10
+    # a campaign at full detail keys its units as before the field existed
+    assert key_fields(RenderConfig(), set(), RENDER_LEGACY_VALUES) == RenderConfig().model_dump(exclude={"mesh_detail"})

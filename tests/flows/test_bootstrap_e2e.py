@@ -50,7 +50,7 @@ def test_campaign_fills_the_warehouse(finished_campaign):
         "SELECT (SELECT count(*) FROM episodes), (SELECT count(*) FROM triplets WHERE next_obs IS NOT NULL),"
         " (SELECT count(*) FROM filter_decisions WHERE kept)"
     )
-    assert episodes == 2 * 3 * 4 and steps > episodes * 20 and 0 < kept <= episodes
+    assert episodes == 2 * 3 * load_config("smoke").explore.episodes_per_task and steps > episodes * 20 and 0 < kept <= episodes
     # the filter's reasons are counted, per iteration
     assert catalog.query("SELECT count(DISTINCT iteration) FROM filter_decisions WHERE reason IS NOT NULL") == [(2,)]
     # success per task per iteration is in the warehouse
@@ -87,11 +87,13 @@ def test_iteration_one_explores_with_iteration_zero_model(finished_campaign):
     assert explorers[1] == ["expert", "policy:sim2act-smoke/1"]
     [(model_0,)] = catalog.query("SELECT model_key FROM deployments WHERE iteration = 0 AND version = 1")
     assert catalog.query("SELECT count(*) FROM models WHERE model_key = ? AND iteration = 0", [model_0]) == [(1,)]
-    # iteration 1 shared its 12 episodes by iteration 0's evaluation: the least sure, least successful tasks most
+    # iteration 1 shared its episodes by iteration 0's evaluation (the least sure, least successful tasks most;
+    # the smoke preset's 2 a task leave little to share: tests/warehouse/test_priority.py shows the skew)
+    per_task = load_config("smoke").explore.episodes_per_task
     explored = dict(catalog.query("SELECT task_id, count(*) FROM episodes WHERE iteration = 1 GROUP BY 1"))
     tasks = [t for t in load_tasks(Workspace.at(workspace), catalog.query("SELECT min(unit_key) FROM tasks")[0][0])]
-    planned = plan_priorities(catalog, "smoke", model_0, tasks, per_task=4, floor=0.25)
-    assert explored == {p.task_id: p.episodes for p in planned} and sum(explored.values()) == 12
+    planned = plan_priorities(catalog, "smoke", model_0, tasks, per_task=per_task, floor=0.25)
+    assert explored == {p.task_id: p.episodes for p in planned} and sum(explored.values()) == 3 * per_task
     assert all(p.success is not None and p.episodes >= 1 for p in planned)
 
 
@@ -108,7 +110,7 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
     assert sorted(r.data.tags["sim2act.iteration"] for r in children) == ["0", "1"]
     for child in children:
         metrics = child.data.metrics
-        assert metrics["explore.episodes"] == 12 and metrics["dataset.triplets"] > 0
+        assert metrics["explore.episodes"] == 6 and metrics["dataset.triplets"] > 0
         assert "filter.pass_rate" in metrics and "train.loss" in metrics
         lifts = {f"success.lift-{colour}" for colour in ("red", "green", "blue")}
         groups = {f"success.{g}" for g in ("seen", "unseen_paraphrase", "robosuite", "robosuite/seen",
@@ -119,7 +121,7 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
         assert metrics["success.seen.ci_high"] - metrics["success.seen.ci_low"] > 0.2  # 3 episodes: a wide interval
         # a point every train.log_every steps as it trains, and one at its last step
         steps = [m.step for m in client.get_metric_history(child.info.run_id, "train.loss")]
-        assert len(steps) >= 2 and steps == sorted(set(steps)) and all(s % 20 == 0 for s in steps[:-1])
+        assert len(steps) >= 2 and steps == sorted(set(steps)) and all(s % load_config("smoke").train.log_every == 0 for s in steps[:-1])
         assert {"train.lr", "train.samples_per_s", "train.data_wait"} <= set(metrics)
         videos = [a.path for a in client.list_artifacts(child.info.run_id, "evaluation/lift-red/seen")]
         assert videos and all(path.endswith(("-success.mp4", "-failure.mp4")) for path in videos)
@@ -163,12 +165,13 @@ def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(fin
         progress = client.read_artifacts(artifact_filter=ArtifactFilter(
             type=ArtifactFilterType(any_=["progress"]), flow_run_id=ArtifactFilterFlowRunId(any_=explores)))
     assert {run.name for run in runs if run.state.is_completed()} == set(names)
-    # one task run per shard (2 episodes each: iteration 1 shares its episodes by priority), and the
-    # progress artifact at 100%
+    # one task run per shard (of episodes_per_shard episodes: iteration 1 shares its episodes by priority),
+    # and the progress artifact at 100%
+    per_shard = load_config("smoke").explore.episodes_per_shard
     explored = Catalog(Workspace.at(finished_campaign[0]).catalog).query(
         "SELECT task_id, count(*) FROM episodes GROUP BY iteration, task_id")
     assert sorted(t.name for t in shards) == sorted(
-        f"{task_id}-shard-{s}" for task_id, episodes in explored for s in range(-(-episodes // 2)))
+        f"{task_id}-shard-{s}" for task_id, episodes in explored for s in range(-(-episodes // per_shard)))
     assert all(t.state.is_completed() for t in shards)
     assert [a.data for a in progress] == [100.0, 100.0]
 
@@ -183,10 +186,10 @@ def test_a_finished_campaign_reruns_without_work(finished_campaign, prefect_api)
     assert seconds < 0.5 * first_seconds, (seconds, first_seconds)
 
 
-def test_a_compacted_campaign_reruns_without_work_and_goes_on(finished_campaign, tmp_path, prefect_api):
-    """`sim2act warehouse compact` between runs: the rows, digests and shard rows are what they were, the
-    next run redoes no unit of the compacted iterations, and its third iteration explores, filters and
-    trains on the compacted warehouse."""
+def test_a_compacted_campaign_reruns_without_work(finished_campaign, tmp_path, prefect_api):
+    """`sim2act warehouse compact` between runs: the rows, digests and shard rows are what they were, and
+    the next run redoes no unit of the compacted iterations (the nightly test of tests/flows/test_service.py
+    goes on from a compacted campaign: its next iteration explores, filters and trains on it)."""
     workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
     shutil.copytree(finished_campaign[0], workspace)
     before = snapshot(workspace)
@@ -196,22 +199,18 @@ def test_a_compacted_campaign_reruns_without_work_and_goes_on(finished_campaign,
     catalog = Catalog(Workspace.at(workspace).catalog)
     assert catalog.query("SELECT count(*) FROM shards WHERE stored_in IS NULL AND table_name <> 'instructions'") == [(0,)]
     assert snapshot(workspace) == before
-    run_campaign(workspace, prefect_api, None, "--set", "iterations=3")
-    # no unit of the compacted iterations ran again (their keys hold); iteration 2 ran every stage
-    assert catalog.query("SELECT DISTINCT iteration FROM stage_runs WHERE finished_at > (SELECT max(compacted_at) "
-                         "FROM compacted)") == [(2,)]
-    assert {stage for (stage,) in catalog.query("SELECT DISTINCT stage FROM stage_runs WHERE iteration = 2")} == {
-        "explore", "filter", "index", "train", "evaluate", "redeploy"}
-    [(triplets_2, triplets_1)] = catalog.query(
-        "SELECT max(triplets) FILTER (WHERE iteration = 2), max(triplets) FILTER (WHERE iteration = 1) FROM iterations")
-    assert triplets_2 > triplets_1  # iteration 2 trained on the compacted iterations' rows and its own
+    output, _ = run_campaign(workspace, prefect_api)
+    assert output.count("stages that ran: 0/7") == 2, output[-3000:]
+    assert catalog.query("SELECT count(*) FROM stage_runs WHERE finished_at > (SELECT max(compacted_at) "
+                         "FROM compacted)") == [(0,)]
+    assert snapshot(workspace) == before
 
 
 # Where each kill lands: inside generate_tasks (before it registers), explore, train and evaluate,
 # and at the seams where filter, index and redeploy start (those take a second or less).
 KILL_POINTS = (
     r"generate_tasks: 3 tasks, \d+ instructions; embedding",
-    r"explore it0: 4/12 episodes",
+    r"explore it0: 3/6 episodes",
     r"filter it0: 6 shards",
     r"index it0: dataset",
     r"train it0: epoch 1/",
@@ -232,7 +231,7 @@ def test_sigkill_in_every_stage_then_resume_gives_the_same_rows(finished_campaig
         outputs.append(output)
         if kill_at.startswith("explore"):
             partial = Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM episodes")[0][0]
-            assert 0 < partial < 12
+            assert 0 < partial < 6
     # the run after the explore kill kept the shards that were registered
     assert re.search(r"explore it0: 6 shards \([1-5] already registered\)", outputs[2]), outputs[2][-3000:]
     run_campaign(workspace, prefect_api, None, "--set", "iterations=1")

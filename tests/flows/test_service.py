@@ -1,6 +1,7 @@
 """The local stack for real: `sim2act up` starts a Prefect server, an MLflow server, the dashboard
-and the deployments' serve process over a finished smoke campaign; the nightly deployment is
-triggered from Prefect's CLI and continues the campaign; a bad parameter sent through the API is
+and the deployments' serve process over a finished smoke campaign, compacted (`sim2act warehouse
+compact`, as one would before leaving it to the nights); the nightly deployment is triggered from
+Prefect's CLI and continues the campaign on the compacted warehouse; a bad parameter sent through the API is
 refused with its field named; `sim2act down` stops everything."""
 
 from __future__ import annotations
@@ -53,6 +54,8 @@ def post_json(url: str, body: dict) -> tuple[int, dict]:
 def stack(finished_campaign, tmp_path_factory):
     workspace = tmp_path_factory.mktemp("stack") / "workspace"  # a copy: the nightly run adds an iteration
     shutil.copytree(finished_campaign[0], workspace)
+    compacted = sim2act("warehouse", "compact", "--workspace", str(workspace))
+    assert compacted.returncode == 0 and "compacted into" in compacted.stdout, compacted.stderr[-3000:]
     ports = {"prefect": _free_port(), "mlflow": _free_port(), "dashboard": _free_port()}
     started = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "30 3 * * *",
                       "--timezone", "Europe/Berlin", *(f"--{name}-port={port}" for name, port in ports.items()))
@@ -127,6 +130,15 @@ def test_the_nightly_deployment_continues_the_campaign(stack):
     assert triggered.returncode == 0, triggered.stdout[-3000:] + triggered.stderr[-3000:]
     catalog = Catalog(Workspace.at(workspace).catalog)
     assert catalog.query("SELECT iteration FROM deployments ORDER BY 1") == [(0,), (1,), (2,)]
+    # over the compacted iterations: none of their units ran again; iteration 2 explored, filtered and
+    # trained on their rows and its own
+    assert catalog.query("SELECT DISTINCT iteration FROM stage_runs WHERE finished_at > (SELECT max(compacted_at) "
+                         "FROM compacted)") == [(2,)]
+    assert {stage for (stage,) in catalog.query("SELECT DISTINCT stage FROM stage_runs WHERE iteration = 2")} == {
+        "explore", "filter", "index", "train", "evaluate", "redeploy"}
+    [(triplets_2, triplets_1)] = catalog.query(
+        "SELECT max(triplets) FILTER (WHERE iteration = 2), max(triplets) FILTER (WHERE iteration = 1) FROM iterations")
+    assert triplets_2 > triplets_1
     status, runs = post_json(f"{urls['prefect']}/api/flow_runs/filter",
                              {"flow_runs": {"name": {"any_": ["smoke-iteration-2"]}}})
     assert status == 200 and [run["state_type"] for run in runs] == ["COMPLETED"]
