@@ -2,8 +2,9 @@
 
 For each family, side by side in one run: the raw MuJoCo physics of one control step
 (`mj_step` times the substeps the simulator takes per action), the simulator's own env step
-without a camera, our adapter without a camera, and our adapter rendering 84x84 frames.
-Ratios to the raw step show what each wrapper layer costs. Every family runs in a fresh
+without a camera, our adapter without a camera, and our adapter rendering 84x84 frames (for
+robosuite also with its visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
+show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). Every family runs in a fresh
 process, one after the other, so GL contexts and core use do not mix.
 """
 
@@ -23,7 +24,10 @@ from schemas.config import RenderConfig, TasksConfig
 
 # one representative task per family
 BENCH_SPECS = {"robosuite": "lift", "metaworld": "mw-pick-place", "navigation": "nav-room-sequence"}
-LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render")
+MESH_DETAIL = 0.1  # the decimated layer's render.mesh_detail
+LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render",
+          f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}")
+MESH_DETAIL_FAMILIES = {"robosuite"}  # the adapters that apply render.mesh_detail
 EPISODE_STEPS = 100  # reset this often, outside the timed calls
 
 
@@ -80,6 +84,11 @@ def measure_family(case: BenchCase) -> list[BenchRow]:
     plain.close()
     rendered = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size))
     rates[LAYERS[3]] = _rate(lambda i: rendered.step(actions[i]), lambda: rendered.reset(task, seed=0), case.steps)
+    rendered.close()
+    if case.family in MESH_DETAIL_FAMILIES:
+        coarse = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL))
+        rates[LAYERS[4]] = _rate(lambda i: coarse.step(actions[i]), lambda: coarse.reset(task, seed=0), case.steps)
+        coarse.close()
     raw = rates[LAYERS[0]]
     return [BenchRow(family=case.family, env=task.env_name, layer=layer, steps_per_s=rate, relative_to_raw=rate / raw)
             for layer, rate in rates.items()]
@@ -93,6 +102,16 @@ def bench_envs(families: list[str], steps: int) -> list[BenchRow]:
     return rows
 
 
+def render_shares(rows: list[BenchRow]) -> list[list[str]]:
+    """Per family: 1 - (steps/s with frames) / (steps/s without), at full detail and decimated."""
+    shares = []
+    for family in dict.fromkeys(r.family for r in rows):
+        rate = {r.layer: r.steps_per_s for r in rows if r.family == family}
+        share = [f"{1 - rate[layer] / rate[LAYERS[2]]:.0%}" if layer in rate else "—" for layer in LAYERS[3:]]
+        shares.append([family, *share])
+    return shares
+
+
 def markdown(rows: list[BenchRow], command: str) -> str:
     lines = [
         "# Environment steps per second, layer by layer",
@@ -102,6 +121,10 @@ def markdown(rows: list[BenchRow], command: str) -> str:
         "",
         *table(["family", "env", "layer", "steps/s", "× raw"],
                [[r.family, r.env, r.layer, f"{r.steps_per_s:,.0f}", f"{r.relative_to_raw:.3f}"] for r in rows]),
+        "",
+        "The render's share of an adapter step (target ≤ 30%, issue 11):",
+        "",
+        *table(["family", "render share", f"with visual meshes at {MESH_DETAIL:g}"], render_shares(rows)),
     ]
     return "\n".join(lines) + "\n"
 
