@@ -3,7 +3,7 @@
 For each family, side by side in one run: the raw MuJoCo physics of one control step
 (`mj_step` times the substeps the simulator takes per action), the simulator's own env step
 without a camera, our adapter without a camera, and our adapter rendering 84x84 frames (for
-robosuite also with its visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
+robosuite and MetaWorld also with their visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
 show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). Every family runs in a fresh
 process, one after the other, so GL contexts and core use do not mix.
 """
@@ -27,7 +27,7 @@ BENCH_SPECS = {"robosuite": "lift", "metaworld": "mw-pick-place", "navigation": 
 MESH_DETAIL = 0.1  # the decimated layer's render.mesh_detail
 LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render",
           f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}")
-MESH_DETAIL_FAMILIES = {"robosuite"}  # the adapters that apply render.mesh_detail
+MESH_DETAIL_FAMILIES = {"robosuite", "metaworld"}  # the adapters that apply render.mesh_detail
 EPISODE_STEPS = 100  # reset this often, outside the timed calls
 
 

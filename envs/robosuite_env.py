@@ -25,9 +25,11 @@ import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
 from envs.gl import select_offscreen  # noqa: E402
+from envs.mesh_detail import simplify_visual_meshes  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
+from schemas.settings import cache_dir  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
 
@@ -200,7 +202,8 @@ class RobosuiteEnv:
             **self.scene.options,
         )
         if render is not None and render.mesh_detail < 1.0:
-            self._simplify_visual_meshes(render.mesh_detail)
+            # before the context below is made again: it uploads the meshes as they are then
+            simplify_visual_meshes(self.env.sim.model._model, render.mesh_detail, cache_dir() / "meshes")
         if render is not None:
             self._apply_render_settings()
         model = self.env.sim.model._model
@@ -209,16 +212,6 @@ class RobosuiteEnv:
             model, render.camera if render else None,
             task_geoms=[model.geom(g).id for geoms in self.scene.colourable.values() for g in geoms], object_bodies=free_bodies(model),
         )
-
-    def _simplify_visual_meshes(self, keep: float) -> None:
-        """Rebuild the simulation from robosuite's own XML with its visual-only meshes decimated
-        (envs/mesh_detail.py); the collision meshes, hence the physics, are the same."""
-        from envs.mesh_detail import simplify_visual_meshes
-        from schemas.settings import cache_dir
-
-        xml, _, _ = simplify_visual_meshes(self.env.model.get_xml(), self.env.sim.model._model, keep,
-                                           cache_dir() / "meshes")
-        self.env.reset_from_xml_string(xml)
 
     def _apply_render_settings(self) -> None:
         model = self.env.sim.model

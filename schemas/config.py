@@ -85,10 +85,11 @@ class RenderConfig(_Strict):
     reflections: bool = False
     multisamples: int = Field(default=0, ge=0, le=16)
     depth: bool = Field(default=False, description="also record a depth map with every frame; the policy then sees RGB-D")
-    # Triangles are a CPU frame's cost (robosuite's visual meshes: 167k faces for Lift). Below 1, robosuite
-    # scenes draw each visual-only mesh decimated to this fraction of its faces (envs/mesh_detail.py):
-    # physics unchanged, pixels not, so a campaign keeps one value (docs/bench-rollout.md has the speed-up).
-    mesh_detail: float = Field(default=1.0, gt=0, le=1, description="fraction of visual mesh faces drawn (robosuite)")
+    # Triangles are a CPU frame's cost (robosuite's visual meshes: 167k faces for Lift). Below 1, robosuite and
+    # MetaWorld scenes draw each visual-only mesh decimated to this fraction of its faces (envs/mesh_detail.py):
+    # physics unchanged, pixels not, so a campaign keeps one value (docs/rollouts.md has the speed-up).
+    mesh_detail: float = Field(default=1.0, gt=0, le=1,
+                               description="fraction of visual mesh faces drawn (robosuite, MetaWorld)")
 
 
 # render fields added after the stages that key on the render settings: at these values a key reads as before

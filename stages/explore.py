@@ -353,6 +353,9 @@ def run_explore(
         for unit, shards, seconds in execute(todo):
             by_table = {s.table: s for s in shards}
             summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
+            if unit.render is not None and unit.render.mesh_detail < 1.0:
+                # its frames' mesh detail, for replay: episodes.render (a shard schema) predates the field
+                summary["mesh_detail"] = unit.render.mesh_detail
             ledger.register(unit.unit_key, UnitOutput(summary, shards), seconds)
             episodes += summary["episodes"]
             steps += summary["steps"]

@@ -25,6 +25,8 @@ def test_bench_warehouse_reports_each_measure_with_its_reference(tmp_path, capsy
     registration = measures["registration: unit 200 (after 199)"]
     assert registration["value"] > 0 and registration["reference"] > 0
     assert "418 shards registered" in registration["note"]  # (10 timed + 189 in bulk + 10 timed) units x 2 shards
+    after = measures["registration: unit 211, its iteration 0 compacted"]
+    assert after["value"] > 0 and after["reference"] == registration["reference"]
     assert list(tmp_path.iterdir()) == []  # the throwaway warehouses are gone
 
 

@@ -46,6 +46,22 @@ def test_episodes_are_reproducible_from_their_seed(pick_place):
     assert episode(8) != first
 
 
+def test_simplified_visual_meshes_change_pixels_not_physics(pick_place, tmp_path, monkeypatch):
+    """As robosuite's (tests/envs/test_robosuite_env.py): the same episode, frames a little different."""
+    env, task = pick_place
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path))
+    coarse = MetaWorldEnv("pick-place-v3", RenderConfig(depth=True, mesh_detail=0.1))
+    try:
+        assert coarse.env.model.mesh_facenum.sum() < 0.6 * env.env.model.mesh_facenum.sum()
+        full, fewer = (rollout(e, task, 4, make_expert(task, 0.1, np.random.default_rng(4)))[0] for e in (env, coarse))
+    finally:
+        coarse.close()
+    assert [(r["qpos"], r["action"], r["reward"]) for r in full] == [(r["qpos"], r["action"], r["reward"]) for r in fewer]
+    differences = [np.abs(a["image"].astype(int) - b["image"].astype(int)).mean() for a, b in zip(full, fewer)]
+    assert 0 < max(differences) < 12
+    assert list((tmp_path / "meshes").glob("*.npz"))
+
+
 def test_frames_are_upright(pick_place):
     env, task = pick_place
     image = env.reset(task, seed=1).image.astype(int)
