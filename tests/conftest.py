@@ -24,7 +24,11 @@ QUIET_ENV = {
     "HF_HUB_OFFLINE": "1",
     "TOKENIZERS_PARALLELISM": "false",
 }
+# Prefect's workers and serve processes look for runs to start every 10 s by default: every deployment
+# run a test triggers waited ~5 s for nothing. Every process the tests start inherits these.
+FAST_POLLING_ENV = {"PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_RUNNER_POLL_FREQUENCY": "2"}
 os.environ.update(QUIET_ENV)
+os.environ.update(FAST_POLLING_ENV)
 SIM2ACT = str(Path(sys.executable).with_name("sim2act"))
 CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
 
