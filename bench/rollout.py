@@ -194,17 +194,19 @@ def run_stage(task: TaskRecord, sizes: RolloutSizes, workers: int, root: Path, m
                 + ("; the decimated meshes cached beforehand (made once per host)" if detail else ""))
 
 
-def _make_and_close(render: RenderConfig) -> int:
+def _make_and_close(case: tuple[TaskRecord, RenderConfig]) -> int:
     from envs.registry import make_env
 
-    make_env("robosuite", "Lift", render).close()
+    task, render = case
+    make_env(task.family, task.env_name, render).close()
     return 0
 
 
-def _fill_mesh_cache(sizes: RolloutSizes) -> None:
+def _fill_mesh_cache(task: TaskRecord, sizes: RolloutSizes) -> None:
     """Decimate (d)'s meshes before its clock starts (a host does it once, not once per campaign), in
     a worker process: renderers are made there, never in this one."""
-    run_in_pool(_make_and_close, [RenderConfig(image_size=sizes.image_size, mesh_detail=sizes.mesh_detail)], workers=1)
+    render = RenderConfig(image_size=sizes.image_size, mesh_detail=sizes.mesh_detail)
+    run_in_pool(_make_and_close, [(task, render)], workers=1)
 
 
 def _ratio(name: str, value: float, target: float | None = None) -> Ratio:
@@ -235,7 +237,7 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
                              done["cpu_s"], meter.other_load(),
                              f"robosuite.make defaults (hard_reset); resets {done['reset_s']:.1f} s"))
         rows += [run_stage(task, sizes, workers, root) for workers in (1, 2)]
-        _fill_mesh_cache(sizes)
+        _fill_mesh_cache(task, sizes)
         rows.append(run_stage(task, sizes, 1, root, sizes.mesh_detail))
     finally:
         shutil.rmtree(root, ignore_errors=True)

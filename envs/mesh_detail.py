@@ -21,6 +21,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from schemas.config import RenderConfig
+from schemas.settings import cache_dir
+
 ALGORITHM = "fast_simplification-quadric-v1"  # part of each cached file's key: a new method, new files
 MIN_FACES = 1000  # meshes with fewer faces are drawn as they are
 
@@ -71,6 +74,13 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         np.add.at(normals, faces[:, corner], face_normals)
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
+
+
+def apply_mesh_detail(model: mujoco.MjModel, render: RenderConfig) -> None:
+    """An adapter's call, before its renderer uploads the meshes: the campaign's `render.mesh_detail`,
+    decimating into the user's cache folder; nothing at full detail."""
+    if render.mesh_detail < 1.0:
+        simplify_visual_meshes(model, render.mesh_detail, cache_dir() / "meshes")
 
 
 def simplify_visual_meshes(model: mujoco.MjModel, keep: float, cache: Path) -> tuple[int, int]:

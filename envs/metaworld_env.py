@@ -14,11 +14,10 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.gl import select_offscreen  # noqa: E402
-from envs.mesh_detail import simplify_visual_meshes  # noqa: E402
+from envs.mesh_detail import apply_mesh_detail  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
-from schemas.settings import cache_dir  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
 
 BENCHMARK_SEED = 0  # fixes MetaWorld's 50 pre-sampled object/goal variations per task
@@ -63,8 +62,7 @@ class MetaWorldEnv:
             model.vis.quality.offsamples = render.multisamples  # read when the renderer is created
             model.vis.global_.offwidth = render.image_size
             model.vis.global_.offheight = render.image_size
-            if render.mesh_detail < 1.0:  # before the first render uploads the meshes
-                simplify_visual_meshes(model, render.mesh_detail, cache_dir() / "meshes")
+            apply_mesh_detail(model, render)  # before the first render uploads the meshes
             self._scene_configured = False
         self.randomiser = SceneRandomiser(self.env.model, CAMERAS[render.camera] if render else None,
                                           task_geoms=[], object_bodies=free_bodies(self.env.model))

@@ -25,11 +25,10 @@ import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
 from envs.gl import select_offscreen  # noqa: E402
-from envs.mesh_detail import simplify_visual_meshes  # noqa: E402
+from envs.mesh_detail import apply_mesh_detail  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
-from schemas.settings import cache_dir  # noqa: E402
 from schemas.tasks import COLOUR_RGBA, TaskRecord  # noqa: E402
 
 
@@ -201,10 +200,9 @@ class RobosuiteEnv:
             seed=MODEL_SEED,
             **self.scene.options,
         )
-        if render is not None and render.mesh_detail < 1.0:
-            # before the context below is made again: it uploads the meshes as they are then
-            simplify_visual_meshes(self.env.sim.model._model, render.mesh_detail, cache_dir() / "meshes")
         if render is not None:
+            # before the context is made again: it uploads the meshes as they are then
+            apply_mesh_detail(self.env.sim.model._model, render)
             self._apply_render_settings()
         model = self.env.sim.model._model
         self.fingers = finger_bodies(self.env)

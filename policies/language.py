@@ -33,14 +33,20 @@ class EncoderSpec:
 ENCODERS = {"all-MiniLM-L6-v2": EncoderSpec(384, _minilm_path)}
 
 
-def load_encoder(name: str):
-    """A fresh sentence-transformers model on the CPU (each caller owns its copy: training changes it)."""
+def _weights(name: str) -> str:
+    """The local folder of a known encoder's weights."""
     if name not in ENCODERS:
         raise ValueError(f"unknown language encoder {name!r} (known: {', '.join(ENCODERS)})")
+    return ENCODERS[name].weights()
+
+
+def load_encoder(name: str):
+    """A fresh sentence-transformers model on the CPU (each caller owns its copy: training changes it)."""
+    folder = _weights(name)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never reach for a hub
     from sentence_transformers import SentenceTransformer
 
-    return SentenceTransformer(ENCODERS[name].weights(), device="cpu")
+    return SentenceTransformer(folder, device="cpu")
 
 
 @functools.lru_cache(maxsize=2)
@@ -52,9 +58,7 @@ def _frozen(name: str) -> Callable[[list[str]], np.ndarray]:
 
     from policies.frozen_bert import FrozenBert, is_frozen_bert
 
-    if name not in ENCODERS:
-        raise ValueError(f"unknown language encoder {name!r} (known: {', '.join(ENCODERS)})")
-    folder = Path(ENCODERS[name].weights())
+    folder = Path(_weights(name))
     if is_frozen_bert(folder):
         return FrozenBert(folder).encode
     model = load_encoder(name)

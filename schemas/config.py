@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from schemas.errors import Sim2ActError
+from schemas.keys import key_fields
 from schemas.tasks import Colour
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
@@ -94,6 +95,12 @@ class RenderConfig(_Strict):
 
 # render fields added after the stages that key on the render settings: at these values a key reads as before
 RENDER_LEGACY_VALUES = {"mesh_detail": 1.0}
+
+
+def render_key_fields(render: RenderConfig) -> dict[str, Any]:
+    """The render settings as explore, evaluate and baselines units key them (fields added later at
+    their legacy value left out, so earlier work keeps its keys)."""
+    return key_fields(render, set(), RENDER_LEGACY_VALUES)
 
 
 Scale = tuple[Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]]

@@ -17,8 +17,8 @@ import numpy as np
 from pydantic import BaseModel
 
 from envs.pool import run_in_pool
-from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig
-from schemas.keys import key_fields, unit_key
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
+from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
@@ -119,7 +119,8 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
                 log.info("baselines: %s does not act in %s's discrete action space; skipped", algorithm, family)
                 continue
             said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
-            key = unit_key(STAGE, VERSION, {"render": key_fields(config.render, set(), RENDER_LEGACY_VALUES), "randomise": config.randomise, "seed": config.seed},
+            key = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
+                                            "seed": config.seed},
                            [tasks_key, algorithm, family, str(steps)])  # the tasks key: campaign, tasks, encoder
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, seed=config.seed,

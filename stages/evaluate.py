@@ -19,8 +19,8 @@ from pydantic import BaseModel
 from envs.observation import Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import rollout, worker_env
-from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig
-from schemas.keys import derive_seed, key_fields, unit_key
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
+from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, Split, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
@@ -394,7 +394,7 @@ def evaluate_model(
     # set (sim2act eval --split) finds the same unit
     reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task",
                                                              "held_out_wordings"}),
-             "render": key_fields(config.render, set(), RENDER_LEGACY_VALUES), "randomise": config.randomise,
+             "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
     per_split = episodes_per_split(config, cases)
     for task, split, instruction in cases:

@@ -20,7 +20,7 @@ from pydantic import BaseModel
 from envs.observation import Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import Act, Explorer, rollout, worker_env
-from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig
+from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig, render_key_fields
 from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, key_fields, unit_key
 from schemas.tables import EPISODES, STEPS
@@ -132,7 +132,7 @@ def plan_explore(
     explore = config.explore
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration,
-        "render": key_fields(config.render, set(), RENDER_LEGACY_VALUES),
+        "render": render_key_fields(config.render),
         "randomise": config.randomise, "explore": key_fields(explore, {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }
