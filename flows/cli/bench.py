@@ -7,7 +7,7 @@ import json
 import os
 from pathlib import Path
 
-from flows.cli.common import Commands, print_or_write
+from flows.cli.common import Commands, add_campaign_options, print_or_write
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
@@ -58,6 +58,32 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
     return print_or_write(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
 
 
+def cmd_bench_soak(args: argparse.Namespace) -> int:
+    from bench.soak import markdown, soak
+    from flows.cli.common import campaign_config, log_stages_to_stderr
+
+    if args.kills < 1:
+        raise ConfigError(f"bench soak: --kills must be at least 1, got {args.kills}")
+    low, high = args.wait
+    if not 0 < low <= high:
+        raise ConfigError(f"bench soak: --wait expects 0 < MIN <= MAX seconds, got {low:g} {high:g}")
+    campaign_config(args)  # a bad campaign flag costs one line here, not one per restart
+    run_args = [f"--preset={args.preset}", f"--workspace={args.workspace}", *[f"--set={s}" for s in args.set]]
+    run_args += [f"--config={args.config}"] if args.config else []
+    run_args += [f"--iterations={args.iterations}"] if args.iterations else []
+    out = args.out or Path(args.workspace) / "soak" / "soak.md"
+    log_stages_to_stderr()  # each kill and check as it happens
+
+    def write(result) -> None:  # after every check: a soak killed itself keeps what it saw
+        write_text_atomically(out, markdown(result, args.command_line))
+        write_text_atomically(out.with_suffix(".json"), result.model_dump_json(indent=1))
+
+    result = soak(run_args, Path(args.workspace), args.kills, args.seed, (low, high), Path(args.workspace) / "soak", write)
+    print(markdown(result, args.command_line))
+    print(f"written to {out}")
+    return 0 if result.final_sha256_ok else 1
+
+
 def register(commands: Commands) -> None:
     bench = commands.add_parser("bench", help="benchmarks: speed side by side, as ratios")
     bench_commands = bench.add_subparsers(dest="bench_command", required=True)
@@ -86,3 +112,13 @@ def register(commands: Commands) -> None:
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
                                 "stage, memory, precision (fp32 vs bf16, CPU), workers0, resnet18, vit, minilm, cuda, act")
+    soak = add_campaign_options(bench_commands.add_parser(
+        "soak", help="run a campaign through random SIGKILLs (flow, worker, server), checking its finished parts"))
+    soak.add_argument("--iterations", type=int, help="as `sim2act run --iterations`")
+    soak.add_argument("--kills", type=int, default=10, help="SIGKILLs before the campaign is let finish")
+    soak.add_argument("--wait", type=float, nargs=2, default=(60.0, 600.0), metavar=("MIN", "MAX"),
+                      help="seconds from a (re)start to its kill, drawn uniformly")
+    soak.add_argument("--seed", type=int, default=0, help="draws the waits and the order of the kinds killed")
+    soak.add_argument("--out", type=Path, help="the report (Markdown, and .json beside it); default: "
+                      "<workspace>/soak/soak.md, rewritten after every check")
+    soak.set_defaults(handler=cmd_bench_soak)
