@@ -114,13 +114,15 @@ def _snapshot(catalog: Catalog) -> tuple[set[str], dict[str, tuple[int, str]]]:
 
 
 def soak(run_args: Sequence[str], workspace: Path, kills: int, seed: int, wait_s: tuple[float, float],
-         log_folder: Path, on_check: Callable[[Soak], None] = lambda result: None) -> Soak:
+         log_folder: Path, on_check: Callable[[Soak], None] = lambda result: None,
+         kinds: Sequence[str] = KINDS) -> Soak:
     """Run the campaign `sim2act run <run_args>` through `kills` SIGKILLs to its end, or until this
     process gets SIGINT or SIGTERM (steps in the module docstring); `on_check` gets the report so far
-    after every check. Raises RuntimeError when the campaign fails without having been killed."""
+    after every check; `kinds` the processes to kill, in turn (shuffled). Raises RuntimeError when the
+    campaign fails without having been killed."""
     rng = random.Random(seed)
-    kinds = [KINDS[i % len(KINDS)] for i in range(kills)]
-    rng.shuffle(kinds)
+    order = [kinds[i % len(kinds)] for i in range(kills)]
+    rng.shuffle(order)
     command = [sys.executable, "-m", "flows.cli", "run", *run_args]
     catalog = Catalog(Workspace.at(workspace).catalog)
     log_folder.mkdir(parents=True, exist_ok=True)
@@ -166,7 +168,7 @@ def soak(run_args: Sequence[str], workspace: Path, kills: int, seed: int, wait_s
             run_started = time.monotonic()
             killed_this_run = False
             while len(result.kills) < kills and waiting(run, rng.uniform(*wait_s)):
-                kill = _kill(run, kinds[len(result.kills)], len(result.kills) + 1, run_started)
+                kill = _kill(run, order[len(result.kills)], len(result.kills) + 1, run_started)
                 if kill is not None:
                     killed_this_run = True
                     result.kills.append(kill)

@@ -11,6 +11,11 @@ never hit), and once the command is gone it SIGKILLs those still alive, then exi
 and orphaned within one poll is the only one it can miss.
 
     python -m flows.lifetime <pid>      # what `watch()` starts, detached from the command's group
+
+The other way round, a run does not outlive its temporary API server (`ends_with_its_server`): once
+Prefect's embedded server dies, the run can no longer record its flow's state, and Prefect's client
+retried that for ~4 minutes before the command exited (measured by `sim2act bench soak`). The run
+stops at once instead, with one line, losing at most the units in flight; `sim2act run` resumes it.
 """
 
 from __future__ import annotations
@@ -19,7 +24,10 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import psutil
 
@@ -83,6 +91,54 @@ def guard(pid: int) -> list[int]:
         except psutil.Error:
             pass
     return killed
+
+
+SERVER_POLL_S = 1.0
+SERVER_DIED_EXIT = 75  # EX_TEMPFAIL: try again (the run resumes)
+
+
+def _temporary_server() -> psutil.Process | None:
+    """Prefect's embedded API server, a uvicorn child of this process; None while it has none."""
+    for child in psutil.Process().children():
+        try:
+            cmdline = child.cmdline()
+        except psutil.Error:
+            continue
+        if "uvicorn" in " ".join(cmdline) and any("prefect.server.api.server" in part for part in cmdline):
+            return child
+    return None
+
+
+@contextmanager
+def ends_with_its_server(resume_hint: str) -> Iterator[None]:
+    """While the block runs, a thread follows this process's temporary Prefect server: once one has
+    been seen and is gone, print one line (what died, how to resume) and end this process at once
+    (`os._exit`: Prefect's own retries are what would hang). A run against a server it did not start
+    (PREFECT_API_URL) has none to follow, and waits for that server as Prefect's client does."""
+    done = threading.Event()
+
+    def follow() -> None:
+        server = None
+        while not done.wait(SERVER_POLL_S):
+            if server is None:
+                server = _temporary_server()
+            elif not _alive(server) and not done.is_set():
+                try:
+                    code = server.wait(timeout=0)
+                except psutil.Error:
+                    code = None
+                print(f"sim2act: Prefect's temporary API server (pid {server.pid}) died (exit {code}); this run can "
+                      f"no longer record its state, so it stops here. Finished units are kept: {resume_hint}",
+                      file=sys.stderr, flush=True)
+                os._exit(SERVER_DIED_EXIT)
+
+    thread = threading.Thread(target=follow, name="sim2act-server-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()  # Prefect stops its server after the run: that is no death
+        thread.join()
 
 
 if __name__ == "__main__":

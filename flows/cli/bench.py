@@ -59,7 +59,7 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_soak(args: argparse.Namespace) -> int:
-    from bench.soak import markdown, soak
+    from bench.soak import KINDS, markdown, soak
     from flows.cli.common import campaign_config, log_stages_to_stderr
 
     if args.kills < 1:
@@ -67,6 +67,9 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     low, high = args.wait
     if not 0 < low <= high:
         raise ConfigError(f"bench soak: --wait expects 0 < MIN <= MAX seconds, got {low:g} {high:g}")
+    kinds = args.kinds.split(",")
+    if not kinds or set(kinds) - set(KINDS):
+        raise ConfigError(f"bench soak: --kinds expects some of {','.join(KINDS)}, got {args.kinds!r}")
     campaign_config(args)  # a bad campaign flag costs one line here, not one per restart
     run_args = [f"--preset={args.preset}", f"--workspace={args.workspace}", *[f"--set={s}" for s in args.set]]
     run_args += [f"--config={args.config}"] if args.config else []
@@ -78,7 +81,8 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
         write_text_atomically(out, markdown(result, args.command_line))
         write_text_atomically(out.with_suffix(".json"), result.model_dump_json(indent=1))
 
-    result = soak(run_args, Path(args.workspace), args.kills, args.seed, (low, high), Path(args.workspace) / "soak", write)
+    result = soak(run_args, Path(args.workspace), args.kills, args.seed, (low, high), Path(args.workspace) / "soak", write,
+                  kinds)
     print(markdown(result, args.command_line))
     print(f"written to {out}")
     return 0 if result.final_sha256_ok else 1
@@ -118,6 +122,9 @@ def register(commands: Commands) -> None:
     soak.add_argument("--kills", type=int, default=10, help="SIGKILLs before the campaign is let finish")
     soak.add_argument("--wait", type=float, nargs=2, default=(60.0, 600.0), metavar=("MIN", "MAX"),
                       help="seconds from a (re)start to its kill, drawn uniformly")
+    soak.add_argument("--kinds", default="flow,worker,server", metavar="A,B",
+                      help="the processes to kill, in turn: flow (the run itself), worker (a rollout worker), "
+                           "server (Prefect's temporary API server)")
     soak.add_argument("--seed", type=int, default=0, help="draws the waits and the order of the kinds killed")
     soak.add_argument("--out", type=Path, help="the report (Markdown, and .json beside it); default: "
                       "<workspace>/soak/soak.md, rewritten after every check")

@@ -1,0 +1,33 @@
+"""`sim2act bench soak` on the smoke campaign: its API server and then its flow SIGKILLed mid-run, the
+campaign resumed each time to its end, every finished part kept as it was, the report written; and a
+run whose temporary Prefect server died stops at once, naming it (it retried for ~4 minutes)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+
+from tests.conftest import SIM2ACT
+
+
+def test_a_soaked_campaign_keeps_its_finished_parts_and_a_run_ends_with_its_server(tmp_path):
+    workspace = tmp_path / "workspace"
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}  # each run its own temporary server
+    done = subprocess.run(
+        [SIM2ACT, "bench", "soak", "--preset", "smoke", "--iterations", "1", "--workspace", str(workspace),
+         "--kills", "2", "--kinds", "server,flow", "--wait", "15", "25", "--out", str(tmp_path / "soak.md")],
+        env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    result = json.loads((tmp_path / "soak.json").read_text())
+    assert result["ended"] == "finished" and result["final_sha256_ok"] is True
+    assert len(result["kills"]) == 2 and result["starts"] == 3
+    # every kill ended the campaign at once: a dead server too (before, the run outlived it by minutes)
+    assert all(k["campaign_ended"] and k["outlived"] == 0 for k in result["kills"]), result["kills"]
+    assert {k["kind"] for k in result["kills"]} <= {"server", "flow"}
+    assert all(c["kept"] and not c["bad_files"] for c in result["checks"]), result["checks"]
+    assert result["checks"][-1]["units"] > 0
+    logs = "".join(p.read_text() for p in sorted((workspace / "soak").glob("run-*.log")))
+    if any(k["kind"] == "server" for k in result["kills"]):
+        assert "Prefect's temporary API server" in logs and "died" in logs
+    assert "| kill | what |" in (tmp_path / "soak.md").read_text()
