@@ -130,24 +130,41 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
     return lines + _table(["recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
 
 
-def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
-    by_iteration = success_by_iteration(catalog, campaign)
-    if not by_iteration:
-        raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse")
-    [(explore_units,)] = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
-        "SELECT explore_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1", [campaign])
-    explored = catalog.query(
-        "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
-        "FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) GROUP BY iteration ORDER BY iteration",
-        [campaign, explore_units])
-    steps_through = dict(zip([row[0] for row in explored], itertools.accumulate(int(row[1]) for row in explored)))
+def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
+                      filter_units: list[str]) -> list[str]:
+    """The latest dataset per family and split: tasks in the campaign and explored, episodes and
+    triplets explored and kept (by the dataset's own filter units), and the explored shard files' bytes."""
+    rows = catalog.query("""
+        WITH decided AS (
+            SELECT episode_id, bool_or(kept) AS kept FROM filter_decisions WHERE list_contains(?, filter_key) GROUP BY ALL),
+        explored AS (SELECT * FROM episodes WHERE campaign = ? AND list_contains(?, shard_key)),
+        per_task AS (
+            SELECT e.task_id, count(*) AS episodes, sum(e.num_steps) AS steps, count(*) FILTER (WHERE d.kept) AS kept,
+                   coalesce(sum(e.num_steps) FILTER (WHERE d.kept), 0) AS kept_steps
+            FROM explored e LEFT JOIN decided d USING (episode_id) GROUP BY ALL),
+        task_bytes AS (  -- an explore unit explores one task
+            SELECT u.task_id, sum(s.num_bytes) AS num_bytes FROM shards s
+            JOIN (SELECT DISTINCT shard_key AS unit_key, task_id FROM explored) u USING (unit_key) GROUP BY ALL)
+        SELECT t.family, t.split, count(*), count(p.task_id), coalesce(sum(p.episodes), 0), coalesce(sum(p.steps), 0),
+               coalesce(sum(p.kept), 0), coalesce(sum(p.kept_steps), 0), coalesce(sum(b.num_bytes), 0)
+        FROM task_families t LEFT JOIN per_task p USING (task_id) LEFT JOIN task_bytes b USING (task_id)
+        WHERE t.campaign = ? GROUP BY ALL ORDER BY ALL""", [filter_units, campaign, explore_units, campaign])
+    if not rows:
+        return []
+    total = [sum(row[i] for row in rows) for i in range(2, len(rows[0]))]
+    table = [[family, split, tasks, explored, f"{episodes:,}", f"{steps:,}", f"{kept:,}", f"{triplets:,}",
+              f"{size / 1e6:,.0f}"]
+             for family, split, tasks, explored, episodes, steps, kept, triplets, size in [*rows, ["all", "", *total]]]
+    return ["", "The latest dataset per family and split (a task explored by several units counts once; bytes: its "
+            "explore units' shard files as written, before any compaction):", "",
+            *_table(["family", "split", "tasks", "explored", "episodes", "env steps", "kept episodes",
+                     "kept triplets", "MB"], table)]
 
-    lines = [f"# Results: campaign `{campaign}`", "",
-             f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "
-             f"`{catalog.warehouse}`. Success on the campaign's evaluation cases (every model and "
-             "baseline meets the same episodes: seeds derive from campaign, task and episode), pooled "
-             "per split, the Wilson 95% interval in parentheses.", "",
-             "## Success per iteration and against the baselines", ""]
+
+def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
+                      steps_through: dict[int, int]) -> list[str]:
+    """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation."""
+    lines: list[str] = []
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
@@ -166,6 +183,39 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
 
     lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
 
+    return lines
+
+
+def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
+    """The report. A campaign whose latest dataset is indexed but not yet evaluated (the generalist's
+    million, before its training) gets its dataset and compute sections alone.
+
+    Raises:
+        ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""
+    by_iteration = success_by_iteration(catalog, campaign)
+    latest = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
+        "SELECT explore_units, filter_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
+        [campaign])
+    if not by_iteration and not latest:
+        raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse")
+    [(explore_units, filter_units)] = latest or [([], [])]
+    explored = catalog.query(
+        "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
+        "FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) GROUP BY iteration ORDER BY iteration",
+        [campaign, explore_units])
+    steps_through = dict(zip([row[0] for row in explored], itertools.accumulate(int(row[1]) for row in explored)))
+
+    lines = [f"# Results: campaign `{campaign}`", "",
+             f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "
+             f"`{catalog.warehouse}`. Success on the campaign's evaluation cases (every model and "
+             "baseline meets the same episodes: seeds derive from campaign, task and episode), pooled "
+             "per split, the Wilson 95% interval in parentheses.", "",
+             "## Success per iteration and against the baselines", ""]
+    if not by_iteration:
+        lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
+    else:
+        lines += _success_sections(catalog, campaign, by_iteration, steps_through)
+
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(
         "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])}
@@ -181,15 +231,20 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
                      f"{kept} / {selected}", f"{triplets:,}"])
     lines += _table(["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
                      "dataset: episodes kept / in selection", "dataset triplets"], rows)
+    lines += dataset_by_family(catalog, campaign, explore_units, filter_units)
 
     lines += ["", "## Compute", "",
-              f"Wall seconds per stage, summed over its units, as the stages recorded them. The report ran on "
-              f"{platform.machine()} with {os.cpu_count()} CPU(s) ({platform.platform(terse=True)}); the campaign ran "
-              "where its workspace was made.", ""]
-    lines += _table(["stage", "iteration", "units", "wall s"],
-                    [[stage, iteration, units, f"{seconds:,.0f}"] for stage, iteration, units, seconds in catalog.query(
+              f"Per stage, as the stages recorded their units: the units' wall seconds summed (an explore unit holds one "
+              f"core, so there they are CPU-seconds; a training holds `train.threads`), and the stage's elapsed time "
+              f"(first unit's start to last unit's end, resumes included). The report ran on {platform.machine()} with "
+              f"{os.cpu_count()} CPU(s) ({platform.platform(terse=True)}); the campaign ran where its workspace was made.", ""]
+    lines += _table(["stage", "iteration", "units", "wall s (summed)", "unit-hours", "elapsed h"],
+                    [[stage, iteration, units, f"{seconds:,.0f}", f"{seconds / 3600:,.2f}", f"{elapsed / 3600:,.2f}"]
+                     for stage, iteration, units, seconds, elapsed in catalog.query(
                         "SELECT CASE WHEN v.model_key = ? OR b.unit_key IS NOT NULL THEN 'evaluate (baselines)' "
-                        "ELSE s.stage END, s.iteration, count(*), sum(s.wall_s) FROM stage_runs s "
+                        "ELSE s.stage END, s.iteration, count(*), sum(s.wall_s), "
+                        "epoch(max(s.finished_at) - min(s.finished_at - to_microseconds((s.wall_s * 1e6)::BIGINT))) "
+                        "FROM stage_runs s "
                         "LEFT JOIN evaluations v ON v.unit_key = s.unit_key "
                         "LEFT JOIN stage_runs b ON b.stage = ? AND b.unit_key = v.model_key "
                         "WHERE s.campaign = ? AND (v.unit_key IS NULL OR v.suite = ?) "

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 
-from dashboards.results import spec_markdown
+import pytest
+
+from dashboards.results import results_markdown, spec_markdown
 from schemas.tasks import CAMPAIGN_SUITE
 from schemas.workspace import Workspace
 from stages.evaluate import wilson_interval
@@ -113,3 +115,27 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
          "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"],
         ["chunk 8, members 1, steps 2400, weights ema 0.999", "final", "0, 1, 2",
          "70% ± 10 (80, 60, 70) over 3 seeds, 21/30 pooled [52%, 83%]"]]
+
+
+def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
+    """The generalist's million before its training: no evaluation yet, the dataset and compute sections alone."""
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": "navigation", "env_name": "GoToRoom",
+              "instruction": t, "instructions": [t], "unseen_instructions": [], "object_colours": json.dumps({}),
+              "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
+    catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
+                          rows={"tasks": tasks})
+    with pytest.raises(ValueError, match="has no evaluated iteration"):  # nothing indexed yet
+        results_markdown(catalog, CAMPAIGN, "sim2act report")
+    catalog.register_unit(unit_key="index-0", stage="index", campaign=CAMPAIGN, iteration=0, summary={}, wall_s=2.0,
+                          rows={"iterations": [{
+                              "unit_key": "index-0", "campaign": CAMPAIGN, "iteration": 0, "dataset_digest": "d",
+                              "explore_units": [], "filter_units": [], "episodes": 0, "kept_episodes": 0,
+                              "triplets": 0}]})
+    text = results_markdown(catalog, CAMPAIGN, "sim2act report")
+    assert "No iteration of this campaign is evaluated yet" in text
+    rows = [line for line in text.splitlines() if line.startswith("| navigation |") or line.startswith("| all |")]
+    assert rows == ["| navigation | seen | 2 | 0 | 0 | 0 | 0 | 0 | 0 |", "| navigation | unseen | 1 | 0 | 0 | 0 | 0 | 0 | 0 |",
+                    "| all |  | 3 | 0 | 0 | 0 | 0 | 0 | 0 |"], text
+    assert "| index | 0 | 1 | 2 | 0.00 | 0.00 |" in text

@@ -362,6 +362,9 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     for iteration, triplets in catalog.query("SELECT iteration, triplets FROM iterations ORDER BY 1"):
         assert re.search(rf"^\| {iteration} \|.* \| {triplets:,} \|$", table, re.MULTILINE), table
     assert "sim2act report --preset smoke" in table and "| train | 0 |" in table
+    [(latest_triplets,)] = catalog.query("SELECT triplets FROM iterations ORDER BY iteration DESC LIMIT 1")
+    [total] = [line for line in table.splitlines() if line.startswith("| all |")]  # the dataset per family and split
+    assert total.split(" | ")[7] == f"{latest_triplets:,}", total
 
     other = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--set", "name=other", "--workspace", str(workspace)],
                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
