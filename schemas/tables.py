@@ -154,7 +154,8 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             ("unit_key", pa.string()), ("stage", pa.string()), ("campaign", pa.string()), ("iteration", pa.int32()),
             ("finished_at", pa.timestamp("us")), ("wall_s", pa.float64()), _json("summary"),
         ]),
-        ("unit_key",),
+        # no PRIMARY KEY (layout 10): register_unit refuses a known unit_key in its transaction, and a key's
+        # index cost every registration a rewrite of it (schemas/version.py)
     ),
     "shards": CatalogTable(
         pa.schema([
@@ -170,7 +171,7 @@ CATALOG_TABLES: dict[str, CatalogTable] = {
             # NULL while the shard is its own file
             ("stored_in", pa.string()), ("row_offset", pa.int64()),
         ]),
-        ("path",),
+        # no PRIMARY KEY (layout 10): a shard's path names its unit, registered once (stage_runs)
     ),
     # Files `sim2act compact` wrote: a finished iteration's small shards of one table and campaign,
     # concatenated in path order (warehouse/compaction.py). Their sources' rows say where they went.

@@ -23,9 +23,13 @@
 9: shards.stored_in and shards.row_offset, and the `compacted` table (`sim2act compact` concatenates a
    finished iteration's small shards into large files; the shards' rows say where their rows went).
    Brought in place from 8: no shard moves until a compaction.
+10: stage_runs and shards without their PRIMARY KEYs: DuckDB rewrote each key's index at every checkpoint,
+   ~30 ms more per registration at 20,000 shards (docs/bench-warehouse.md). Registration refuses a registered
+   unit inside its own transaction, and a shard's path names its unit, so neither key caught anything.
+   Brought in place from 9: the two tables rebuilt (DuckDB cannot drop a key), their rows kept.
 """
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 # layout -> (catalog table, column) added to bring a catalog of that layout to the next, in place;
 # the column's type is the one schemas/tables.py declares (the last of its table: ALTER TABLE appends); a
 # table a layout adds is created whole (Catalog._migrate)
@@ -33,4 +37,10 @@ MIGRATIONS: dict[int, list[tuple[str, str]]] = {
     6: [("evaluations", "episode_achieved")],
     7: [("shards", "view_part")],
     8: [("shards", "stored_in"), ("shards", "row_offset")],
+    9: [],
+}
+# layout -> catalog tables rebuilt whole to bring a catalog of that layout to the next (a table's key
+# changed: DuckDB can neither add nor drop one in place)
+REBUILT: dict[int, tuple[str, ...]] = {
+    9: ("stage_runs", "shards"),
 }

@@ -24,7 +24,7 @@ import pyarrow as pa
 from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 from schemas.tables import CATALOG_TABLES, ITERATION_TABLES, SHARD_TABLES, VIEWS, catalog_ddl, sql_type
-from schemas.version import MIGRATIONS, SCHEMA_VERSION
+from schemas.version import MIGRATIONS, REBUILT, SCHEMA_VERSION
 from warehouse.shard_writer import SchemaMismatch, ShardFile, ShardUnreadable, inspect_shard, read_shard, read_shard_rows
 from warehouse.store import FOLDER, ShardStore, open_store
 
@@ -216,13 +216,19 @@ class Catalog:
 
     def _migrate(self, stamped: int) -> None:
         """Bring a catalog of layout `stamped` to this one in place, one version at a time, each
-        version's columns and new stamp in one transaction (a kill leaves the old layout or the new one)."""
+        version's columns, rebuilt tables and new stamp in one transaction (a kill leaves the old layout
+        or the new one)."""
         with self.connect(follow_move=False) as con:
             for version in range(stamped, SCHEMA_VERSION):
                 con.execute("BEGIN TRANSACTION")
                 for table, column in MIGRATIONS[version]:
                     field = CATALOG_TABLES[table].schema.field(column)
                     con.execute(f"ALTER TABLE {table} ADD COLUMN IF NOT EXISTS {column} {sql_type(field)}")
+                for name in REBUILT.get(version, ()):  # its key changed (10: none on stage_runs, shards)
+                    con.execute(f"ALTER TABLE {name} RENAME TO _{name}_layout_{version}")
+                    con.execute(catalog_ddl(name))
+                    con.execute(f"INSERT INTO {name} SELECT * FROM _{name}_layout_{version}")
+                    con.execute(f"DROP TABLE _{name}_layout_{version}")
                 for name in CATALOG_TABLES:  # a table the layout adds (9: compacted), whole
                     con.execute(catalog_ddl(name))
                 con.execute("UPDATE catalog_meta SET value = ? WHERE key = 'schema_version'", [str(version + 1)])

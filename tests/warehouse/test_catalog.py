@@ -183,11 +183,11 @@ def test_a_moved_warehouse_reads_its_own_files(workspace, tmp_path_factory, monk
 
 def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(workspace, tmp_path):
     """Layout 7 added evaluations.episode_achieved, 8 shards.view_part, 9 shards.stored_in/row_offset and
-    the compacted table: a layout-6 catalog gains them all where any command opens it (no new workspace),
-    its rows kept, the new columns null until used."""
+    the compacted table, 10 dropped the keys of stage_runs and shards: a layout-6 catalog gains them all
+    where any command opens it (no new workspace), its rows kept, the new columns null until used."""
     from schemas.version import MIGRATIONS
 
-    assert SCHEMA_VERSION == 9 and MIGRATIONS[6] == [("evaluations", "episode_achieved")]
+    assert SCHEMA_VERSION == 10 and MIGRATIONS[6] == [("evaluations", "episode_achieved")]
     _register_filter(workspace, "explore-before", 3)
     with duckdb.connect(str(workspace.catalog)) as con:  # what a layout-6 sim2act left
         con.execute("ALTER TABLE evaluations DROP COLUMN episode_achieved")
@@ -205,8 +205,11 @@ def test_a_layout_6_catalog_is_brought_to_this_layout_in_place_keeping_its_rows(
     catalog = Catalog(workspace.catalog)
     catalog.check_version()
     catalog.check_layout()  # every declared column, in order
-    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'schema_version'") == [("9",)]
+    assert catalog.query("SELECT value FROM catalog_meta WHERE key = 'schema_version'") == [("10",)]
     assert catalog.query("SELECT count(*) FROM compacted") == [(0,)]
+    assert catalog.query("SELECT table_name FROM duckdb_constraints() WHERE constraint_type = 'PRIMARY KEY' "
+                         "AND table_name IN ('stage_runs', 'shards', 'evaluations') ORDER BY 1") == [("evaluations",)]
+    assert catalog.query("SELECT unit_key FROM stage_runs") == [("explore-before",)]
     assert catalog.query("SELECT unit_key, successes, episode_achieved FROM evaluations") == [("evaluate-old", 3, None)]
     assert catalog.query("SELECT count(*), count(view_part) FROM shards") == [(1, 0)]
     assert catalog.query("SELECT count(*) FROM filter_decisions") == [(3,)]  # the old view still reads
