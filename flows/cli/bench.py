@@ -7,7 +7,7 @@ import json
 import os
 from pathlib import Path
 
-from flows.cli.common import Commands, add_campaign_options, print_or_write
+from flows.cli.common import Commands, add_campaign_options, add_workspace_option, print_or_write
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
@@ -88,6 +88,27 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     return 0 if result.final_sha256_ok else 1
 
 
+def cmd_bench_panels(args: argparse.Namespace) -> int:
+    from bench.panels import bench_panels, markdown
+    from flows.cli.common import open_catalog
+
+    if args.repeats < 1:
+        raise ConfigError(f"bench panels: --repeats must be at least 1, got {args.repeats}")
+    _, catalog = open_catalog(args)
+    if not catalog.path.exists():
+        raise ConfigError(f"bench panels: no warehouse at {args.workspace} (run a campaign there first)")
+    campaigns = [c for (c,) in catalog.query("SELECT DISTINCT campaign FROM stage_runs ORDER BY 1")]
+    campaign = args.campaign or (campaigns[-1] if len(campaigns) == 1 else None)
+    if campaign not in campaigns:
+        raise ConfigError(f"bench panels: expected --campaign, one of {', '.join(campaigns) or '(none)'}; "
+                          f"got {args.campaign or 'none'}")
+    [(steps, shards)] = catalog.query("SELECT coalesce(sum(num_rows) FILTER (WHERE table_name = 'steps'), 0), "
+                                      "count(*) FROM shards")
+    times = bench_panels(catalog, campaign, args.repeats)
+    facts = f"campaign {campaign!r}, {steps:,} steps in {shards:,} shards"
+    return print_or_write(args, json.dumps([t.model_dump() for t in times], indent=1), markdown(times, facts, args.command_line))
+
+
 def register(commands: Commands) -> None:
     bench = commands.add_parser("bench", help="benchmarks: speed side by side, as ratios")
     bench_commands = bench.add_subparsers(dest="bench_command", required=True)
@@ -116,6 +137,13 @@ def register(commands: Commands) -> None:
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
                                 "stage, memory, precision (fp32 vs bf16, CPU), workers0, resnet18, vit, minilm, cuda, act")
+    panels = add_workspace_option(bench_commands.add_parser(
+        "panels", help="each dashboard panel's query timed on a warehouse (target: 1 s)"))
+    panels.add_argument("--campaign", help="whose panels (default: the warehouse's one campaign)")
+    panels.add_argument("--repeats", type=int, default=3, help="warm runs per panel, after the first")
+    panels.add_argument("--json", action="store_true", help="print the figures as JSON")
+    panels.add_argument("--out", type=Path, help="also write the table as markdown here")
+    panels.set_defaults(handler=cmd_bench_panels)
     soak = add_campaign_options(bench_commands.add_parser(
         "soak", help="run a campaign through random SIGKILLs (flow, worker, server), checking its finished parts"))
     soak.add_argument("--iterations", type=int, help="as `sim2act run --iterations`")

@@ -216,3 +216,20 @@ def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
     finally:
         process.terminate()
         process.wait(timeout=30)
+
+
+def test_bench_panels_times_every_panel_on_a_finished_campaign(finished_campaign, tmp_path):
+    """`sim2act bench panels`: one row per panel, each with the rows the page would draw."""
+    out = tmp_path / "panels.md"
+    done = subprocess.run([SIM2ACT, "bench", "panels", "--workspace", str(finished_campaign[0]), "--repeats", "1",
+                           "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    catalog = Catalog(Workspace.at(finished_campaign[0]).catalog)
+    table = {line.split(" | ")[0].lstrip("| "): line.split(" | ") for line in out.read_text().splitlines()
+             if line.startswith("| ") and not line.startswith("| panel")}
+    assert list(table) == [panel.id for panel in load_panels()]
+    for panel in load_panels():
+        assert int(table[panel.id][1].replace(",", "")) == _direct_rows(catalog, panel.sql, "smoke"), panel.id
+    wrong = subprocess.run([SIM2ACT, "bench", "panels", "--workspace", str(finished_campaign[0]), "--campaign", "nope"],
+                           capture_output=True, text=True, timeout=120)
+    assert wrong.returncode == 2 and "expected --campaign, one of smoke; got nope" in wrong.stderr
