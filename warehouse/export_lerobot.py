@@ -40,7 +40,7 @@ DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 EPISODES_PATH = "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
-FETCH_BYTES = 64 << 20  # frame bytes fetched per query: bounds memory, however many episodes
+FETCH_MB = 64.0  # encoded frame bytes fetched per query (default): bounds memory, however many episodes
 ROBOT_TYPES = {"robosuite": "panda", "metaworld": "sawyer"}
 STEP_COLUMNS = "episode_id, step, instruction, image, proprio, action, reward, done, success"
 
@@ -79,10 +79,12 @@ def export_lerobot(
     progress: Callable[[int, int], None] | None = None,
     data_files_size_in_mb: float = 100,
     video_files_size_in_mb: float = 200,
+    fetch_mb: float = FETCH_MB,
 ) -> ExportSummary:
     """Write the whole episodes whose steps match `where` (SQL over the steps view; by default
     only episodes the filter kept) to `out_dir` as a LeRobotDataset v3.0. `progress(done, total)`
-    is called after each episode."""
+    is called after each episode. Memory is bounded by `fetch_mb`: the episodes are read in groups of
+    about that many MB of encoded frames (one episode at least), whatever the selection's size."""
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise ExportError(f"{out_dir} exists and is not an empty folder: export into a new one")
@@ -99,7 +101,7 @@ def export_lerobot(
     try:
         writer = _Writer(tmp, fps, state_dim, action_dim, data_files_size_in_mb, video_files_size_in_mb)
         done = 0
-        for group in _groups(episodes):
+        for group in _groups(episodes, int(fetch_mb * (1 << 20))):
             steps = catalog.query_arrow(
                 f"SELECT {STEP_COLUMNS} FROM steps WHERE episode_id IN ({', '.join('?' * len(group))}) "
                 "ORDER BY episode_id, step",
@@ -164,12 +166,12 @@ def _one_dim(episodes: list[_Episode], column: str, dims: Callable[[_Episode], t
     return next(iter(tasks))
 
 
-def _groups(episodes: list[_Episode]) -> Iterator[list[_Episode]]:
-    """Consecutive episodes, about FETCH_BYTES of images each (one episode at least)."""
+def _groups(episodes: list[_Episode], fetch_bytes: int) -> Iterator[list[_Episode]]:
+    """Consecutive episodes, about `fetch_bytes` of images each (one episode at least)."""
     group: list[_Episode] = []
     size = 0
     for episode in episodes:
-        if group and size + episode.image_bytes > FETCH_BYTES:
+        if group and size + episode.image_bytes > fetch_bytes:
             yield group
             group, size = [], 0
         group.append(episode)

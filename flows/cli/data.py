@@ -34,13 +34,23 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
 
     if args.fps < 1:
         raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
+    if args.fetch_mb is not None and args.fetch_mb <= 0:
+        raise ConfigError(f"export lerobot: --fetch-mb must be positive, got {args.fetch_mb:g}")
     _, catalog = open_catalog(args)
+    started, shown = time.monotonic(), [0.0]
 
-    def report(done: int, total: int) -> None:
-        print(f"\r[{done}/{total}] episodes", end="" if done < total else "\n", flush=True)
+    def report(done: int, total: int) -> None:  # at most once a second, with rate and ETA
+        elapsed = time.monotonic() - started
+        if done < total and elapsed - shown[0] < 1.0:
+            return
+        shown[0] = elapsed
+        rate = done / elapsed if elapsed > 0 else 0.0
+        eta = f", ETA {(total - done) / rate:,.0f} s" if rate and done < total else f" in {elapsed:,.0f} s"
+        print(f"\r[{done}/{total}] episodes, {rate:.1f} episodes/s{eta}", end="" if done < total else "\n", flush=True)
 
     summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
-                             repo_id=args.repo_id, progress=report)
+                             repo_id=args.repo_id, progress=report,
+                             **({} if args.fetch_mb is None else {"fetch_mb": args.fetch_mb}))
     print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
           f"{summary.bytes / 1e6:.1f} MB: LeRobotDataset v3.0 at {summary.out_dir}")
     return 0
@@ -109,6 +119,9 @@ def register(commands: Commands) -> None:
     lerobot.add_argument("out_dir", type=Path, help="a new or empty folder")
     lerobot.add_argument("--where", help="SQL over the steps columns; whole episodes with a matching step go out")
     lerobot.add_argument("--include-rejected", action="store_true", help="also episodes the filter rejected")
+    lerobot.add_argument("--fetch-mb", type=float,
+                         help="MB of encoded frames read per query (default 64): bounds the export's memory, "
+                              "whatever its size")
     lerobot.add_argument("--fps", type=int, default=CONTROL_FPS, help="control rate of the episodes (robosuite: 20)")
     lerobot.add_argument("--repo-id", default="sim2act/export")
     add_workspace_option(lerobot).set_defaults(handler=cmd_export_lerobot)

@@ -214,6 +214,20 @@ def test_rejected_episodes_on_request_and_where_selects(warehouse, tmp_path):
     assert tasks["task_index"].to_dict() == {STACK: 0}
 
 
+def test_the_fetch_size_bounds_reads_not_the_dataset(warehouse, tmp_path, monkeypatch):
+    """--fetch-mb: episodes read a few at a time (here one per query) make the same dataset."""
+    catalog, _ = warehouse
+    queries = []
+    real = catalog.query_arrow
+    monkeypatch.setattr(catalog, "query_arrow", lambda sql, params=(), **kw: queries.append(params) or real(sql, params, **kw))
+    export_lerobot(catalog, tmp_path / "big")
+    big = len(queries)
+    export_lerobot(catalog, tmp_path / "small", fetch_mb=1e-6)
+    assert (big, len(queries) - big) == (1, 2)  # the two kept episodes: in one query, then one each
+    for name in ("data/chunk-000/file-000.parquet", "meta/episodes/chunk-000/file-000.parquet"):
+        assert pq.read_table(tmp_path / "big" / name).equals(pq.read_table(tmp_path / "small" / name)), name
+
+
 def test_files_roll_over_past_the_size_limits(warehouse, tmp_path, monkeypatch):
     catalog, truth = warehouse
     out = tmp_path / "small"
