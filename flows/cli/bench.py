@@ -40,6 +40,11 @@ def cmd_bench_warehouse(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_rollout(args: argparse.Namespace) -> int:
+    if args.mix:
+        from bench.rollout_mix import QUICK as MIX_QUICK, MixSizes, bench_mix, markdown as mix_markdown
+
+        mix = bench_mix(MIX_QUICK if args.quick else MixSizes(), args.scratch)
+        return print_or_write(args, mix.model_dump_json(indent=1), mix_markdown(mix, args.command_line))
     from bench.rollout import QUICK, RolloutSizes, bench_rollout, markdown
 
     bench = bench_rollout(QUICK if args.quick else RolloutSizes(), args.scratch)
@@ -132,7 +137,10 @@ def register(commands: Commands) -> None:
                  "small sizes (seconds, for a smoke check)", cmd_bench_warehouse
                  ).add_argument("--sql-steps", type=int, nargs="+", help="warehouse sizes for the SQL measure")
     bench_parser("rollout", "explore stage vs plain robosuite loops, steps/s",
-                 "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout)
+                 "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout
+                 ).add_argument("--mix", action="store_true",
+                                help="instead: the stage over a sample of the generalist's tasks, visual meshes at 1.0 "
+                                     "vs decimated, the same episodes, per family")
     bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "

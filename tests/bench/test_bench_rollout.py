@@ -39,3 +39,18 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
     assert "`sim2act bench rollout --quick --json" in table
     assert all(f"\n| {case} | " in table for case in rows) and "(c, 2 workers) / (c, 1 worker)" in table
     assert list(scratch.iterdir()) == []  # the throwaway workspaces are gone
+
+
+def test_bench_rollout_mix_explores_the_same_episodes_at_both_mesh_details(tmp_path, capsys, monkeypatch):
+    """--mix: the stage over a sample of the generalist's tasks, full and decimated meshes, per family."""
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "mix.md"
+    assert main(["bench", "rollout", "--mix", "--quick", "--json", "--scratch", str(tmp_path), "--out", str(out)]) == 0
+    bench = json.loads(capsys.readouterr().out)
+    assert bench["tasks"] == ["lift-red", "mw-hammer"]  # specs 0 and 32 of the preset: robosuite and MetaWorld
+    families = {f["family"]: f for f in bench["families"]}
+    assert sorted(families) == ["metaworld", "robosuite"]
+    for family in families.values():  # the same steps on both sides is checked by the bench itself
+        assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
+        assert family["full_s"] > 0 and family["decimated_s"] > 0
+    assert "| all | 2 | 2 |" in out.read_text()

@@ -1,0 +1,149 @@
+"""`sim2act bench rollout --mix`: the explore stage over a sample of the generalist's mix, full visual
+meshes against decimated ones (`render.mesh_detail`), the same episodes on both sides (issue 11 item 2:
+explore triplets/s per core over the generalist mix).
+
+1. the sample: every `spec_stride`-th spec of the generalist preset, its first seen task, so every
+   family is in it (robosuite, MetaWorld, navigation);
+2. the decimated meshes made beforehand in a worker (a host makes them once, not once per campaign);
+3. the explore stage (`run_explore`, one worker) on a fresh workspace at 1.0, then at `mesh_detail`:
+   the same seeds and physics, hence the same steps (checked);
+4. per family, from the units the stage registered: steps, the units' seconds (one worker: CPU
+   seconds of the one core it holds), steps per core-second, and the ratio of the two sides.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from pydantic import BaseModel
+
+from bench.rollout import LoadMeter
+from bench.tables import table
+from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, load_config
+from schemas.tasks import TaskRecord
+from schemas.workspace import Workspace
+
+
+class MixSizes(BaseModel):
+    preset: str = "generalist"
+    spec_stride: int = 5  # every 5th spec of the preset (13 of its 64; all three families)
+    episodes_per_task: int = 4
+    episodes_per_shard: int = 4  # one unit per task: env creation counted once per task, as in a campaign's shard
+    mesh_detail: float = 0.1
+
+
+QUICK = MixSizes(spec_stride=32, episodes_per_task=1, episodes_per_shard=1)  # 2 tasks, seconds
+
+
+class FamilyRate(BaseModel):
+    family: str
+    tasks: int
+    episodes: int
+    steps: int
+    full_s: float  # summed unit seconds at mesh_detail 1.0
+    decimated_s: float  # the same at `mesh_detail`
+
+    @property
+    def ratio(self) -> float:
+        return self.full_s / self.decimated_s if self.decimated_s else 0.0
+
+
+class MixBench(BaseModel):
+    sizes: MixSizes
+    tasks: list[str]
+    families: list[FamilyRate]
+    wall_s: tuple[float, float]  # the stage's wall seconds, 1.0 and decimated
+    other_load: tuple[float, float]
+
+
+def _sample(sizes: MixSizes) -> tuple[CampaignConfig, list[TaskRecord]]:
+    from envs.suite import generate_tasks
+
+    preset = load_config(sizes.preset, None, {})
+    specs = preset.tasks.specs[::sizes.spec_stride]
+    config = preset.model_copy(update={
+        "name": "bench-mix", "tasks": preset.tasks.model_copy(update={"specs": specs}),
+        "explore": ExploreConfig(episodes_per_task=sizes.episodes_per_task,
+                                 episodes_per_shard=sizes.episodes_per_shard, workers=1)})
+    firsts: dict[str, TaskRecord] = {}
+    for task in generate_tasks(config.tasks, config.seed):
+        if task.split == "seen":
+            firsts.setdefault(task.spec, task)
+    return config, list(firsts.values())
+
+
+def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], detail: float) -> tuple[dict, float, float]:
+    """family -> (tasks, episodes, steps, unit seconds); the stage's wall seconds and the other load."""
+    from stages.explore import run_explore
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(root / f"detail-{detail:g}").create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": detail})})
+    meter = LoadMeter()
+    run_explore(workspace, config, 0, tasks, None, {})
+    wall = time.perf_counter() - meter.wall
+    family_of = {t.task_id: t.family for t in tasks}
+    per_family: dict[str, list] = {}
+    for task_id, episodes, steps, seconds in catalog.query(
+            "SELECT e.task_id, count(*), sum(e.num_steps), any_value(u.wall_s) FROM episodes e "
+            "JOIN (SELECT unit_key, wall_s FROM stage_runs) u ON u.unit_key = e.shard_key GROUP BY e.task_id, e.shard_key"):
+        row = per_family.setdefault(family_of[task_id], [set(), 0, 0, 0.0])
+        row[0].add(task_id)
+        row[1] += episodes
+        row[2] += steps
+        row[3] += seconds
+    return per_family, wall, meter.other_load()
+
+
+def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
+    """The explore stage over the mix at full and decimated meshes (steps in the module docstring).
+
+    Raises:
+        RuntimeError: the two sides explored different steps (the physics differ: a bug)."""
+    from bench.rollout import _make_and_close
+    from envs.pool import run_in_pool
+
+    config, tasks = _sample(sizes)
+    if scratch is not None:
+        Path(scratch).mkdir(parents=True, exist_ok=True)
+    root = Path(tempfile.mkdtemp(prefix="sim2act-bench-mix-", dir=scratch))
+    try:
+        decimated_render = config.render.model_copy(update={"mesh_detail": sizes.mesh_detail})
+        run_in_pool(_make_and_close, [(task, decimated_render) for task in tasks], workers=1)  # renderers: in a worker
+        full, full_wall, full_load = _explore(root, config, tasks, 1.0)
+        decimated, dec_wall, dec_load = _explore(root, config, tasks, sizes.mesh_detail)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    families = []
+    for family in sorted(full):
+        (names, episodes, steps, full_s), (_, _, dec_steps, dec_s) = full[family], decimated[family]
+        if dec_steps != steps:
+            raise RuntimeError(f"bench mix: {family} explored {steps} steps at 1.0 and {dec_steps} decimated: "
+                               "the same episodes should take the same steps")
+        families.append(FamilyRate(family=family, tasks=len(names), episodes=episodes, steps=steps,
+                                   full_s=full_s, decimated_s=dec_s))
+    return MixBench(sizes=sizes, tasks=[t.task_id for t in tasks], families=families, wall_s=(full_wall, dec_wall),
+                    other_load=(full_load, dec_load))
+
+
+def markdown(bench: MixBench, command: str) -> str:
+    detail = f"{bench.sizes.mesh_detail:g}"
+    total = FamilyRate(family="all", tasks=sum(f.tasks for f in bench.families),
+                       episodes=sum(f.episodes for f in bench.families), steps=sum(f.steps for f in bench.families),
+                       full_s=sum(f.full_s for f in bench.families),
+                       decimated_s=sum(f.decimated_s for f in bench.families))
+    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", f"{f.steps / f.full_s:.1f}",
+             f"{f.steps / f.decimated_s:.1f}", f"{f.ratio:.2f}×"] for f in [*bench.families, total]]
+    return "\n".join([
+        f"`{command}`: the explore stage, one worker, over {len(bench.tasks)} tasks of the `{bench.sizes.preset}` "
+        f"preset ({', '.join(bench.tasks)}), {bench.sizes.episodes_per_task} episodes each, the same seeds on both "
+        f"sides (the same steps: checked). Steps per core-second = steps / the units' summed seconds (one worker holds "
+        f"one core). Stage wall: {bench.wall_s[0]:.0f} s at 1.0, {bench.wall_s[1]:.0f} s at {detail}; other load "
+        f"{bench.other_load[0]:.2f} / {bench.other_load[1]:.2f} cores.", "",
+        *table(["family", "tasks", "episodes", "steps", "steps/s per core, meshes 1.0",
+                f"steps/s per core, meshes {detail}", "ratio"], rows)]) + "\n"
