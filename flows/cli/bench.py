@@ -94,7 +94,7 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_panels(args: argparse.Namespace) -> int:
-    from bench.panels import bench_panels, markdown
+    from dashboards.panel_times import bench_panels, markdown
     from flows.cli.common import open_catalog
 
     if args.repeats < 1:
