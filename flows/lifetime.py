@@ -115,6 +115,9 @@ def ends_with_its_server(resume_hint: str) -> Iterator[None]:
     been seen and is gone, print one line (what died, how to resume) and end this process at once
     (`os._exit`: Prefect's own retries are what would hang). A run against a server it did not start
     (PREFECT_API_URL) has none to follow, and waits for that server as Prefect's client does."""
+    if os.environ.get("PREFECT_API_URL"):  # a server it did not start: nothing of its own to follow
+        yield
+        return
     done = threading.Event()
 
     def follow() -> None:
