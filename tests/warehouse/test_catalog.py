@@ -35,6 +35,21 @@ def _register(ws: Workspace, key: str, rows: int) -> bool:
     )
 
 
+def test_threads_registering_one_unit_at_once_register_it_once(workspace):
+    """No key catches a duplicate (layout 10): the process's write transactions take turns instead."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    shard = write_shard("filter_decisions", _decisions(2, "filter-t"), workspace.shard_path("filter_decisions", 0, "filter-t"))
+    catalogs = [Catalog(workspace.catalog) for _ in range(4)]  # as separate task runs would hold them
+    catalogs[0].query("SELECT 1")  # DuckDB's instance cache: a first connect raced by threads fails to attach
+    with ThreadPoolExecutor(4) as pool:
+        registered = list(pool.map(lambda c: c.register_unit(unit_key="filter-t", stage="filter", campaign="t",
+                                                             iteration=0, summary={}, shards=[shard]), catalogs))
+    assert sorted(registered) == [False, False, False, True]
+    assert catalogs[0].query("SELECT count(*) FROM stage_runs") == [(1,)]
+    assert catalogs[0].query("SELECT count(*) FROM shards") == [(1,)]
+
+
 def test_views_show_registered_shards_only_and_registering_twice_is_a_no_op(workspace):
     catalog = Catalog(workspace.catalog)
     assert catalog.query("SELECT count(*) FROM filter_decisions") == [(0,)]
