@@ -180,7 +180,7 @@ def soak(run_args: Sequence[str], workspace: Path, kills: int, seed: int, wait_s
             if stop and run.poll() is None:  # told to stop: end the campaign as a kill would
                 _end(run)
             code = run.wait()
-            check(f"after kill {len(result.kills)}" if result.kills else "after the run")
+            check("after the stop" if stop else f"after kill {len(result.kills)}" if result.kills else "after the run")
             if code == 0 and len(result.kills) >= kills:
                 result.ended = "finished"
                 break
