@@ -29,9 +29,9 @@ from schemas.workspace import Workspace
 
 class MixSizes(BaseModel):
     preset: str = "generalist"
-    spec_stride: int = 5  # every 5th spec of the preset (13 of its 64; all three families)
-    episodes_per_task: int = 4
-    episodes_per_shard: int = 4  # one unit per task: env creation counted once per task, as in a campaign's shard
+    spec_stride: int = 5  # every 5th spec of the preset (all three families; 11 with a seen task)
+    episodes_per_task: int = 8
+    episodes_per_shard: int = 8  # one unit per task, the generalist's shard: env creation counted as a campaign pays it
     mesh_detail: float = 0.1
 
 
