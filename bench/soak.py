@@ -6,8 +6,8 @@ after every kill (issue 11 item 5). `sim2act bench soak` with a campaign's flags
 `soak()` runs `sim2act run` with those flags as a child process and:
 1. starts the campaign (the first start resumes whatever the workspace holds);
 2. after a random wait (seeded), SIGKILLs one of its processes: the flow (the `sim2act run` process
-   itself, whose watchdog then kills the rest), a rollout worker, or Prefect's API server, the three
-   kinds in turn so each is hit;
+   itself, whose watchdog then kills the rest), a worker (a rollout worker; while training, a
+   DataLoader worker), or Prefect's API server, the three kinds in turn so each is hit;
 3. waits for the campaign to end. A killed rollout worker is replaced and its shard retried in place
    (flows/rollouts.py), so the campaign may go on: that kill is checked at the next end;
 4. once the campaign has ended, snapshots the catalog (every registered shard's path, rows and sha256;

@@ -159,7 +159,8 @@ def register(commands: Commands) -> None:
     soak.add_argument("--wait", type=float, nargs=2, default=(60.0, 600.0), metavar=("MIN", "MAX"),
                       help="seconds from a (re)start to its kill, drawn uniformly")
     soak.add_argument("--kinds", default="flow,worker,server", metavar="A,B",
-                      help="the processes to kill, in turn: flow (the run itself), worker (a rollout worker), "
+                      help="the processes to kill, in turn: flow (the run itself), worker (a rollout worker; while "
+                           "training, a DataLoader worker), "
                            "server (Prefect's temporary API server)")
     soak.add_argument("--seed", type=int, default=0, help="draws the waits and the order of the kinds killed")
     soak.add_argument("--out", type=Path, help="the report (Markdown, and .json beside it); default: "
