@@ -202,11 +202,10 @@ def _make_and_close(case: tuple[TaskRecord, RenderConfig]) -> int:
     return 0
 
 
-def _fill_mesh_cache(task: TaskRecord, sizes: RolloutSizes) -> None:
-    """Decimate (d)'s meshes before its clock starts (a host does it once, not once per campaign), in
-    a worker process: renderers are made there, never in this one."""
-    render = RenderConfig(image_size=sizes.image_size, mesh_detail=sizes.mesh_detail)
-    run_in_pool(_make_and_close, [(task, render)], workers=1)
+def fill_mesh_cache(tasks: list[TaskRecord], render: RenderConfig) -> None:
+    """Decimate the tasks' meshes at `render.mesh_detail` before a clock starts (a host does it once, not
+    once per campaign), in a worker process: renderers are made there, never in this one."""
+    run_in_pool(_make_and_close, [(task, render) for task in tasks], workers=1)
 
 
 def _ratio(name: str, value: float, target: float | None = None) -> Ratio:
@@ -237,7 +236,7 @@ def bench_rollout(sizes: RolloutSizes, scratch: Path | None = None) -> RolloutBe
                              done["cpu_s"], meter.other_load(),
                              f"robosuite.make defaults (hard_reset); resets {done['reset_s']:.1f} s"))
         rows += [run_stage(task, sizes, workers, root) for workers in (1, 2)]
-        _fill_mesh_cache(task, sizes)
+        fill_mesh_cache([task], RenderConfig(image_size=sizes.image_size, mesh_detail=sizes.mesh_detail))
         rows.append(run_stage(task, sizes, 1, root, sizes.mesh_detail))
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -105,16 +105,14 @@ def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
 
     Raises:
         RuntimeError: the two sides explored different steps (the physics differ: a bug)."""
-    from bench.rollout import _make_and_close
-    from envs.pool import run_in_pool
+    from bench.rollout import fill_mesh_cache
 
     config, tasks = _sample(sizes)
     if scratch is not None:
         Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-mix-", dir=scratch))
     try:
-        decimated_render = config.render.model_copy(update={"mesh_detail": sizes.mesh_detail})
-        run_in_pool(_make_and_close, [(task, decimated_render) for task in tasks], workers=1)  # renderers: in a worker
+        fill_mesh_cache(tasks, config.render.model_copy(update={"mesh_detail": sizes.mesh_detail}))
         full, full_wall, full_load = _explore(root, config, tasks, 1.0)
         decimated, dec_wall, dec_load = _explore(root, config, tasks, sizes.mesh_detail)
     finally:

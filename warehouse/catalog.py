@@ -38,12 +38,11 @@ _RECORDED_STORES: dict[tuple[Path, int], str] = {}  # catalog file -> its record
 # catalog files this process has opened confined: DuckDB shares one instance per file, so a plain reader of
 # one may find the instance confined, or see it confined under it mid-query (Catalog.connect)
 _CONFINED_FILES: set[str] = set()
-# one write transaction per catalog file at a time in this process (other processes wait on DuckDB's file
-# lock): two threads' transactions that both rewrite a view conflict ("Catalog write-write conflict"), and
+# one write transaction at a time in this process (other processes wait on DuckDB's file lock): two
+# threads' transactions that both rewrite a view conflict ("Catalog write-write conflict"), and
 # register_unit's "is this unit registered?" and its inserts must be one step, with no key left to catch a
 # second thread registering the same unit meanwhile (layout 10 dropped the keys)
-_WRITING: dict[str, threading.RLock] = {}
-_WRITING_GUARD = threading.Lock()
+_WRITING = threading.RLock()
 
 
 class CatalogMissing(Sim2ActError, FileNotFoundError):
@@ -344,10 +343,8 @@ class Catalog:
     @contextmanager
     def _transaction(self) -> Iterator[duckdb.DuckDBPyConnection]:
         """A write connection in one transaction: committed whole, or rolled back on any error; one
-        at a time per catalog file in this process."""
-        with _WRITING_GUARD:
-            writing = _WRITING.setdefault(str(self.path.resolve()), threading.RLock())
-        with writing, self.connect() as con:
+        at a time in this process."""
+        with _WRITING, self.connect() as con:
             con.execute("BEGIN TRANSACTION")
             try:
                 yield con

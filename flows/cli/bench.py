@@ -65,7 +65,7 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
 
 def cmd_bench_soak(args: argparse.Namespace) -> int:
     from bench.soak import KINDS, markdown, soak
-    from flows.cli.common import campaign_config, log_stages_to_stderr
+    from flows.cli.common import campaign_config, campaign_flags, log_stages_to_stderr
 
     if args.kills < 1:
         raise ConfigError(f"bench soak: --kills must be at least 1, got {args.kills}")
@@ -76,9 +76,7 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     if not kinds or set(kinds) - set(KINDS):
         raise ConfigError(f"bench soak: --kinds expects some of {','.join(KINDS)}, got {args.kinds!r}")
     campaign_config(args)  # a bad campaign flag costs one line here, not one per restart
-    run_args = [f"--preset={args.preset}", f"--workspace={args.workspace}", *[f"--set={s}" for s in args.set]]
-    run_args += [f"--config={args.config}"] if args.config else []
-    run_args += [f"--iterations={args.iterations}"] if args.iterations else []
+    run_args = campaign_flags(args) + (["--iterations", str(args.iterations)] if args.iterations else [])
     out = args.out or Path(args.workspace) / "soak" / "soak.md"
     log_stages_to_stderr()  # each kill and check as it happens
 
@@ -95,6 +93,7 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
 
 def cmd_bench_panels(args: argparse.Namespace) -> int:
     from dashboards.panel_times import bench_panels, markdown
+    from dashboards.reads import campaigns as warehouse_campaigns
     from flows.cli.common import open_catalog
 
     if args.repeats < 1:
@@ -102,8 +101,8 @@ def cmd_bench_panels(args: argparse.Namespace) -> int:
     _, catalog = open_catalog(args)
     if not catalog.path.exists():
         raise ConfigError(f"bench panels: no warehouse at {args.workspace} (run a campaign there first)")
-    campaigns = [c for (c,) in catalog.query("SELECT DISTINCT campaign FROM stage_runs ORDER BY 1")]
-    campaign = args.campaign or (campaigns[-1] if len(campaigns) == 1 else None)
+    campaigns = warehouse_campaigns(catalog)
+    campaign = args.campaign or (campaigns[0] if len(campaigns) == 1 else None)
     if campaign not in campaigns:
         raise ConfigError(f"bench panels: expected --campaign, one of {', '.join(campaigns) or '(none)'}; "
                           f"got {args.campaign or 'none'}")

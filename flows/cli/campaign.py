@@ -46,11 +46,11 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"{estimate.bytes / 1e9:.2f} GB to explore over {estimate.iterations} iteration(s)", flush=True)
     from flows.bootstrap import bootstrap
 
-    same = same_campaign_flags(args)
     with ends_with_its_server(f"run `{args.command_line}` again to resume"):
         bootstrap(config=config, workspace=str(workspace.root), continue_campaign=args.continue_campaign)
     from dashboards.report import campaign_summary
 
+    same = same_campaign_flags(args)
     print("\n" + campaign_summary(catalog, config.name, [
         f"the results table (iterations, per spec, baselines):  sim2act report {same}",
         f"dashboard (episodes, videos, SQL panels), MLflow UI:  sim2act up {same}",

@@ -55,11 +55,17 @@ def open_catalog(args: argparse.Namespace):
     return workspace, catalog
 
 
+def campaign_flags(args: argparse.Namespace) -> list[str]:
+    """The flags that name this campaign again, as the user gave them, one argument each."""
+    flags = ["--preset", args.preset] + (["--config", str(args.config)] if args.config else [])
+    for setting in args.set:
+        flags += ["--set", setting]
+    return flags + ["--workspace", str(args.workspace)]
+
+
 def same_campaign_flags(args: argparse.Namespace) -> str:
-    """The flags that name this campaign again, as the user gave them."""
-    flags = [f"--preset {args.preset}"] + ([f"--config {args.config}"] if args.config else [])
-    flags += [f"--set {setting}" for setting in args.set] + [f"--workspace {args.workspace}"]
-    return " ".join(flags)
+    """The flags that name this campaign again, as a line to print."""
+    return " ".join(campaign_flags(args))
 
 
 def configure_environment(workspace: Workspace) -> None:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from pathlib import Path
 
-from flows.cli.common import Commands, add_workspace_option, open_catalog
+from flows.cli.common import Commands, add_workspace_option, log_stages_to_stderr, open_catalog
 from schemas.config import ConfigError
 from schemas.workspace import Workspace
 from warehouse.video import CONTROL_FPS
@@ -30,27 +31,27 @@ def cmd_sql(args: argparse.Namespace) -> int:
 
 
 def cmd_export_lerobot(args: argparse.Namespace) -> int:
-    from warehouse.export_lerobot import export_lerobot
+    from envs.pool import Progress
+    from warehouse.export_lerobot import FETCH_MB, export_lerobot
 
     if args.fps < 1:
         raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
     if args.fetch_mb is not None and args.fetch_mb <= 0:
         raise ConfigError(f"export lerobot: --fetch-mb must be positive, got {args.fetch_mb:g}")
     _, catalog = open_catalog(args)
-    started, shown = time.monotonic(), [0.0]
+    log_stages_to_stderr()
+    bar: list[Progress] = []  # made at the first episode, when the selection's size is known
 
-    def report(done: int, total: int) -> None:  # at most once a second, with rate and ETA
-        elapsed = time.monotonic() - started
-        if done < total and elapsed - shown[0] < 1.0:
-            return
-        shown[0] = elapsed
-        rate = done / elapsed if elapsed > 0 else 0.0
-        eta = f", ETA {(total - done) / rate:,.0f} s" if rate and done < total else f" in {elapsed:,.0f} s"
-        print(f"\r[{done}/{total}] episodes, {rate:.1f} episodes/s{eta}", end="" if done < total else "\n", flush=True)
+    def report(done: int, total: int) -> None:  # the bar on a terminal; a log line per 1% (rate, ETA)
+        if not bar:
+            bar.append(Progress(logging.getLogger("sim2act.export"), "export lerobot", total, "episodes", "episodes"))
+        bar[0].advance(1, 1, log=done == total or done % max(total // 100, 1) == 0)
 
     summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
                              repo_id=args.repo_id, progress=report,
-                             **({} if args.fetch_mb is None else {"fetch_mb": args.fetch_mb}))
+                             fetch_mb=FETCH_MB if args.fetch_mb is None else args.fetch_mb)
+    if bar:
+        bar[0].close()
     print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
           f"{summary.bytes / 1e6:.1f} MB: LeRobotDataset v3.0 at {summary.out_dir}")
     return 0

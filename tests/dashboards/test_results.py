@@ -40,15 +40,20 @@ def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str],
                               "promoted": True, "decision": "", "mlflow_run_id": ""}]})
 
 
-def test_success_per_spec_and_split_per_iteration(tmp_path):
-    workspace = Workspace.at(tmp_path).create()
-    catalog = Catalog(workspace.catalog)
+def _catalog_with_tasks(folder) -> Catalog:
+    """A new workspace's catalog holding the campaign's TASKS (navigation)."""
+    catalog = Catalog(Workspace.at(folder).create().catalog)
     catalog.initialise()
     tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": "navigation", "env_name": "GoToRoom",
               "instruction": t, "instructions": [t], "unseen_instructions": [], "object_colours": json.dumps({}),
               "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
     catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": tasks})
+    return catalog
+
+
+def test_success_per_spec_and_split_per_iteration(tmp_path):
+    catalog = _catalog_with_tasks(tmp_path)
     _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-red-green", "seen"): 0,
                            ("nav-room-sequence-purple-red", "unseen"): 0})
     _register(catalog, 1, {("nav-room-red", "seen"): 8, ("nav-room-sequence-red-green", "seen"): 4,
@@ -119,13 +124,7 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
 
 def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     """The generalist's million before its training: no evaluation yet, the dataset and compute sections alone."""
-    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
-    catalog.initialise()
-    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": "navigation", "env_name": "GoToRoom",
-              "instruction": t, "instructions": [t], "unseen_instructions": [], "object_colours": json.dumps({}),
-              "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
-    catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
-                          rows={"tasks": tasks})
+    catalog = _catalog_with_tasks(tmp_path)
     with pytest.raises(ValueError, match="has no evaluated iteration"):  # nothing indexed yet
         results_markdown(catalog, CAMPAIGN, "sim2act report")
     catalog.register_unit(unit_key="index-0", stage="index", campaign=CAMPAIGN, iteration=0, summary={}, wall_s=2.0,
