@@ -13,7 +13,7 @@ import platform
 from dashboards.protocol import seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
-from stages.adapt import STAGE as ADAPT_STAGE, AdaptResult, adapt_results, episodes_to_reach
+from stages.adapt import STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
@@ -68,6 +68,16 @@ def _reached(result: AdaptResult, start: str) -> str:
     return f"**{episodes}**" if episodes is not None else f"not reached within {most}"
 
 
+def _pooled_cell(seeds: list[AdaptPoint]) -> str:
+    """A point's seeds pooled; with several, the spread of their own rates after."""
+    successes, trials = sum(p.successes for p in seeds), sum(p.trials for p in seeds)
+    cell = f"{successes}/{trials} = {successes / trials:.0%}"
+    if len(seeds) > 1:
+        rates = [p.success_rate for p in seeds]
+        cell += f" (seeds {min(rates):.0%}–{max(rates):.0%})"
+    return cell
+
+
 def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
     """The latest adaptation's table: success in the shifted domain per number of its episodes,
     fine-tuned from the campaign's champion and from scratch."""
@@ -76,13 +86,15 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
         return ["No adaptation has run for this campaign (`adapt.episodes_per_task` in its config)."]
     result = results[-1]
     domain = result.domain.model_dump(exclude={"enabled"})
-    lines = ["The campaign's seen tasks in a held-out simulated domain, **a stand-in for the proposal's real-robot "
+    which = f" ({', '.join(result.tasks)})" if 0 < len(result.tasks) <= 12 else ""
+    seeds = max(p.seed for p in result.points) + 1
+    lines = [f"The campaign's seen tasks{which} in a held-out simulated domain, **a stand-in for the proposal's real-robot "
              "transfer**: " + ", ".join(f"{name} {value}" for name, value in domain.items()) + " (per episode, "
              "outside the campaign's own randomisation). The expert explores it; each model trains on the first "
              "episodes of every task, fine-tuned from the champion "
-             f"(`{result.source_model}`) or from scratch, and meets the same evaluation episodes there.", ""]
-    cells: dict[tuple[int, str], str] = {
-        (p.episodes, p.start): f"{p.successes}/{p.trials} = {p.success_rate:.0%}" for p in result.points}
+             f"(`{result.source_model}`) or from scratch" + (f", {seeds} training seeds each (pooled; their spread "
+             "in parentheses)" if seeds > 1 else "") + ", and meets the same evaluation episodes there.", ""]
+    cells = {point: _pooled_cell(seeds) for point, seeds in pooled(result.points).items()}
     counts = sorted({p.episodes for p in result.points if p.start != "source"})
     lines += _table(["target-domain episodes", "fine-tuned from Sim2Act", "from scratch"],
                     [[0, cells[0, "source"] + " (the champion as it is)", "–"]]

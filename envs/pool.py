@@ -92,6 +92,18 @@ class Progress:
         self.bar.close()
 
 
+def log_stages_to_stderr() -> None:
+    """Where no Prefect handler takes the stages' log lines (`sim2act train`, `eval`, a pool worker's
+    own lines), and the progress bar is drawn only on a terminal: without this, a run piped to a
+    file is silent."""
+    logger = logging.getLogger("sim2act")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+
+
 def _init_worker() -> None:
     # One core per worker process; the pool supplies the parallelism. Said to torch through the
     # environment (read when a policy first imports it), not by importing torch here: that costs

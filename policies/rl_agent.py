@@ -1,9 +1,13 @@
 """The RL-from-scratch baselines: stable-baselines3's PPO and SAC on a family's instruction-
-conditioned environment (envs.gym_env), their settings, and acting with a saved one."""
+conditioned environment (envs.gym_env), their settings, training them with resumable checkpoints,
+and acting with a saved one."""
 
 from __future__ import annotations
 
+import json
 import math
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +23,15 @@ def supports(algorithm: str, family: str) -> bool:
     return algorithm == "ppo" or family not in DISCRETE_FAMILIES
 
 
-def new_agent(algorithm: str, env, env_steps: int, seed: int):
+CHECKPOINT, PREVIOUS, WRITING = "checkpoint", "checkpoint.old", "checkpoint.tmp"  # folders beside agent.zip
+
+
+def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int | None = None):
     """An untrained agent, SB3's defaults but for the sizes a small budget needs: PPO collects
     rollouts of at most 512 steps (its default 2,048 would be a whole small budget), sized so that
     whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
-    holds the budget, learning starts after a tenth of it (at most 1,000 steps), batches of 64."""
+    holds the budget (at most `replay_size` transitions: each keeps two frames), learning starts
+    after a tenth of it (at most 1,000 steps), batches of 64."""
     from stable_baselines3 import PPO, SAC
 
     common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu"}
@@ -31,7 +39,91 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int):
         rollouts = math.ceil(env_steps / 512)
         n_steps = math.ceil(env_steps / rollouts)
         return PPO(n_steps=n_steps, batch_size=min(64, n_steps), **common)
-    return SAC(buffer_size=env_steps, learning_starts=min(1000, env_steps // 10), batch_size=64, **common)
+    return SAC(buffer_size=replay_buffer_size(env_steps, replay_size), learning_starts=min(1000, env_steps // 10),
+               batch_size=64, **common)
+
+
+def replay_buffer_size(env_steps: int, replay_size: int | None) -> int:
+    """SAC's replay: the whole budget, or `replay_size` transitions where that is smaller."""
+    return env_steps if replay_size is None else min(env_steps, replay_size)
+
+
+def last_checkpoint(folder: Path) -> Path | None:
+    """The last whole checkpoint in `folder` (an agent's models/<key>/): a save is written aside and
+    swapped in by renames, so a kill at any moment leaves the new one or the one before."""
+    for name in (CHECKPOINT, PREVIOUS):
+        if (folder / name / "state.json").exists():
+            return folder / name
+    return None
+
+
+def save_checkpoint(agent, env, folder: Path) -> None:
+    """The agent (weights, optimisers, step count), SAC's replay buffer, and the environment's
+    counters of training episodes, swapped in whole (`last_checkpoint`)."""
+    writing, current, previous = folder / WRITING, folder / CHECKPOINT, folder / PREVIOUS
+    shutil.rmtree(writing, ignore_errors=True)
+    writing.mkdir(parents=True)
+    agent.save(writing / "agent.zip")
+    if hasattr(agent, "save_replay_buffer"):
+        agent.save_replay_buffer(writing / "replay.pkl")
+    (writing / "state.json").write_text(json.dumps(
+        {"num_timesteps": agent.num_timesteps, "episodes": env.episodes_finished, "successes": env.successes}))
+    shutil.rmtree(previous, ignore_errors=True)
+    if current.exists():
+        current.rename(previous)
+    writing.rename(current)
+    shutil.rmtree(previous, ignore_errors=True)
+
+
+def remove_checkpoints(folder: Path) -> None:
+    for name in (CHECKPOINT, PREVIOUS, WRITING):
+        shutil.rmtree(folder / name, ignore_errors=True)
+
+
+def learn_with_checkpoints(
+    algorithm: str, env, env_steps: int, seed: int, folder: Path, every: int, replay_size: int | None = None,
+    on_progress: Callable[[int, int], None] | None = None,
+):
+    """Train an agent to `env_steps` environment steps, from the last checkpoint in `folder` where a
+    kill interrupted an earlier run, saving one every `every` steps at the start of a rollout (after
+    the previous rollout's update: nothing learned is lost, only the steps since the checkpoint).
+
+    A resumed agent's later episodes are seeded by (seed, the step it resumed at): a run killed at
+    the same steps repeats itself, though not the unbroken run's episodes. `on_progress(done,
+    resumed_at)` is called at every rollout's start.
+
+    Returns:
+        (agent, the step it resumed at: 0 when it started afresh)."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    last = last_checkpoint(folder)
+    if last is None:
+        agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size), 0
+    else:
+        agent = {"ppo": PPO, "sac": SAC}[algorithm].load(last / "agent.zip", env=env, device="cpu")
+        if algorithm == "sac":
+            agent.load_replay_buffer(last / "replay.pkl")
+        state = json.loads((last / "state.json").read_text())
+        env.episodes_finished, env.successes = state["episodes"], state["successes"]
+        resumed = agent.num_timesteps
+        agent.set_random_seed(seed + resumed)
+
+    class Checkpoints(BaseCallback):
+        due = resumed + every
+
+        def _on_rollout_start(self) -> None:
+            if self.num_timesteps >= self.due and self.num_timesteps < env_steps:
+                save_checkpoint(self.model, env, folder)
+                self.due = self.num_timesteps + every
+            if on_progress is not None:
+                on_progress(self.num_timesteps, resumed)
+
+        def _on_step(self) -> bool:
+            return True
+
+    agent.learn(total_timesteps=env_steps - resumed, reset_num_timesteps=resumed == 0, callback=Checkpoints())
+    return agent, resumed
 
 
 class RLAgent:

@@ -362,6 +362,12 @@ class BaselinesConfig(_Strict):
         default=None, ge=64, description="each RL agent's training budget; default: the environment steps the "
                                          "campaign's exploration took on its family")
     workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
+    replay_size: PositiveInt = Field(
+        default=50_000, description="SAC's replay buffer at most, in transitions (each keeps two frames: ~42 KB at "
+        "84 px, so ~2.1 GB); a budget below it is kept whole")
+    checkpoint_every: PositiveInt = Field(
+        default=25_000, description="environment steps between an RL agent's resumable checkpoints: a kill loses "
+        "at most these (SAC's checkpoint holds its replay buffer)")
 
 
 SHIFTED_DOMAIN = RandomiseConfig(
@@ -381,6 +387,12 @@ class AdaptConfig(_Strict):
     train_steps: PositiveInt = Field(default=300, description="optimiser steps each adaptation training takes (train.steps; train.batch_size each)")
     eval_episodes: PositiveInt = Field(default=10, description="evaluation episodes per seen task in the shifted domain")
     target_success: float = Field(default=0.8, gt=0, le=1, description="the success the episodes are counted to")
+    tasks: list[str] = Field(
+        default=[], description="task ids of the campaign's seen tasks to adapt on (a large campaign's few, e.g. "
+        "[lift-red, mw-push, nav-room-red]); []: every seen task")
+    seeds: PositiveInt = Field(
+        default=1, description="trainings per point (train.seed 0..seeds-1 on the same episodes), pooled in the "
+        "report with their spread: the results protocol asks 3")
 
 
 class CampaignConfig(_Strict):

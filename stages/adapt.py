@@ -4,11 +4,12 @@ The shifted domain stands in for the proposal's real-robot transfer: the campaig
 under `adapt.domain`, a randomisation outside what the campaign trained on (other light, scene
 colours, camera pose, object size, mass and friction). It runs as its own campaign,
 `<name>-adapt`, in the same workspace and with the same stages: the noisy expert explores every
-seen task `max(adapt.episodes_per_task)` times in the shifted domain; for each n in
-`adapt.episodes_per_task` two models train on the first n episodes of every task, one starting
-from the source model (`train.init_from`), one from scratch, `adapt.train_steps` steps each; every
-model, and the source model as it is (n = 0), is evaluated on the seen tasks in the shifted
-domain. Every training and evaluation is a unit: a re-run does only what is missing."""
+seen task (or `adapt.tasks`) `max(adapt.episodes_per_task)` times in the shifted domain; for each n
+in `adapt.episodes_per_task` models train on the first n episodes of every task, starting from the
+source model (`train.init_from`) and from scratch, `adapt.seeds` trainings each (train.seed 0..),
+`adapt.train_steps` steps each; every model, and the source model as it is (n = 0), is evaluated on
+those tasks in the shifted domain. Every training and evaluation is a unit: a re-run does only
+what is missing."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ from typing import Literal
 from pydantic import BaseModel
 
 from envs.pool import keep_workers
-from schemas.config import AdaptConfig, BaselinesConfig, CampaignConfig, RandomiseConfig
-from schemas.keys import unit_key
+from schemas.config import AdaptConfig, BaselinesConfig, CampaignConfig, ConfigError, RandomiseConfig
+from schemas.keys import key_fields, unit_key
+from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
@@ -31,6 +33,7 @@ from warehouse.catalog import Catalog
 from warehouse.tasks import load_embeddings, load_tasks
 
 STAGE, VERSION = "adapt", 1
+LEGACY_VALUES = {"tasks": [], "seeds": 1}  # fields added since version 1, at the values that did what it did
 SUITE = "adapt"
 Start = Literal["source", "fine-tuned", "scratch"]
 log = logging.getLogger("sim2act.stages.adapt")
@@ -43,6 +46,7 @@ class AdaptPoint(BaseModel):
     model_key: str
     successes: int
     trials: int
+    seed: int = 0  # train.seed of its training (adapt.seeds); the source model's: 0
 
     @property
     def success_rate(self) -> float:
@@ -57,13 +61,16 @@ class AdaptResult(StageResult):
     domain: RandomiseConfig
     target_success: float
     points: list[AdaptPoint]
+    tasks: list[str] = []  # the task ids adapted on (results registered before adapt.tasks: every seen task)
 
     def did_work(self) -> bool:  # its parts are the other stages' units
         return True
 
     def metrics(self) -> dict[str, float]:
-        """adapt.<start>.success.<episodes>: success in the shifted domain after that many target episodes."""
-        return {f"adapt.{p.start}.success.{p.episodes}": p.success_rate for p in self.points}
+        """adapt.<start>.success.<episodes>: success in the shifted domain after that many target
+        episodes, the training seeds' episodes pooled."""
+        return {f"adapt.{start}.success.{episodes}": sum(p.successes for p in seeds) / sum(p.trials for p in seeds)
+                for (episodes, start), seeds in pooled(self.points).items()}
 
 
 def target_campaign(config: CampaignConfig) -> CampaignConfig:
@@ -85,12 +92,37 @@ def first_episodes(campaign: str, per_task: int) -> str:
             f"AND CAST(regexp_extract(episode_id, '-e([0-9]+)$', 1) AS INTEGER) < {per_task})")
 
 
+def pooled(points: list[AdaptPoint]) -> dict[tuple[int, Start], list[AdaptPoint]]:
+    """(episodes, start) -> its points, one per training seed."""
+    grouped: dict[tuple[int, Start], list[AdaptPoint]] = {}
+    for point in points:
+        grouped.setdefault((point.episodes, point.start), []).append(point)
+    return grouped
+
+
 def episodes_to_reach(points: list[AdaptPoint], start: Start, success: float) -> int | None:
-    """The fewest target-domain episodes with which `start`'s model reached `success` (fine-tuning
-    from no episodes is the source model as it is); None: never."""
+    """The fewest target-domain episodes with which `start`'s models reached `success`, their seeds'
+    episodes pooled (fine-tuning from no episodes is the source model as it is); None: never."""
     counted = {start, "source"} if start == "fine-tuned" else {start}
-    reached = [p.episodes for p in points if p.start in counted and p.success_rate >= success]
+    reached = [episodes for (episodes, at), seeds in pooled(points).items()
+               if at in counted and sum(p.successes for p in seeds) >= success * sum(p.trials for p in seeds)]
     return min(reached, default=None)
+
+
+def adapted_tasks(config: CampaignConfig, tasks: list[TaskRecord]) -> list[TaskRecord]:
+    """The campaign's seen tasks the adaptation runs on: `adapt.tasks`, or every seen one.
+
+    Raises:
+        ConfigError: an id in `adapt.tasks` that is not one of the campaign's seen tasks."""
+    seen = [task for task in tasks if task.split == "seen"]
+    wanted = set(config.adapt.tasks)
+    if not wanted:
+        return seen
+    unknown = sorted(wanted - {task.task_id for task in seen})
+    if unknown:
+        raise ConfigError(f"adapt.tasks: expected task ids of the campaign's seen tasks (`sim2act tasks` lists them), "
+                          f"got {', '.join(unknown)}")
+    return [task for task in seen if task.task_id in wanted]
 
 
 def _score(evaluations: list[TaskEvaluation]) -> tuple[int, int]:
@@ -112,7 +144,7 @@ def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, s
     started = time.monotonic()
     target = target_campaign(config)
     tasks_key = run_generate_tasks(workspace, target).unit_key
-    tasks = load_tasks(workspace, tasks_key)
+    tasks = adapted_tasks(config, load_tasks(workspace, tasks_key))
     embeddings = load_embeddings(workspace, tasks_key, target.train.model.language_encoder)
     explored = run_explore(workspace, target, 0, tasks, None, embeddings)
     filtered = run_filter(workspace, target, 0, explored.unit_keys)
@@ -120,25 +152,28 @@ def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, s
     cases = [case for case in evaluation_cases(tasks) if case[1] == "seen"]
     seen = len(cases)
 
-    def evaluate(start: Start, per_task: int, model_key: str, checkpoint: str) -> AdaptPoint:
+    def evaluate(start: Start, per_task: int, model_key: str, checkpoint: str, seed: int = 0) -> AdaptPoint:
         evaluations, _ = evaluate_model(workspace, target, 0, model_key, Agent(kind="sim2act", path=checkpoint),
                                         cases, embeddings, suite=SUITE)
         successes, trials = _score(evaluations)
-        log.info("adapt: %s, %d episode(s) per task: success %d/%d", start, per_task, successes, trials)
+        log.info("adapt: %s, %d episode(s) per task, seed %d: success %d/%d", start, per_task, seed, successes, trials)
         return AdaptPoint(start=start, episodes_per_task=per_task, episodes=per_task * seen, model_key=model_key,
-                          successes=successes, trials=trials)
+                          successes=successes, trials=trials, seed=seed)
 
     points = [evaluate("source", 0, source_model, source_checkpoint)]
     for per_task in sorted(set(config.adapt.episodes_per_task)):
         where = first_episodes(target.name, per_task)
         for start in ("fine-tuned", "scratch"):
-            train = target.train.model_copy(update={
-                "where": where, "steps": config.adapt.train_steps, "init_from": source_model if start == "fine-tuned" else None})
-            model = run_train(workspace, target.model_copy(update={"train": train}), 0, dataset, tasks_key, embeddings)
-            points.append(evaluate(start, per_task, model.model_key, model.checkpoint))
+            for seed in range(config.adapt.seeds):
+                train = target.train.model_copy(update={
+                    "where": where, "steps": config.adapt.train_steps, "seed": seed,
+                    "init_from": source_model if start == "fine-tuned" else None})
+                model = run_train(workspace, target.model_copy(update={"train": train}), 0, dataset, tasks_key, embeddings)
+                points.append(evaluate(start, per_task, model.model_key, model.checkpoint, seed))
     result = AdaptResult(campaign=target.name, source_model=source_model, domain=target.randomise,
-                         target_success=config.adapt.target_success, points=points)
-    key = unit_key(STAGE, VERSION, {"adapt": config.adapt}, [source_model, dataset.unit_key])
+                         target_success=config.adapt.target_success, points=points,
+                         tasks=[task.task_id for task in tasks])
+    key = unit_key(STAGE, VERSION, {"adapt": key_fields(config.adapt, set(), LEGACY_VALUES)}, [source_model, dataset.unit_key])
     units = StageUnits(catalog, STAGE, target.name, 0)
     if units.pending([key]):  # its parts are units of their own: only the summary is registered here
         units.register(key, UnitOutput(result.model_dump(mode="json")), time.monotonic() - started)

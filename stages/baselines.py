@@ -12,6 +12,7 @@ Each trained agent is a unit (models/<key>/agent.zip); evaluations go to the war
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
@@ -39,8 +40,10 @@ class RLUnit(BaseModel):
     render: RenderConfig
     randomise: RandomiseConfig
     env_steps: int
+    replay_size: int  # SAC's replay buffer, transitions
+    checkpoint_every: int  # environment steps between resumable checkpoints
     seed: int
-    path: str  # where the trained agent is saved
+    path: str  # where the trained agent is saved; its checkpoints beside it
 
 
 class RLTrained(BaseModel):
@@ -50,6 +53,7 @@ class RLTrained(BaseModel):
     steps_taken: int  # what training stepped: PPO's whole rollouts pass the budget by less than one step each
     episodes: int  # finished while training
     successes: int
+    resumed_at: int  # the environment step its last start resumed at (a checkpoint); 0: trained in one go
     path: str
 
 
@@ -83,30 +87,44 @@ def exploration_steps(catalog: Catalog, explore_units: list[str]) -> dict[str, i
 
 
 def train_rl_agent(unit: RLUnit) -> RLTrained:
-    """Worker: train one agent from scratch for its budget of environment steps and save it."""
-    from pathlib import Path
-
+    """Worker: train one agent from scratch for its budget of environment steps (from its last
+    checkpoint where a kill interrupted it) and save it."""
     from envs.gym_env import InstructedTasksEnv
-    from policies.rl_agent import new_agent
+    from envs.pool import Progress, log_stages_to_stderr
+    from policies.rl_agent import learn_with_checkpoints
 
+    log_stages_to_stderr()  # a worker has no Prefect handler, and an agent trains for hours: its progress on stderr
     env = InstructedTasksEnv(unit.tasks, {k: np.asarray(v, dtype=np.float32) for k, v in unit.embeddings.items()},
                              unit.render, unit.randomise)
-    agent = new_agent(unit.algorithm, env, unit.env_steps, unit.seed)
-    agent.learn(total_timesteps=unit.env_steps)
     path = Path(unit.path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    progress = Progress(log, f"baselines: {unit.algorithm} on {unit.family}", unit.env_steps, "env steps", "env steps")
+    every_percent = max(1, unit.env_steps // 100)
+
+    def on_progress(done: int, resumed_at: int) -> None:
+        if progress.done < resumed_at:
+            progress.resume_at(resumed_at)
+        if done > progress.done:
+            crossed = done // every_percent > progress.done // every_percent
+            progress.advance(done - progress.done, done - progress.done, log=crossed)
+
+    try:
+        agent, resumed_at = learn_with_checkpoints(unit.algorithm, env, unit.env_steps, unit.seed, path.parent,
+                                                   unit.checkpoint_every, unit.replay_size, on_progress)
+    finally:
+        progress.close()
     tmp = path.with_name(path.stem + ".tmp.zip")
     agent.save(tmp)
-    tmp.replace(path)  # a killed training leaves no agent behind
+    tmp.replace(path)  # a killed training leaves no agent behind (its last checkpoint stays until it registers)
     return RLTrained(algorithm=unit.algorithm, family=unit.family, env_steps=unit.env_steps,
                      steps_taken=agent.num_timesteps, episodes=env.episodes_finished, successes=env.successes,
-                     path=str(path))
+                     resumed_at=resumed_at, path=str(path))
 
 
 def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],
              embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
     """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
-    from policies.rl_agent import RL_ALGORITHMS, supports
+    from policies.rl_agent import RL_ALGORITHMS, replay_buffer_size, supports
 
     units = []
     for algorithm in [a for a in config.baselines.agents if a in RL_ALGORITHMS]:
@@ -119,11 +137,15 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
                 log.info("baselines: %s does not act in %s's discrete action space; skipped", algorithm, family)
                 continue
             said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
+            replay = replay_buffer_size(steps, config.baselines.replay_size)
+            # a replay smaller than the budget changes the agent (keys of agents whose replay held it stay as they were)
+            smaller_replay = [f"replay {replay}"] if algorithm == "sac" and replay < steps else []
             key = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
                                             "seed": config.seed},
-                           [tasks_key, algorithm, family, str(steps)])  # the tasks key: campaign, tasks, encoder
+                           [tasks_key, algorithm, family, str(steps), *smaller_replay])  # tasks key: campaign, tasks, encoder
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
-                                render=config.render, randomise=config.randomise, env_steps=steps, seed=config.seed,
+                                render=config.render, randomise=config.randomise, env_steps=steps, replay_size=replay,
+                                checkpoint_every=config.baselines.checkpoint_every, seed=config.seed,
                                 path=str(workspace.models / key / "agent.zip")))
     return units
 
@@ -135,8 +157,12 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     evaluation cases (an RL agent on its family's), rows under `iteration`.
 
     Unit of work: one RL agent (an algorithm on a family), keyed by the render and randomise settings,
-    the campaign seed, the algorithm, the family, its step budget and the tasks' instructions.
-    Registers the agent's summary; its evaluations are the evaluate stage's units."""
+    the campaign seed, the algorithm, the family, its step budget (and SAC's replay where smaller
+    than it) and the tasks' instructions; it saves a resumable checkpoint every
+    `baselines.checkpoint_every` environment steps, so a kill loses at most those. Registers the
+    agent's summary; its evaluations are the evaluate stage's units."""
+    from policies.rl_agent import remove_checkpoints
+
     catalog = Catalog(workspace.catalog)
     units = rl_units(workspace, config, tasks_key, tasks, embeddings, exploration_steps(catalog, explore_units))
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
@@ -146,6 +172,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}"):
         ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
+        remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints are spent
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
     cases = evaluation_cases(tasks)

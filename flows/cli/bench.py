@@ -65,7 +65,8 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
 
 def cmd_bench_soak(args: argparse.Namespace) -> int:
     from bench.soak import KINDS, markdown, soak
-    from flows.cli.common import campaign_config, campaign_flags, log_stages_to_stderr
+    from envs.pool import log_stages_to_stderr
+    from flows.cli.common import campaign_config, campaign_flags
 
     if args.kills < 1:
         raise ConfigError(f"bench soak: --kills must be at least 1, got {args.kills}")

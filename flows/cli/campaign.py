@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
-                              configure_environment, log_stages_to_stderr, open_catalog, same_campaign_flags)
+                              configure_environment, open_catalog, same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import ConfigError
 from schemas.experts import TARGET
@@ -21,6 +22,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
     check_where(config.train.where)
+    if config.adapt.episodes_per_task:
+        from stages.adapt import adapted_tasks
+
+        adapted_tasks(config, tasks)  # adapt.tasks that are not the campaign's seen tasks: one line, before any work
     workspace, catalog = open_catalog(args)
     to_explore = config
     if args.continue_campaign and catalog.path.exists():  # as bootstrap continues it: one iteration more

@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import argparse
 import base64
-import logging
 import os
-import sys
 import urllib.request
 from pathlib import Path
 from urllib.parse import unquote, urlsplit, urlunsplit
@@ -130,17 +128,6 @@ def check_tracking_server(workspace: Workspace) -> None:
     except (OSError, ValueError) as exc:  # ValueError: not a URL urllib can open
         why = str(getattr(exc, "reason", None) or exc)
     raise TrackingUnreachable(f"{TRACKING_URI_ENV}={redacted(uri)}: no MLflow server answers at {health} ({why})")
-
-
-def log_stages_to_stderr() -> None:
-    """Outside a flow (`sim2act train`, `eval`) no Prefect handler takes the stages' log lines, and
-    the progress bar is drawn only on a terminal: without this, a run piped to a file is silent."""
-    logger = logging.getLogger("sim2act")
-    if not logger.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
-        logger.addHandler(handler)
-        logger.setLevel(logging.INFO)
 
 
 def print_or_write(args: argparse.Namespace, as_json: str, table: str) -> int:

@@ -8,7 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from flows.cli.common import Commands, add_workspace_option, log_stages_to_stderr, open_catalog
+from envs.pool import log_stages_to_stderr
+from flows.cli.common import Commands, add_workspace_option, open_catalog
 from schemas.config import ConfigError
 from schemas.workspace import Workspace
 from warehouse.video import CONTROL_FPS

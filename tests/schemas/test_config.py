@@ -152,3 +152,14 @@ def test_up_takes_one_flag_per_service_setting_and_refuses_a_bad_one_in_one_line
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("sim2act: config error:") and "prefect_port" in err[0]
     assert not (tmp_path / "ws").exists()  # refused before anything was written
+
+
+def test_run_refuses_adapt_tasks_that_are_not_the_campaign_s_seen_tasks_in_one_line(capsys, tmp_path):
+    from flows.cli import main
+
+    assert main(["run", "--preset", "smoke", "--set", "adapt.episodes_per_task=[1]", "--set", "adapt.tasks=[lift-teal]",
+                 "--workspace", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["sim2act: config error: adapt.tasks: expected task ids of the campaign's seen tasks (`sim2act tasks` "
+                   "lists them), got lift-teal"]
+    assert not (tmp_path / "ws").exists()  # refused before anything was written

@@ -9,9 +9,9 @@ import torch
 from dashboards.results import adaptation_markdown
 from envs.suite import generate_tasks
 from policies.policy import checkpoint_members
-from schemas.config import CampaignConfig
+from schemas.config import CampaignConfig, ConfigError, RandomiseConfig
 from schemas.workspace import Workspace
-from stages.adapt import AdaptPoint, episodes_to_reach, run_adapt, target_campaign
+from stages.adapt import AdaptPoint, AdaptResult, adapted_tasks, episodes_to_reach, run_adapt, target_campaign
 from stages.generate_tasks import tasks_unit_key
 from stages.index import latest_index
 from stages.train import run_train
@@ -122,3 +122,45 @@ def test_the_episodes_to_reach_a_success_count_the_source_at_zero():
     assert episodes_to_reach(points, "scratch", 0.9) is None
     assert episodes_to_reach([point("source", 0, 9)] + points[1:], "fine-tuned", 0.8) == 0
     assert episodes_to_reach([point("source", 0, 9)] + points[1:], "scratch", 0.8) == 12
+
+
+def test_the_episodes_to_reach_pool_the_training_seeds():
+    def point(start, episodes, successes, seed):
+        return AdaptPoint(start=start, episodes_per_task=episodes // 2, episodes=episodes, model_key=f"m{seed}",
+                          successes=successes, trials=10, seed=seed)
+
+    points = [point("source", 0, 3, 0), point("scratch", 6, 10, 0), point("scratch", 6, 5, 1),  # 75% pooled
+              point("scratch", 12, 8, 0), point("scratch", 12, 9, 1)]  # 85%
+    assert episodes_to_reach(points, "scratch", 0.8) == 12  # one seed's 100% at 6 does not count it reached
+    result = AdaptResult(campaign="c-adapt", source_model="m", domain=RandomiseConfig(), target_success=0.8, points=points)
+    assert result.metrics() == {"adapt.source.success.0": 0.3, "adapt.scratch.success.6": 0.75,
+                                "adapt.scratch.success.12": 0.85}
+
+
+def test_adapt_tasks_name_the_campaign_s_seen_tasks():
+    config = CampaignConfig.model_validate({**CAMPAIGN, "tasks": {"specs": ["lift"], "colours": ["red", "green", "orange"]}})
+    tasks = generate_tasks(config.tasks, config.seed)  # lift-orange: the spec's held-out colour, unseen
+    assert [t.task_id for t in adapted_tasks(config, tasks)] == ["lift-red", "lift-green"]
+    chosen = config.model_copy(update={"adapt": config.adapt.model_copy(update={"tasks": ["lift-green"]})})
+    assert [t.task_id for t in adapted_tasks(chosen, tasks)] == ["lift-green"]
+    for wrong in (["lift-orange"], ["lift-green", "lift-teal"]):
+        bad = config.model_copy(update={"adapt": config.adapt.model_copy(update={"tasks": wrong})})
+        with pytest.raises(ConfigError, match=f"adapt.tasks: expected task ids of the campaign's seen tasks .*got {wrong[-1]}$"):
+            adapted_tasks(bad, tasks)
+
+
+def test_a_chosen_task_with_training_seeds(adapted):
+    """adapt.tasks narrows the explored, trained and evaluated tasks; adapt.seeds trains each point's
+    models with seeds 0..N-1, and the report pools them with their spread."""
+    config, workspace, source, _ = adapted
+    chosen = config.model_copy(update={"adapt": config.adapt.model_copy(
+        update={"tasks": ["lift-red"], "seeds": 2, "episodes_per_task": [1]})})
+    result = run_adapt(workspace, chosen, source.model_key, source.checkpoint)
+    assert result.tasks == ["lift-red"]
+    assert [(p.start, p.seed, p.episodes) for p in result.points] == [
+        ("source", 0, 0), ("fine-tuned", 0, 1), ("fine-tuned", 1, 1), ("scratch", 0, 1), ("scratch", 1, 1)]
+    assert len({p.model_key for p in result.points}) == 5  # each seed its own training
+    assert all(p.trials == config.adapt.eval_episodes for p in result.points)  # one task's cases
+    catalog = Catalog(workspace.catalog)
+    text = "\n".join(adaptation_markdown(catalog, "adapt-test"))
+    assert "seen tasks (lift-red)" in text and "2 training seeds each" in text and "(seeds " in text

@@ -12,6 +12,7 @@ from envs.suite import generate_tasks, weak_tasks_left_out
 from schemas.config import load_config
 from schemas.experts import TARGET, load_expert_table
 from schemas.workspace import Workspace
+from stages.adapt import adapted_tasks
 from warehouse import capacity
 from warehouse.capacity import BYTES_PER_STEP_84PX, InsufficientDisk, check_disk, explore_estimate
 
@@ -31,6 +32,8 @@ def test_the_generalist_preset_spans_the_three_families_with_capable_experts_and
                for t in tasks if t.split == "seen")
     assert estimate.iterations == 1 and kept >= 1_000_000
     assert 3e9 < estimate.bytes < 5e9  # ~2.9 KB a step at 84 px, +20%
+    adapted = adapted_tasks(config, tasks)  # its adaptation's tasks are seen tasks of all three families
+    assert {t.family for t in adapted} == set(by_family) and len(adapted) == len(config.adapt.tasks)
 
 
 def test_tasks_left_out_for_a_weak_expert_are_named():

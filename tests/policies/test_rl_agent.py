@@ -1,0 +1,73 @@
+"""The RL baselines train for hours at a campaign's budget: a kill resumes from the last checkpoint,
+SAC's replay buffer included, and a kill during a checkpoint's swap leaves the one before."""
+
+import json
+
+import numpy as np
+import pytest
+
+from envs.gym_env import InstructedTasksEnv
+from envs.suite import generate_tasks
+from policies.rl_agent import CHECKPOINT, PREVIOUS, WRITING, last_checkpoint, learn_with_checkpoints
+from schemas.config import RandomiseConfig, RenderConfig, TasksConfig
+
+
+class Killed(Exception):
+    """Stands for a SIGKILL: the training stops where it is, nothing more is saved."""
+
+
+def _env(spec: str) -> InstructedTasksEnv:
+    tasks = generate_tasks(TasksConfig(specs=[spec], colours=["red", "green"]), seed=0)
+    said = sorted({text for task in tasks for text in task.instructions})
+    embeddings = {text: np.full(8, i, dtype=np.float32) for i, text in enumerate(said)}
+    return InstructedTasksEnv(tasks, embeddings, RenderConfig(image_size=48), RandomiseConfig())
+
+
+def _killed_after(env: InstructedTasksEnv, steps: int) -> InstructedTasksEnv:
+    step, taken = env.step, []
+
+    def counted(action):
+        taken.append(1)
+        if len(taken) > steps:
+            raise Killed(steps)
+        return step(action)
+    env.step = counted
+    return env
+
+
+@pytest.mark.parametrize("algorithm, spec, budget, every, kill, saved_at", [
+    ("ppo", "nav-room", 600, 200, 450, 300),  # rollouts of 300 steps: the checkpoint at the second's start
+    ("sac", "lift", 240, 100, 180, 100),  # one-step rollouts: a checkpoint at 100, the next due at 200
+])
+def test_a_killed_training_resumes_from_its_last_checkpoint(tmp_path, algorithm, spec, budget, every, kill, saved_at):
+    env = _killed_after(_env(spec), kill)
+    with pytest.raises(Killed):
+        learn_with_checkpoints(algorithm, env, budget, 0, tmp_path, every)
+    last = last_checkpoint(tmp_path)
+    assert last == tmp_path / CHECKPOINT
+    state = json.loads((last / "state.json").read_text())
+    assert state["num_timesteps"] == saved_at
+    assert state["episodes"] <= env.episodes_finished  # the counters as they were at the checkpoint
+
+    again = _env(spec)  # a new process: a fresh environment
+    progress = []
+    agent, resumed_at = learn_with_checkpoints(algorithm, again, budget, 0, tmp_path, every,
+                                               on_progress=lambda done, at: progress.append((done, at)))
+    assert resumed_at == saved_at
+    assert agent.num_timesteps >= budget
+    assert progress[0] == (saved_at, saved_at)  # the first rollout starts where the checkpoint was
+    assert again.episodes_finished >= state["episodes"]  # counted on from the checkpoint's
+    if algorithm == "sac":  # the replay buffer came back: the transitions before the checkpoint and the ones after
+        assert agent.replay_buffer.size() == budget
+
+
+def test_a_kill_during_the_swap_leaves_the_checkpoint_before(tmp_path):
+    assert last_checkpoint(tmp_path) is None
+    (tmp_path / PREVIOUS).mkdir()
+    (tmp_path / PREVIOUS / "state.json").write_text("{}")
+    (tmp_path / WRITING).mkdir()  # the new one half-written: never read
+    assert last_checkpoint(tmp_path) == tmp_path / PREVIOUS
+    (tmp_path / CHECKPOINT).mkdir()  # renamed in, its state not there: not whole
+    assert last_checkpoint(tmp_path) == tmp_path / PREVIOUS
+    (tmp_path / CHECKPOINT / "state.json").write_text("{}")
+    assert last_checkpoint(tmp_path) == tmp_path / CHECKPOINT
