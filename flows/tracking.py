@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import tempfile
 from collections.abc import Mapping
+from pathlib import Path
 from urllib.parse import urlsplit
 
 from mlflow import MlflowClient
@@ -28,6 +30,9 @@ def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
         else:
             flat[name] = str(value)
     return flat
+
+
+MLFLOW_SOURCE_CHARACTERS = 65_535  # the longest dataset source MLflow accepts (mlflow.utils.validation)
 
 
 class Tracking:
@@ -101,9 +106,17 @@ class Tracking:
 
     def log_training_dataset(self, run_id: str, digest: str, shards: list[str], triplets: int) -> None:
         """The exact data a training run read (its steps shards; the kept steps, narrowed by
-        train.where), as the run's MLflow dataset input."""
+        train.where), as the run's MLflow dataset input. A shard list longer than MLflow takes in a
+        source (the million's 5,040 shards: ~260k characters) goes to the run's artifact
+        `training/shards-<digest>.json`, which the source names."""
         source = {"warehouse": str(self.warehouse), "selection": "kept steps", "where": self.config.train.where,
                   "shards": shards}
+        if len(json.dumps(source)) > MLFLOW_SOURCE_CHARACTERS:
+            with tempfile.TemporaryDirectory() as folder:
+                listing = Path(folder) / f"shards-{digest[:12]}.json"
+                listing.write_text(json.dumps(shards))
+                self.log_artifact(run_id, str(listing), "training")
+            source["shards"] = f"{len(shards)} shards: the run's artifact training/{listing.name}"
         dataset = Dataset(
             name=f"{self.config.name}-warehouse", digest=digest, source_type="sim2act-warehouse",
             source=json.dumps(source), schema=None,

@@ -1,0 +1,32 @@
+"""What a training logs to MLflow about its data at the generalist's scale: MLflow takes a dataset
+source of at most 65,535 characters, and the million's training read 5,040 shards."""
+
+from __future__ import annotations
+
+import json
+
+from mlflow import MlflowClient
+
+from flows.tracking import MLFLOW_SOURCE_CHARACTERS, Tracking
+from schemas.config import load_config
+from schemas.workspace import Workspace
+
+
+def test_a_training_dataset_of_thousands_of_shards_names_them_in_an_artifact(tmp_path):
+    workspace = Workspace.at(tmp_path / "workspace").create()
+    tracking = Tracking(workspace, load_config("smoke"))
+    run_id = tracking.campaign_run()
+    few = [f"steps/iteration=0/explore-{i:04d}.parquet" for i in range(3)]
+    many = [f"steps/iteration=0/explore-lift-red-shard-{i:04d}-0123456789abcdef.parquet" for i in range(5040)]
+    assert len(json.dumps(many)) > MLFLOW_SOURCE_CHARACTERS
+    tracking.log_training_dataset(run_id, "a" * 32, few, 300)
+    tracking.log_training_dataset(run_id, "b" * 32, many, 1_051_301)
+
+    client = MlflowClient(tracking_uri=workspace.tracking_uri)
+    inputs = {d.dataset.digest: d.dataset for d in client.get_run(run_id).inputs.dataset_inputs}
+    assert json.loads(inputs["a" * 32].source)["shards"] == few  # a list that fits stays in the source
+    source = json.loads(inputs["b" * 32].source)
+    assert source["shards"] == "5040 shards: the run's artifact training/shards-bbbbbbbbbbbb.json"
+    assert json.loads(inputs["b" * 32].profile) == {"triplets": 1_051_301, "shards": 5040}
+    listed = client.download_artifacts(run_id, "training/shards-bbbbbbbbbbbb.json", str(tmp_path))
+    assert json.loads(open(listed).read()) == many
