@@ -39,8 +39,16 @@ def _table(header: list[str], rows: list[list[object]]) -> list[str]:
     return lines + ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
 
 
+WIDE_TABLE_NAMES = 3  # families or specs side by side at most; more get a row each (the generalist has 63 specs)
+
+
 def _split_table(title: str, by_iteration: dict[int, list[GroupSuccess]], names: list[str]) -> list[str]:
-    """Success per iteration in every split of each family or spec `names` (groups "<name>/<split>")."""
+    """Success per iteration in every split of each family or spec `names` (groups "<name>/<split>"):
+    a column per name and split for a few names, else a row per name and iteration."""
+    if len(names) > WIDE_TABLE_NAMES:
+        rows = [[name, iteration, *_cells(groups, [f"{name}/{split}" for split in SPLIT_COLUMNS])]
+                for name in names for iteration, groups in sorted(by_iteration.items())]
+        return ["", f"### {title}", "", *_table(["", "iteration", *[s.replace("_", " ") for s in SPLIT_COLUMNS]], rows)]
     header = ["iteration", *[f"{name}/{split}" for name in names for split in SPLIT_COLUMNS]]
     return ["", f"### {title}", "",
             *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]

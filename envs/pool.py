@@ -214,7 +214,7 @@ class WorkerPool:
         if worker.process.is_alive():
             worker.process.kill()
         worker.process.join(timeout=5)
-        worker.connection.close()
+        self._hang_up(worker)
         with self._lock:
             self._workers.remove(worker)
             if not self._closed:
@@ -250,7 +250,14 @@ class WorkerPool:
             if worker.process.is_alive():
                 worker.process.kill()
                 worker.process.join()
-            worker.connection.close()
+            self._hang_up(worker)
+
+    def _hang_up(self, worker: _Worker) -> None:
+        # close() and a run() replacing the worker it lost may both close one pipe at once: twice
+        # at the same moment is EBADF (a SIGTERM during an evaluation ended in that traceback)
+        with self._lock:
+            if not worker.connection.closed:
+                worker.connection.close()
 
     def __enter__(self) -> WorkerPool:
         return self

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from dashboards import results
 from dashboards.results import results_markdown, spec_markdown
 from schemas.tasks import CAMPAIGN_SUITE
 from schemas.workspace import Workspace
@@ -52,7 +53,7 @@ def _catalog_with_tasks(folder) -> Catalog:
     return catalog
 
 
-def test_success_per_spec_and_split_per_iteration(tmp_path):
+def test_success_per_spec_and_split_per_iteration(tmp_path, monkeypatch):
     catalog = _catalog_with_tasks(tmp_path)
     _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-red-green", "seen"): 0,
                            ("nav-room-sequence-purple-red", "unseen"): 0})
@@ -65,6 +66,13 @@ def test_success_per_spec_and_split_per_iteration(tmp_path):
     row0, row1 = ([cell.strip() for cell in line.strip("|").split("|")] for line in lines[-2:])
     assert row0 == ["0", "9/10 = 90% (60%–98%)", "–", "–", "0/10 = 0% (0%–28%)", "0/10 = 0% (0%–28%)", "–"]
     assert [cell.split(" ")[0] for cell in row1] == ["1", "8/10", "–", "–", "4/10", "1/10", "3/10"]
+    monkeypatch.setattr(results, "WIDE_TABLE_NAMES", 1)  # more specs than fit side by side: a row per spec and iteration
+    long = spec_markdown(catalog, CAMPAIGN)
+    assert "|  | iteration | seen | unseen | unseen paraphrase |" in long
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in long[-4:]]
+    assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
+        ["nav-room", "0", "9/10", "–", "–"], ["nav-room", "1", "8/10", "–", "–"],
+        ["nav-room-sequence", "0", "0/10", "0/10", "–"], ["nav-room-sequence", "1", "4/10", "1/10", "3/10"]]
     catalog_one_spec = Catalog(Workspace.at(tmp_path / "one").create().catalog)
     catalog_one_spec.initialise()
     assert spec_markdown(catalog_one_spec, CAMPAIGN) == []  # one spec: the split table says it all

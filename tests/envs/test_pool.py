@@ -113,3 +113,33 @@ def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
     progress.resume_at(1600)
     progress.advance(20, 5120)
     assert lines == ["train: 1620/9056 steps, 5120 samples, 512.0 samples/s, ETA 3718s"]
+
+
+def test_closing_a_pool_with_busy_workers_abandons_their_units_without_an_error():
+    """A SIGTERM during an evaluation closes the pool while its threads wait on busy workers: each
+    thread replaces the worker it lost as close() hangs up on the same pipes (once that was EBADF)."""
+    import threading
+    import time
+
+    from envs.pool import PoolClosed, WorkerPool
+
+    for _ in range(3):
+        pool = WorkerPool(2)
+        outcomes: list[BaseException | None] = []
+
+        def busy() -> None:
+            try:
+                pool.run(time.sleep, 30, "sleep")
+                outcomes.append(None)
+            except BaseException as exc:  # noqa: BLE001 - what each thread ended with is the assertion
+                outcomes.append(exc)
+
+        threads = [threading.Thread(target=busy) for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        time.sleep(1.0)  # both units running in their workers
+        pool.close()
+        for thread in threads:
+            thread.join(timeout=30)
+        assert [type(o) for o in outcomes] == [PoolClosed, PoolClosed]
+        assert all(w.connection.closed for w in pool._workers) and not any(w.process.is_alive() for w in pool._workers)
