@@ -68,8 +68,8 @@ def save_checkpoint(agent, env, folder: Path) -> None:
         agent.save_replay_buffer(writing / "replay.pkl")
     (writing / "state.json").write_text(json.dumps(
         {"num_timesteps": agent.num_timesteps, "episodes": env.episodes_finished, "successes": env.successes}))
-    shutil.rmtree(previous, ignore_errors=True)
-    if current.exists():
+    if current.exists():  # else a kill between renames left `previous` the only whole one: kept until replaced
+        shutil.rmtree(previous, ignore_errors=True)
         current.rename(previous)
     writing.rename(current)
     shutil.rmtree(previous, ignore_errors=True)

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import _free_port
 
 HOST = "127.0.0.1"
 
@@ -52,6 +51,28 @@ class S3Server:
         return sorted(info.path.removeprefix(f"{bucket}/") for info in infos if info.type == FileType.File)
 
 
+def _listening_ports(count: int) -> list[int]:
+    """Free ports below the kernel's ephemeral range: weed binds its twelve listeners one after another
+    while its servers already connect to each other from ephemeral ports, so a free port picked in that
+    range (bind to 0) can be taken by one of those connections first ("Lance Namespace listener ...
+    address already in use" once in the suite)."""
+    import random
+    import socket
+
+    low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    ports: list[int] = []
+    for candidate in random.sample(range(max(1024, low - 12000), low), 400):
+        with socket.socket() as sock:
+            try:
+                sock.bind((HOST, candidate))
+            except OSError:
+                continue
+        ports.append(candidate)
+        if len(ports) == count:
+            return ports
+    raise RuntimeError(f"expected {count} free ports below {low}, found {len(ports)}")
+
+
 def _weed() -> str:
     found = shutil.which("weed", path=str(Path(sys.executable).parent)) or shutil.which("weed")
     if found is None:
@@ -72,7 +93,8 @@ def s3_server(buckets: tuple[str, ...] = ("shards",)) -> Iterator[S3Server]:
     # which two servers, or a free port above 55535, would collide on
     names = ("master", "master.port.grpc", "volume", "volume.port.grpc", "filer", "filer.port.grpc", "s3",
              "s3.port.grpc", "s3.port.iceberg", "s3.port.lance", "admin", "admin.port.grpc")
-    flags = [f"-{name}={_free_port()}" if "." in name else f"-{name}.port={_free_port()}" for name in names]
+    ports = _listening_ports(len(names))
+    flags = [f"-{name}={port}" if "." in name else f"-{name}.port={port}" for name, port in zip(names, ports)]
     log = root / "weed.log"
     command = [_weed(), "mini", f"-dir={root / 'data'}", f"-ip={HOST}", f"-ip.bind={HOST}", *flags, "-webdav=false",
                "-admin.ui=false", f"-s3.config={config}", "-master.telemetry=false"]

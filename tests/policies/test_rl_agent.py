@@ -8,7 +8,7 @@ import pytest
 
 from envs.gym_env import InstructedTasksEnv
 from envs.suite import generate_tasks
-from policies.rl_agent import CHECKPOINT, PREVIOUS, WRITING, last_checkpoint, learn_with_checkpoints
+from policies.rl_agent import CHECKPOINT, PREVIOUS, WRITING, last_checkpoint, learn_with_checkpoints, save_checkpoint
 from schemas.config import RandomiseConfig, RenderConfig, TasksConfig
 
 
@@ -71,3 +71,30 @@ def test_a_kill_during_the_swap_leaves_the_checkpoint_before(tmp_path):
     assert last_checkpoint(tmp_path) == tmp_path / PREVIOUS
     (tmp_path / CHECKPOINT / "state.json").write_text("{}")
     assert last_checkpoint(tmp_path) == tmp_path / CHECKPOINT
+
+
+def test_a_save_after_a_kill_between_renames_keeps_the_only_whole_checkpoint_until_replaced(tmp_path, monkeypatch):
+    class Saved:  # what save_checkpoint asks of an agent: save(path) and its step count
+        num_timesteps = 200
+
+        def save(self, path):
+            path.write_bytes(b"agent")
+
+    class Counted:
+        episodes_finished, successes = 3, 1
+
+    (tmp_path / PREVIOUS).mkdir()  # a kill after `checkpoint` became `checkpoint.old`, before the new one moved in
+    (tmp_path / PREVIOUS / "state.json").write_text('{"num_timesteps": 100}')
+    real_rename = type(tmp_path).rename
+
+    def killed_at_the_rename(self, target):
+        raise Killed("between the writing and the swap")
+    monkeypatch.setattr(type(tmp_path), "rename", killed_at_the_rename)
+    with pytest.raises(Killed):
+        save_checkpoint(Saved(), Counted(), tmp_path)
+    assert last_checkpoint(tmp_path) == tmp_path / PREVIOUS  # the earlier one was not removed first
+    monkeypatch.setattr(type(tmp_path), "rename", real_rename)
+    save_checkpoint(Saved(), Counted(), tmp_path)
+    assert last_checkpoint(tmp_path) == tmp_path / CHECKPOINT and not (tmp_path / PREVIOUS).exists()
+    assert json.loads((tmp_path / CHECKPOINT / "state.json").read_text()) == {
+        "num_timesteps": 200, "episodes": 3, "successes": 1}
