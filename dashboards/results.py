@@ -13,7 +13,8 @@ import platform
 from dashboards.protocol import seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
-from stages.adapt import STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled
+from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
+                          pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
@@ -78,7 +79,7 @@ def _reached(result: AdaptResult, start: str) -> str:
 
 def _pooled_cell(seeds: list[AdaptPoint]) -> str:
     """A point's seeds pooled; with several, the spread of their own rates after."""
-    successes, trials = sum(p.successes for p in seeds), sum(p.trials for p in seeds)
+    successes, trials = pooled_score(seeds)
     cell = f"{successes}/{trials} = {successes / trials:.0%}"
     if len(seeds) > 1:
         rates = [p.success_rate for p in seeds]

@@ -69,8 +69,8 @@ class AdaptResult(StageResult):
     def metrics(self) -> dict[str, float]:
         """adapt.<start>.success.<episodes>: success in the shifted domain after that many target
         episodes, the training seeds' episodes pooled."""
-        return {f"adapt.{start}.success.{episodes}": sum(p.successes for p in seeds) / sum(p.trials for p in seeds)
-                for (episodes, start), seeds in pooled(self.points).items()}
+        return {f"adapt.{start}.success.{episodes}": successes / trials
+                for (episodes, start), seeds in pooled(self.points).items() for successes, trials in [pooled_score(seeds)]}
 
 
 def target_campaign(config: CampaignConfig) -> CampaignConfig:
@@ -100,12 +100,20 @@ def pooled(points: list[AdaptPoint]) -> dict[tuple[int, Start], list[AdaptPoint]
     return grouped
 
 
+def pooled_score(seeds: list[AdaptPoint]) -> tuple[int, int]:
+    """(successes, trials) of a point's training seeds together."""
+    return sum(p.successes for p in seeds), sum(p.trials for p in seeds)
+
+
 def episodes_to_reach(points: list[AdaptPoint], start: Start, success: float) -> int | None:
     """The fewest target-domain episodes with which `start`'s models reached `success`, their seeds'
     episodes pooled (fine-tuning from no episodes is the source model as it is); None: never."""
     counted = {start, "source"} if start == "fine-tuned" else {start}
-    reached = [episodes for (episodes, at), seeds in pooled(points).items()
-               if at in counted and sum(p.successes for p in seeds) >= success * sum(p.trials for p in seeds)]
+    reached = []
+    for (episodes, at), seeds in pooled(points).items():
+        successes, trials = pooled_score(seeds)
+        if at in counted and successes >= success * trials:
+            reached.append(episodes)
     return min(reached, default=None)
 
 
