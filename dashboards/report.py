@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from dashboards.protocol import SeedsSuccess, seed_groups
 from schemas.tasks import CAMPAIGN_SUITE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
@@ -61,7 +62,13 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
     return path
 
 
-# every split an evaluation can have, in the order tables show them
+def seeds_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[SeedsSuccess]]:
+    """Iteration -> success across the training seeds of the model it deployed (evaluate.training_seeds, or
+    seeds trained by hand on its dataset), over the flow's cases; iterations whose model has no other seed
+    are left out."""
+    deployed = dict(catalog.query("SELECT model_key, iteration FROM deployments WHERE campaign = ?", [campaign]))
+    return {deployed[key]: group.figures for group in seed_groups(catalog, campaign, CAMPAIGN_SUITE)
+            if group.weights == "registered" for key in group.model_keys if key in deployed}
 
 
 def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -> str:
@@ -69,6 +76,7 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
     rate, Wilson 95%), which iteration holds the champion, and the commands to look further."""
     by_iteration = success_by_iteration(catalog, campaign)
     champions = dict(catalog.query("SELECT iteration, promoted FROM deployments WHERE campaign = ?", [campaign]))
+    seeds = seeds_by_iteration(catalog, campaign)
     splits = [s for s in SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
     lines = [f"campaign {campaign!r}: success per iteration (successes/episodes, rate, Wilson 95%)",
              f"  {'iteration':<10}" + "".join(f"{split:<28}" for split in splits)]
@@ -80,6 +88,15 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
             for s in splits)
         mark = "  promoted" if champions.get(iteration) else ""
         lines.append(f"  {iteration:<10}{row}{mark}".rstrip())
+        if iteration in seeds:  # its model's training seeds: mean ± spread across them, the pooled episodes' interval
+            pooled = {f.group: f for f in seeds[iteration]}
+            label = f"{pooled[next(iter(pooled))].seeds} seeds"
+            lines.append(f"    {label:<8}" + "".join(
+                f"{pooled[s].mean:>7.0%} ± {100 * pooled[s].spread:<3.0f}[{pooled[s].ci_low:.0%}, {pooled[s].ci_high:.0%}]"
+                .ljust(28) if s in pooled else " " * 28 for s in splits).rstrip())
+    if seeds:
+        lines.append("  (N seeds: the iteration's dataset trained N times, mean ± spread across the trainings, "
+                     "Wilson 95% of their pooled episodes)")
     if not by_iteration:
         lines.append("  (no iteration was evaluated)")
     lines += ["look further:", *(f"  {command}" for command in look_further)]

@@ -15,6 +15,7 @@ from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.cache_policies import NO_CACHE
 from pydantic import BaseModel
 
+from dashboards.protocol import protocol_success
 from dashboards.report import plot_success_by_iteration, success_by_iteration
 from envs.pool import keep_workers
 from flows.artifacts import iteration_markdown, publish_iteration_artifacts
@@ -22,6 +23,7 @@ from flows.rollouts import as_prefect_tasks, rollout_task_runner
 from flows.run_lock import exclusive_run
 from flows.service import log_to_running_stack
 from flows.tracking import Tracking
+from flows.training_seeds import SeedResult, other_seeds, run_training_seed, with_seed
 from schemas.config import CampaignConfig
 from schemas.settings import apply_secrets_file
 from schemas.tasks import Split
@@ -126,6 +128,36 @@ def evaluate_task(
     return run_evaluate(ws, config, iteration, model.model_key, model.checkpoint, load_tasks(ws, tasks_key), embeddings)
 
 
+@stage_task(name="training seed")
+def training_seed_task(
+    workspace: str, config: CampaignConfig, iteration: int, dataset: IndexResult, tasks_key: str, mlflow_run_id: str
+) -> SeedResult:
+    ws = Workspace.at(workspace)
+    tracking = Tracking(ws, config)
+    embeddings = load_embeddings(ws, tasks_key, config.train.model.language_encoder)
+    return run_training_seed(ws, config, iteration, dataset, tasks_key, load_tasks(ws, tasks_key), embeddings,
+                             on_metrics=tracking.step_logger(mlflow_run_id, f"train.seed{config.train.seed}."))
+
+
+def _measure_seeds(workspace: str, tracking: Tracking, run_id: str, config: CampaignConfig, iteration: int,
+                   dataset: IndexResult, tasks_key: str, evaluation: EvaluateResult) -> None:
+    """The iteration's other training seeds (evaluate.training_seeds), each trained and evaluated; their
+    figures and the pooled ones (mean, spread across seeds, Wilson 95% of the pooled episodes) to the run."""
+    seeds = [training_seed_task(workspace, with_seed(config, seed), iteration, dataset, tasks_key, run_id)
+             for seed in other_seeds(config)]
+    for seed in seeds:
+        _log_stage(tracking, run_id, seed)
+    if not seeds:
+        return
+    figures = protocol_success([evaluation.tasks, *(seed.tasks for seed in seeds)])
+    if any(seed.did_work() for seed in seeds):
+        tracking.log_metrics(run_id, {name: value for f in figures for name, value in (
+            (f"seeds.success.{f.group}", f.mean), (f"seeds.success.{f.group}.spread", f.spread),
+            (f"seeds.success.{f.group}.ci_low", f.ci_low), (f"seeds.success.{f.group}.ci_high", f.ci_high))})
+    log.info("iteration %d over %d training seeds: %s", iteration, len(seeds) + 1,
+             "; ".join(f"{f.group} {f.describe()}" for f in figures if f.group in SPLITS))
+
+
 @stage_task(name="baselines")
 def baselines_task(workspace: str, config: CampaignConfig, iteration: int, tasks_key: str,
                    explore_units: list[str]) -> BaselinesResult:
@@ -185,6 +217,7 @@ def iteration_flow(
     evaluation = evaluate_task(workspace, config, iteration, model, tasks.unit_key)
     _log_stage(tracking, run_id, evaluation)
     deployment = redeploy_task(workspace, config, iteration, model, run_id, evaluation)
+    _measure_seeds(workspace, tracking, run_id, config, iteration, index, tasks.unit_key, evaluation)
     tracking.set_tags(run_id, {"sim2act.explorer": explorer.name if explorer else "expert",
                                "sim2act.model_key": model.model_key})
     tracking.finish(run_id)

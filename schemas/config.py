@@ -337,6 +337,12 @@ class EvaluateConfig(_Strict):
         "(split held_out_wording: schemas/wordings.py), on the canonical wording's seeds")
     workers: PositiveInt = 2
     videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
+    training_seeds: PositiveInt = Field(
+        default=1, le=16, description="trainings of each iteration's dataset (train.seed, train.seed + 1, ...): the "
+        "first is the campaign's model (it competes for champion and explores the next iteration); the others, "
+        "trained alike but for the seed, meet the same cases beside it, so every iteration's success comes with its "
+        "spread across seeds (the results protocol asks 3: docs/evaluation.md); each costs a training and an evaluation",
+    )
 
     def episodes_per_case(self, cases_in_split: int) -> int:
         """Episodes for each case of a split of `cases_in_split` cases."""

@@ -393,7 +393,7 @@ def evaluate_model(
     # a unit reads its own episode count, not the split's size: the same case evaluated in a smaller task
     # set (sim2act eval --split) finds the same unit
     reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task",
-                                                             "held_out_wordings"}),
+                                                             "held_out_wordings", "training_seeds"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
     per_split = episodes_per_split(config, cases)

@@ -55,6 +55,14 @@ def bytes_per_step(config: CampaignConfig, catalog: Catalog | None) -> tuple[flo
     return BYTES_PER_STEP_84PX * scale, False
 
 
+def expected_steps(config: CampaignConfig, task: TaskRecord, experts: ExpertTable | None = None) -> float:
+    """The steps one iteration explores in a seen task: its episodes x its expert's mean episode length
+    (the horizon where the table has no row)."""
+    experts = experts or load_expert_table()
+    row = experts.rows.get(task.task_id)
+    return config.explore.episodes_per_task * (row.mean_length if row else task.horizon)
+
+
 def explore_estimate(config: CampaignConfig, tasks: list[TaskRecord], catalog: Catalog | None = None,
                      experts: ExpertTable | None = None) -> ExploreEstimate:
     """The steps the campaign's remaining iterations will explore, and their bytes."""
@@ -63,10 +71,7 @@ def explore_estimate(config: CampaignConfig, tasks: list[TaskRecord], catalog: C
     if catalog is not None and catalog.path.exists():
         [(done,)] = catalog.query("SELECT count(DISTINCT iteration) FROM iterations WHERE campaign = ?", [config.name])
     left = max(0, config.iterations - done)
-    per_iteration = sum(
-        config.explore.episodes_per_task * (experts.rows[t.task_id].mean_length if t.task_id in experts.rows else t.horizon)
-        for t in tasks if t.split == "seen"
-    )
+    per_iteration = sum(expected_steps(config, t, experts) for t in tasks if t.split == "seen")
     size, measured = bytes_per_step(config, catalog)
     return ExploreEstimate(iterations=left, steps=round(left * per_iteration), bytes_per_step=size, measured_here=measured)
 

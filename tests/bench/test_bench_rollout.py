@@ -47,10 +47,16 @@ def test_bench_rollout_mix_explores_the_same_episodes_at_both_mesh_details(tmp_p
     out = tmp_path / "mix.md"
     assert main(["bench", "rollout", "--mix", "--quick", "--json", "--scratch", str(tmp_path), "--out", str(out)]) == 0
     bench = json.loads(capsys.readouterr().out)
-    assert bench["tasks"] == ["lift-red", "mw-hammer"]  # specs 0 and 32 of the preset: robosuite and MetaWorld
+    assert bench["tasks"] == ["mw-assembly", "nav-room-red", "lift-red"]  # each family's first spec with a seen task
     families = {f["family"]: f for f in bench["families"]}
-    assert sorted(families) == ["metaworld", "robosuite"]
+    assert sorted(families) == ["metaworld", "navigation", "robosuite"]
     for family in families.values():  # the same steps on both sides is checked by the bench itself
         assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
         assert family["full_s"] > 0 and family["decimated_s"] > 0
-    assert "| all | 2 | 2 |" in out.read_text()
+    # the preset's mix: each family's seconds per step weighted by the steps the preset explores in it
+    shares = bench["preset_steps"]
+    assert sorted(shares) == sorted(families) and shares["robosuite"] > shares["navigation"] > 0
+    weighted = [sum(n * families[f][side] / families[f]["steps"] for f, n in shares.items()) / sum(shares.values())
+                for side in ("full_s", "decimated_s")]
+    table = out.read_text()
+    assert "| all | 3 | 3 |" in table and f"**{weighted[0] / weighted[1]:.2f}×** |" in table

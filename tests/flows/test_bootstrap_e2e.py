@@ -369,3 +369,43 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     other = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--set", "name=other", "--workspace", str(workspace)],
                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
     assert other.returncode == 2 and other.stderr.strip().endswith("campaign 'other' has no evaluated iteration in this warehouse")
+
+
+def test_training_seeds_measure_each_iteration_beside_its_own_model(finished_campaign, tmp_path, prefect_api):
+    """evaluate.training_seeds=2 over a finished campaign: no stage redoes a unit (the field is in no unit's key);
+    each iteration's dataset is trained again under seed 1 and met by the same evaluation cases, measured and never
+    deployed; the summary and the iteration's MLflow run show the two seeds pooled."""
+    workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
+    shutil.copytree(finished_campaign[0], workspace)
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    deployed = catalog.query("SELECT iteration, model_key, champion_model_key, promoted FROM deployments ORDER BY 1")
+    output, _ = run_campaign(workspace, prefect_api, None, "--set", "evaluate.training_seeds=2")
+    assert output.count("stages that ran: 0/7") == 2, output[-3000:]
+    assert catalog.query("SELECT iteration, model_key, champion_model_key, promoted FROM deployments ORDER BY 1") == deployed
+    summary = output[output.index("campaign 'smoke': success per iteration"):]
+    from dashboards.protocol import protocol_success
+    from stages.evaluate import read_evaluations
+
+    for iteration, own_key, _, _ in deployed:
+        trainings = catalog.query(
+            "SELECT m.model_key, s.summary FROM models m JOIN stage_runs s ON s.unit_key = m.model_key "
+            "WHERE m.iteration = ? ORDER BY m.model_key", [iteration])
+        assert sorted(json.loads(summary_json).get("seed", 0) for _, summary_json in trainings) == [0, 1]
+        [other_key] = [key for key, _ in trainings if key != own_key]
+        by_model = {key: sorted(((t.task_id, t.split, t.instruction, t.episodes), t) for t in [
+            evaluation for _, evaluation in read_evaluations(catalog, "v.model_key", "WHERE v.model_key = ?", [key])])
+            for key in (own_key, other_key)}
+        assert [case for case, _ in by_model[other_key]] == [case for case, _ in by_model[own_key]]  # the same cases
+        seen = {f.group: f for f in protocol_success([[t for _, t in by_model[k]] for k in (own_key, other_key)])}["seen"]
+        rows = summary.splitlines()
+        own_row = next(i for i, line in enumerate(rows) if re.match(rf"  {iteration} +\d+/", line))
+        assert re.match(rf"    2 seeds +{seen.mean:.0%} ± {100 * seen.spread:.0f} +\[{seen.ci_low:.0%}, ", rows[own_row + 1]), summary
+        ws = Workspace.at(workspace)
+        client = MlflowClient(tracking_uri=ws.tracking_uri, registry_uri=ws.tracking_uri)
+        # the config differs from the first run's (its hash tags the runs): this run's iteration runs are new ones
+        [run] = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id],
+                                   f"tags.`sim2act.kind` = 'iteration' AND tags.`sim2act.iteration` = '{iteration}'",
+                                   order_by=["attributes.start_time DESC"], max_results=1)
+        metrics = run.data.metrics
+        assert metrics["seeds.success.seen"] == pytest.approx(seen.mean)
+        assert metrics["seed1.success.seen"] == pytest.approx(seen.per_seed[1]) and "train.seed1.loss" in metrics
