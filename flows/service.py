@@ -24,7 +24,7 @@ from schemas.config import CampaignConfig
 from schemas.errors import Sim2ActError
 from schemas.service import HOST, ServiceConfig
 from schemas.settings import (ARTIFACTS_DESTINATION_ENV, BACKEND_STORE_ENV, PREFECT_DATABASE_ENV, SECRETS_FILE_ENV,
-                             TRACKING_URI_ENV)
+                             TRACKING_URI_ENV, whole_sqlite_store)
 from schemas.workspace import Workspace, write_text_atomically
 
 STARTUP_TIMEOUT_S = 180.0  # a first Prefect start migrates its database: ~10-40 s on 2 cores
@@ -71,6 +71,7 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
     if own_database:
         mlflow_env.setdefault(ARTIFACTS_DESTINATION_ENV, workspace.artifact_root.as_uri())
     else:
+        whole_sqlite_store(workspace)  # made whole here, not migrated by a server that may be stopped mid-way
         mlflow_command += ["--backend-store-uri", workspace.tracking_uri,
                            "--default-artifact-root", workspace.artifact_root.as_uri()]
     linked = {**{k: v for k, v in base.items() if k != SECRETS_FILE_ENV}, PREFECT_API_ENV: f"{prefect}/api",

@@ -93,8 +93,41 @@ def cache_dir() -> Path:
 
 def tracking_uri(workspace: Workspace) -> str:
     """Where this process logs MLflow runs and registers models: MLFLOW_TRACKING_URI, else the
-    workspace's own SQLite file."""
-    return os.environ.get(TRACKING_URI_ENV) or workspace.tracking_uri
+    workspace's own SQLite file (made whole first, if it is not there yet: `whole_sqlite_store`)."""
+    configured = os.environ.get(TRACKING_URI_ENV)
+    if configured:
+        return configured
+    whole_sqlite_store(workspace)
+    return workspace.tracking_uri
+
+
+def whole_sqlite_store(workspace: Workspace) -> None:
+    """Create the workspace's MLflow SQLite store if it does not exist, all at once.
+
+    MLflow creates its store on first use through ~100 schema migrations, and SQLite commits each
+    statement on its own: a run killed among them (a soak's kill, Ctrl-C in a run's first seconds) left a
+    store that no later run could open ("table _alembic_tmp_experiments already exists"). So the store
+    is made and migrated under a name of this process's, then linked into place, which fails if another
+    process was first (its store, maybe with runs already, is kept). A kill leaves a temporary file,
+    removed by the next process that makes the store.
+    """
+    path = workspace.mlflow / "mlflow.db"
+    if path.exists():
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in path.parent.glob(f"{path.name}.making-*"):  # an earlier process's, killed while making it
+        stale.unlink(missing_ok=True)
+    making = path.with_name(f"{path.name}.making-{os.getpid()}")
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    store = SqlAlchemyStore(f"sqlite:///{making}", workspace.artifact_root.as_uri())
+    store.engine.dispose()  # every connection closed: the file is whole, and no journal is left beside it
+    try:
+        os.link(making, path)
+    except FileExistsError:
+        pass
+    finally:
+        making.unlink(missing_ok=True)
 
 
 def redacted(url: str) -> str:

@@ -73,3 +73,35 @@ def test_tracking_goes_to_the_workspace_unless_the_environment_names_a_store(tmp
 def test_a_url_is_shown_without_its_password():
     assert redacted("postgresql://sim2act:hunter2@127.0.0.1:5432/mlflow") == "postgresql://sim2act:***@127.0.0.1:5432/mlflow"
     assert redacted("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
+
+
+def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stops_the_next(tmp_path, monkeypatch):
+    """MLflow makes its SQLite store through ~100 migrations; a run killed among them once left a store no later
+    run could open. Now it is made aside and linked into place whole: killed mid-way, the next process makes it."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from mlflow import MlflowClient
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    workspace = Workspace.at(tmp_path / "workspace")
+    maker = subprocess.Popen([sys.executable, "-c", "import sys; from schemas.settings import tracking_uri; "
+                              "from schemas.workspace import Workspace; tracking_uri(Workspace.at(sys.argv[1]))",
+                              str(workspace.root)], env={**os.environ, "PYTHONPATH": os.getcwd()})
+    deadline = time.monotonic() + 120
+    while not list(workspace.mlflow.glob("mlflow.db.making-*")) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)  # among the migrations (they take seconds)
+    maker.send_signal(signal.SIGKILL)
+    maker.wait()
+    assert not (workspace.mlflow / "mlflow.db").exists() and list(workspace.mlflow.glob("mlflow.db.making-*"))
+    uri = tracking_uri(workspace)
+    assert sorted(p.name for p in workspace.mlflow.iterdir()) == ["mlflow.db"]  # the killed one's file removed
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    run = client.create_run(client.create_experiment("after-the-kill"))
+    client.log_metric(run.info.run_id, "loss", 0.5)
+    assert client.get_run(run.info.run_id).data.metrics == {"loss": 0.5}
+    assert tracking_uri(workspace) == uri  # made once: the next call finds it
