@@ -12,7 +12,7 @@ from urllib.parse import unquote, urlsplit, urlunsplit
 
 from schemas.config import PRESETS, CampaignConfig, deep_merge, load_config, parse_settings
 from schemas.errors import Sim2ActError
-from schemas.settings import BACKEND_STORE_ENV, TRACKING_URI_ENV, apply_secrets_file, redacted, tracking_uri
+from schemas.settings import BACKEND_STORE_ENV, TRACKING_URI_ENV, apply_secrets_file, redacted
 from schemas.workspace import Workspace, write_text_atomically
 
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
@@ -107,7 +107,7 @@ def check_tracking_server(workspace: Workspace) -> None:
     Raises:
         TrackingUnreachable: no answer from its /health, or no server for the named database.
     """
-    uri = tracking_uri(workspace)
+    uri = os.environ.get(TRACKING_URI_ENV) or workspace.tracking_uri  # not tracking_uri(): it makes the SQLite store
     if os.environ.get(BACKEND_STORE_ENV) and not os.environ.get(TRACKING_URI_ENV):
         raise TrackingUnreachable(f"{BACKEND_STORE_ENV} names the stack's tracking database, but no MLflow server "
                                   f"runs for {workspace.root}: start it (`sim2act up`) or set {TRACKING_URI_ENV}")
