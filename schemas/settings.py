@@ -115,8 +115,9 @@ def whole_sqlite_store(workspace: Workspace) -> None:
     if path.exists():
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in path.parent.glob(f"{path.name}.making-*"):  # an earlier process's, killed while making it
-        stale.unlink(missing_ok=True)
+    for stale in path.parent.glob(f"{path.name}.making-*"):  # a killed maker's; a live one's is still being made
+        if not _alive(int(stale.suffix.removeprefix(".making-") or 0)):
+            stale.unlink(missing_ok=True)
     making = path.with_name(f"{path.name}.making-{os.getpid()}")
     from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 
@@ -128,6 +129,16 @@ def whole_sqlite_store(workspace: Workspace) -> None:
         pass
     finally:
         making.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return pid > 0
 
 
 def redacted(url: str) -> str:
