@@ -1,21 +1,23 @@
-"""`sim2act bench rollout --mix`: the explore stage over a sample of the generalist's mix, full visual
-meshes against decimated ones (`render.mesh_detail`), the same episodes on both sides (issue 11 item 2:
-explore triplets/s per core over the generalist mix).
+"""`sim2act bench rollout --mix`: the explore stage over a sample of the generalist's mix, as it was
+(full visual meshes, robosuite's arm controller at every substep), with decimated meshes
+(`render.mesh_detail`), and with the fused substeps beside them (envs/robosuite_control.py), the same
+episodes on every side (issue 11 item 2: explore triplets/s per core over the generalist mix).
 
 1. the sample: per family (robosuite, MetaWorld, navigation), `tasks_per_family` of the preset's
    specs with a seen task, evenly spaced in the preset's order, each spec's first seen task;
 2. the decimated meshes made beforehand in a worker (a host makes them once, not once per campaign);
-3. the explore stage (`run_explore`, one worker) on a fresh workspace at 1.0, then at `mesh_detail`:
-   the same seeds and physics, hence the same steps (checked);
+3. the explore stage (`run_explore`, one worker) on a fresh workspace per side (`sides`): the same
+   seeds and physics, hence the same steps (checked);
 4. per family, from the units the stage registered: steps, the units' seconds (one worker: CPU
-   seconds of the one core it holds), steps per core-second, and the ratio of the two sides;
+   seconds of the one core it holds), steps per core-second, and each side's ratio to the first;
 5. over the preset's own mix: the families' rates weighted by the steps the preset explores in each
    (its seen tasks' expert mean episode lengths, as `sim2act run` estimates them), i.e. the explore
-   stage's steps per core-second over the whole campaign at each mesh detail.
+   stage's steps per core-second over the whole campaign on each side.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 import time
@@ -25,6 +27,7 @@ from pydantic import BaseModel
 
 from bench.rollout import LoadMeter
 from bench.tables import table
+from envs.robosuite_control import STOCK_CONTROL
 from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, load_config
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -41,26 +44,36 @@ class MixSizes(BaseModel):
 QUICK = MixSizes(tasks_per_family=1, episodes_per_task=1, episodes_per_shard=1)  # 3 tasks, seconds
 
 
+class Side(BaseModel):
+    label: str  # the table's column heading
+    mesh_detail: float  # render.mesh_detail
+    fused_control: bool  # robosuite's substeps through envs/robosuite_control (False: robosuite's own path)
+
+
+def sides(sizes: MixSizes) -> list[Side]:
+    """The explore stage as it was (the baseline), with decimated meshes, and with the fused substeps too."""
+    detail = f"{sizes.mesh_detail:g}"
+    return [Side(label="meshes 1.0, robosuite's controller", mesh_detail=1.0, fused_control=False),
+            Side(label=f"meshes {detail}", mesh_detail=sizes.mesh_detail, fused_control=False),
+            Side(label=f"meshes {detail}, fused substeps", mesh_detail=sizes.mesh_detail, fused_control=True)]
+
+
 class FamilyRate(BaseModel):
     family: str
     tasks: int
     episodes: int
     steps: int
-    full_s: float  # summed unit seconds at mesh_detail 1.0
-    decimated_s: float  # the same at `mesh_detail`
-
-    @property
-    def ratio(self) -> float:
-        return self.full_s / self.decimated_s if self.decimated_s else 0.0
+    seconds: list[float]  # summed unit seconds on each side, in the bench's order of sides
 
 
 class MixBench(BaseModel):
     sizes: MixSizes
+    sides: list[Side]
     tasks: list[str]
     families: list[FamilyRate]
     preset_steps: dict[str, int]  # family -> the steps the preset's iteration 0 explores in it (estimated)
-    wall_s: tuple[float, float]  # the stage's wall seconds, 1.0 and decimated
-    other_load: tuple[float, float]
+    wall_s: list[float]  # the stage's wall seconds on each side
+    other_load: list[float]  # cores the machine's other processes kept busy meanwhile, on each side
 
 
 def _sample(sizes: MixSizes) -> tuple[CampaignConfig, list[TaskRecord], dict[str, int]]:
@@ -89,18 +102,26 @@ def _sample(sizes: MixSizes) -> tuple[CampaignConfig, list[TaskRecord], dict[str
     return config, tasks, preset_steps
 
 
-def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], detail: float) -> tuple[dict, float, float]:
+def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: Side) -> tuple[dict, float, float]:
     """family -> (tasks, episodes, steps, unit seconds); the stage's wall seconds and the other load."""
     from stages.explore import run_explore
     from warehouse.catalog import Catalog
 
-    workspace = Workspace.at(root / f"detail-{detail:g}").create()
+    workspace = Workspace.at(root / f"side-{side.mesh_detail:g}-{'fused' if side.fused_control else 'stock'}").create()
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
-    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": detail})})
-    meter = LoadMeter()
-    run_explore(workspace, config, 0, tasks, None, {})
-    wall = time.perf_counter() - meter.wall
+    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": side.mesh_detail})})
+    before = os.environ.get(STOCK_CONTROL)
+    os.environ[STOCK_CONTROL] = "0" if side.fused_control else "1"  # the stage's workers are spawned: they inherit it
+    try:
+        meter = LoadMeter()
+        run_explore(workspace, config, 0, tasks, None, {})
+        wall = time.perf_counter() - meter.wall
+    finally:
+        if before is None:
+            os.environ.pop(STOCK_CONTROL)
+        else:
+            os.environ[STOCK_CONTROL] = before
     family_of = {t.task_id: t.family for t in tasks}
     per_family: dict[str, list] = {}
     for task_id, episodes, steps, seconds in catalog.query(
@@ -115,10 +136,10 @@ def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], detail
 
 
 def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
-    """The explore stage over the mix at full and decimated meshes (steps in the module docstring).
+    """The explore stage over the mix on each side (steps in the module docstring).
 
     Raises:
-        RuntimeError: the two sides explored different steps (the physics differ: a bug)."""
+        RuntimeError: two sides explored different steps (the physics differ: a bug)."""
     from bench.rollout import fill_mesh_cache
 
     config, tasks, preset_steps = _sample(sizes)
@@ -127,51 +148,49 @@ def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-mix-", dir=scratch))
     try:
         fill_mesh_cache(tasks, config.render.model_copy(update={"mesh_detail": sizes.mesh_detail}))
-        full, full_wall, full_load = _explore(root, config, tasks, 1.0)
-        decimated, dec_wall, dec_load = _explore(root, config, tasks, sizes.mesh_detail)
+        runs = [_explore(root, config, tasks, side) for side in sides(sizes)]
     finally:
         shutil.rmtree(root, ignore_errors=True)
     families = []
-    for family in sorted(full):
-        (names, episodes, steps, full_s), (_, _, dec_steps, dec_s) = full[family], decimated[family]
-        if dec_steps != steps:
-            raise RuntimeError(f"bench mix: {family} explored {steps} steps at 1.0 and {dec_steps} decimated: "
-                               "the same episodes should take the same steps")
+    for family in sorted(runs[0][0]):
+        names, episodes, steps, _ = runs[0][0][family]
+        for side, (per_family, _, _) in zip(sides(sizes), runs):
+            if per_family[family][2] != steps:
+                raise RuntimeError(f"bench mix: {family} explored {steps} steps at first and {per_family[family][2]} "
+                                   f"with {side.label}: the same episodes should take the same steps")
         families.append(FamilyRate(family=family, tasks=len(names), episodes=episodes, steps=steps,
-                                   full_s=full_s, decimated_s=dec_s))
-    return MixBench(sizes=sizes, tasks=[t.task_id for t in tasks], families=families, preset_steps=preset_steps,
-                    wall_s=(full_wall, dec_wall), other_load=(full_load, dec_load))
+                                   seconds=[per_family[family][3] for per_family, _, _ in runs]))
+    return MixBench(sizes=sizes, sides=sides(sizes), tasks=[t.task_id for t in tasks], families=families,
+                    preset_steps=preset_steps, wall_s=[wall for _, wall, _ in runs], other_load=[load for _, _, load in runs])
 
 
-def preset_rates(bench: MixBench) -> tuple[float, float]:
-    """Steps per core-second over the preset's mix at 1.0 and at the bench's detail: each family's rate
-    weighted by the steps the preset explores in it (seconds per step, summed by share)."""
+def preset_rates(bench: MixBench) -> list[float]:
+    """Steps per core-second over the preset's mix on each side: each family's rate weighted by the
+    steps the preset explores in it (seconds per step, summed by share)."""
     rates = {f.family: f for f in bench.families}
     steps = {family: n for family, n in bench.preset_steps.items() if family in rates}
     total = sum(steps.values())
-    full = sum(n / total * rates[family].full_s / rates[family].steps for family, n in steps.items())
-    decimated = sum(n / total * rates[family].decimated_s / rates[family].steps for family, n in steps.items())
-    return 1 / full, 1 / decimated
+    return [1 / sum(n / total * rates[family].seconds[i] / rates[family].steps for family, n in steps.items())
+            for i in range(len(bench.sides))]
 
 
 def markdown(bench: MixBench, command: str) -> str:
-    detail = f"{bench.sizes.mesh_detail:g}"
     total = FamilyRate(family="all", tasks=sum(f.tasks for f in bench.families),
                        episodes=sum(f.episodes for f in bench.families), steps=sum(f.steps for f in bench.families),
-                       full_s=sum(f.full_s for f in bench.families),
-                       decimated_s=sum(f.decimated_s for f in bench.families))
-    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", f"{f.steps / f.full_s:.1f}",
-             f"{f.steps / f.decimated_s:.1f}", f"{f.ratio:.2f}×"] for f in [*bench.families, total]]
-    full, decimated = preset_rates(bench)
+                       seconds=[sum(f.seconds[i] for f in bench.families) for i in range(len(bench.sides))])
+    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", *(f"{f.steps / s:.1f}" for s in f.seconds),
+             *(f"{f.seconds[0] / s:.2f}×" for s in f.seconds[1:])] for f in [*bench.families, total]]
+    rates = preset_rates(bench)
     shares = sum(bench.preset_steps.values())
     rows.append([f"the `{bench.sizes.preset}` mix, by its steps ("
                  + ", ".join(f"{family} {n / shares:.0%}" for family, n in sorted(bench.preset_steps.items())) + ")",
-                 "", "", "", f"{full:.1f}", f"{decimated:.1f}", f"**{decimated / full:.2f}×**"])
+                 "", "", "", *(f"{rate:.1f}" for rate in rates), *(f"**{rate / rates[0]:.2f}×**" for rate in rates[1:])])
+    walls = ", ".join(f"{wall:.0f} s" for wall in bench.wall_s)
+    loads = " / ".join(f"{load:.2f}" for load in bench.other_load)
     return "\n".join([
         f"`{command}`: the explore stage, one worker, over {len(bench.tasks)} tasks of the `{bench.sizes.preset}` "
-        f"preset ({', '.join(bench.tasks)}), {bench.sizes.episodes_per_task} episodes each, the same seeds on both "
-        f"sides (the same steps: checked). Steps per core-second = steps / the units' summed seconds (one worker holds "
-        f"one core). Stage wall: {bench.wall_s[0]:.0f} s at 1.0, {bench.wall_s[1]:.0f} s at {detail}; other load "
-        f"{bench.other_load[0]:.2f} / {bench.other_load[1]:.2f} cores.", "",
-        *table(["family", "tasks", "episodes", "steps", "steps/s per core, meshes 1.0",
-                f"steps/s per core, meshes {detail}", "ratio"], rows)]) + "\n"
+        f"preset ({', '.join(bench.tasks)}), {bench.sizes.episodes_per_task} episodes each, the same seeds on every "
+        f"side (the same steps: checked). Steps per core-second = steps / the units' summed seconds (one worker holds "
+        f"one core). Stage wall, side by side: {walls}; other load {loads} cores.", "",
+        *table(["family", "tasks", "episodes", "steps", *(f"steps/s per core, {side.label}" for side in bench.sides),
+                *(f"{side.label} / the first" for side in bench.sides[1:])], rows)]) + "\n"

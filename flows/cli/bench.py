@@ -139,8 +139,9 @@ def register(commands: Commands) -> None:
     bench_parser("rollout", "explore stage vs plain robosuite loops, steps/s",
                  "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout
                  ).add_argument("--mix", action="store_true",
-                                help="instead: the stage over a sample of the generalist's tasks, visual meshes at 1.0 "
-                                     "vs decimated, the same episodes, per family")
+                                help="instead: the stage over a sample of the generalist's tasks as it was (meshes 1.0, "
+                                     "robosuite's controller), decimated, and decimated with the fused substeps; the "
+                                     "same episodes, per family")
     bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "

@@ -1,9 +1,11 @@
 """`sim2act bench rollout` runs the plain robosuite loops and the explore stage side by side."""
 
 import json
+import os
 
 import pytest
 
+from envs.robosuite_control import STOCK_CONTROL
 from flows.cli import main
 
 
@@ -41,22 +43,26 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
     assert list(scratch.iterdir()) == []  # the throwaway workspaces are gone
 
 
-def test_bench_rollout_mix_explores_the_same_episodes_at_both_mesh_details(tmp_path, capsys, monkeypatch):
-    """--mix: the stage over a sample of the generalist's tasks, full and decimated meshes, per family."""
+def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, capsys, monkeypatch):
+    """--mix: the stage over a sample of the generalist's tasks, as it was, with decimated meshes, and
+    with the fused substeps too, per family."""
     monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "mix.md"
     assert main(["bench", "rollout", "--mix", "--quick", "--json", "--scratch", str(tmp_path), "--out", str(out)]) == 0
     bench = json.loads(capsys.readouterr().out)
     assert bench["tasks"] == ["mw-assembly", "nav-room-red", "lift-red"]  # each family's first spec with a seen task
+    assert [(s["mesh_detail"], s["fused_control"]) for s in bench["sides"]] == [(1.0, False), (0.1, False), (0.1, True)]
     families = {f["family"]: f for f in bench["families"]}
     assert sorted(families) == ["metaworld", "navigation", "robosuite"]
-    for family in families.values():  # the same steps on both sides is checked by the bench itself
+    for family in families.values():  # the same steps on every side is checked by the bench itself
         assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
-        assert family["full_s"] > 0 and family["decimated_s"] > 0
+        assert len(family["seconds"]) == 3 and min(family["seconds"]) > 0
     # the preset's mix: each family's seconds per step weighted by the steps the preset explores in it
     shares = bench["preset_steps"]
     assert sorted(shares) == sorted(families) and shares["robosuite"] > shares["navigation"] > 0
-    weighted = [sum(n * families[f][side] / families[f]["steps"] for f, n in shares.items()) / sum(shares.values())
-                for side in ("full_s", "decimated_s")]
+    weighted = [sum(n * families[f]["seconds"][side] / families[f]["steps"] for f, n in shares.items()) / sum(shares.values())
+                for side in range(3)]
     table = out.read_text()
-    assert "| all | 3 | 3 |" in table and f"**{weighted[0] / weighted[1]:.2f}×** |" in table
+    assert "| all | 3 | 3 |" in table
+    assert f"**{weighted[0] / weighted[1]:.2f}×** | **{weighted[0] / weighted[2]:.2f}×** |" in table
+    assert os.environ.get(STOCK_CONTROL) is None  # the bench leaves the variable as it found it
