@@ -4,13 +4,16 @@ For each family, side by side in one run: the raw MuJoCo physics of one control 
 (`mj_step` times the substeps the simulator takes per action), the simulator's own env step
 without a camera, our adapter without a camera, and our adapter rendering 84x84 frames (for
 robosuite and MetaWorld also with their visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
-show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). Every family runs in a fresh
+show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). For
+robosuite, the adapter's two layers again with robosuite's own arm controller at every substep instead of the
+fused substeps (envs/robosuite_control.py: the same states bit for bit). Every family runs in a fresh
 process, one after the other, so GL contexts and core use do not mix.
 """
 
 from __future__ import annotations
 
 import datetime
+import os
 import time
 from collections.abc import Callable
 
@@ -20,6 +23,7 @@ from pydantic import BaseModel
 
 from bench.tables import table
 from envs.pool import run_in_pool
+from envs.robosuite_control import STOCK_CONTROL
 from schemas.config import RenderConfig, TasksConfig
 
 # one representative task per family
@@ -28,6 +32,8 @@ MESH_DETAIL = 0.1  # the decimated layer's render.mesh_detail
 LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render",
           f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}")
 MESH_DETAIL_FAMILIES = {"robosuite", "metaworld"}  # the adapters that apply render.mesh_detail
+STOCK_CONTROL_LAYERS = ("sim2act adapter, robosuite's controller",
+                        f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}, robosuite's controller")
 EPISODE_STEPS = 100  # reset this often, outside the timed calls
 
 
@@ -89,6 +95,13 @@ def measure_family(case: BenchCase) -> list[BenchRow]:
         coarse = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL))
         rates[LAYERS[4]] = _rate(lambda i: coarse.step(actions[i]), lambda: coarse.reset(task, seed=0), case.steps)
         coarse.close()
+    if case.family == "robosuite":  # the same two adapter layers through robosuite's own controller
+        os.environ[STOCK_CONTROL] = "1"  # read when an environment is made; this worker process is the bench's own
+        for layer, render in zip(STOCK_CONTROL_LAYERS, (None, RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL))):
+            stock = make_env(case.family, task.env_name, render)
+            rates[layer] = _rate(lambda i: stock.step(actions[i]), lambda: stock.reset(task, seed=0), case.steps)
+            stock.close()
+        del os.environ[STOCK_CONTROL]
     raw = rates[LAYERS[0]]
     return [BenchRow(family=case.family, env=task.env_name, layer=layer, steps_per_s=rate, relative_to_raw=rate / raw)
             for layer, rate in rates.items()]
@@ -107,7 +120,7 @@ def render_shares(rows: list[BenchRow]) -> list[list[str]]:
     shares = []
     for family in dict.fromkeys(r.family for r in rows):
         rate = {r.layer: r.steps_per_s for r in rows if r.family == family}
-        share = [f"{1 - rate[layer] / rate[LAYERS[2]]:.0%}" if layer in rate else "—" for layer in LAYERS[3:]]
+        share = [f"{1 - rate[layer] / rate[LAYERS[2]]:.0%}" if layer in rate else "—" for layer in LAYERS[3:5]]
         shares.append([family, *share])
     return shares
 

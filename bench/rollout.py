@@ -205,7 +205,8 @@ def _make_and_close(case: tuple[TaskRecord, RenderConfig]) -> int:
 def fill_mesh_cache(tasks: list[TaskRecord], render: RenderConfig) -> None:
     """Decimate the tasks' meshes at `render.mesh_detail` before a clock starts (a host does it once, not
     once per campaign), in a worker process: renderers are made there, never in this one."""
-    run_in_pool(_make_and_close, [(task, render) for task in tasks], workers=1)
+    for _ in run_in_pool(_make_and_close, [(task, render) for task in tasks], workers=1):
+        pass  # a generator: the units run as it is drained
 
 
 def _ratio(name: str, value: float, target: float | None = None) -> Ratio:

@@ -10,7 +10,8 @@ numba kernels, on ids resolved once per episode — bit for bit robosuite's torq
 against the stock controller in tests/envs/test_robosuite_control.py), so the data does not
 change. The first substep of each step (setting the goal, robosuite's proprioceptive history)
 still goes through robosuite, and any setup this module was not written for (another controller,
-interpolators, more than one arm or robot) keeps robosuite's own path throughout.
+interpolators, more than one arm or robot, an environment with its own `_pre_action`) keeps
+robosuite's own path throughout.
 """
 
 from __future__ import annotations
@@ -27,9 +28,12 @@ STOCK_CONTROL = "SIM2ACT_STOCK_ROBOSUITE_CONTROL"
 
 @dataclass
 class _Bound:
-    """One episode's controllers and the ids and indexes they read (robosuite makes new
-    controllers at every reset)."""
+    """One episode's controllers, the simulator they drive and the ids and indexes they read
+    (robosuite makes new controllers at every reset, and a new simulator at a hard reset)."""
 
+    sim: object  # robosuite's MjSim the controllers were made on
+    model: mujoco.MjModel
+    data: mujoco.MjData
     composite: object
     arm: object  # robosuite OperationalSpaceController
     gripper: object  # robosuite SimpleGripController
@@ -37,36 +41,51 @@ class _Bound:
     gripper_actuators: list[int]
     ref_site: int  # the end-effector site the OSC tracks
     centre_site: int  # the arm's base frame ("<prefix><arm>_center"), where its goal is expressed
+    jacp: np.ndarray  # (3, nv) buffers for mj_jacSite and mj_fullM, as robosuite allocates them
+    jacr: np.ndarray
+    centre_jacp: np.ndarray
+    centre_jacr: np.ndarray
+    full_mass: np.ndarray
 
 
-def _bind(robot) -> _Bound | None:
-    """The controllers of `robot` if they are the setup this module reproduces, else None."""
+def _bind(env, robot) -> _Bound | None:
+    """The controllers of `robot` in `env` if they are the setup this module reproduces, else None."""
+    from robosuite.controllers.composite.composite_controller import CompositeController
     from robosuite.controllers.parts.arm.osc import OperationalSpaceController
     from robosuite.controllers.parts.gripper.simple_grip import SimpleGripController
+    from robosuite.environments.robot_env import RobotEnv
     from robosuite.robots.fixed_base_robot import FixedBaseRobot
 
+    # an environment class with its own _pre_action does more per substep than robot.control
+    if type(env)._pre_action is not RobotEnv._pre_action or env.lite_physics is not True:
+        return None
     if type(robot) is not FixedBaseRobot or len(robot.arms) != 1:
         return None
     arm_name = robot.arms[0]
     gripper_name = robot.get_gripper_name(arm_name)
     composite = robot.composite_controller
     parts = composite.part_controllers
-    if set(parts) != {arm_name, gripper_name} or not all(robot._enabled_parts.get(p, False) for p in parts):
+    if (type(composite) is not CompositeController or set(parts) != {arm_name, gripper_name}
+            or not all(robot._enabled_parts.get(p, False) for p in parts)):
         return None
     arm, gripper = parts[arm_name], parts[gripper_name]
     if (
         type(arm) is not OperationalSpaceController or arm.interpolator_pos is not None
         or arm.interpolator_ori is not None or arm.input_ref_frame != "base" or arm.num_ref_sites != 1
         or not arm.lite_physics or type(gripper) is not SimpleGripController or gripper.interpolator is not None
+        or not (arm.sim is gripper.sim is robot.sim is env.sim)
     ):
         return None
-    model = robot.sim.model
+    sim = env.sim
+    model, nv = sim.model, sim.model.nv
     return _Bound(
-        composite=composite, arm=arm, gripper=gripper,
+        sim=sim, model=model._model, data=sim.data._data, composite=composite, arm=arm, gripper=gripper,
         arm_actuators=robot._ref_actuators_indexes_dict[arm_name],
         gripper_actuators=robot._ref_actuators_indexes_dict[gripper_name],
         ref_site=model.site_name2id(arm.ref_name),
         centre_site=model.site_name2id(f"{arm.naming_prefix}{arm.part_name}_center"),
+        jacp=np.zeros((3, nv)), jacr=np.zeros((3, nv)), centre_jacp=np.zeros((3, nv)), centre_jacr=np.zeros((3, nv)),
+        full_mass=np.ndarray(shape=(nv, nv), dtype=np.float64, order="C"),
     )
 
 
@@ -75,15 +94,13 @@ class FusedSubsteps:
     computed here when the robot's setup is the one reproduced (`active`)."""
 
     def __init__(self, env):
+        from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
+
         self.env = env
         self.stock_pre_action = env._pre_action
-        self.model = env.sim.model._model
-        self.data = env.sim.data._data
-        nv = self.model.nv
-        self.jacp, self.jacr = np.zeros((3, nv)), np.zeros((3, nv))
-        self.centre_jacp, self.centre_jacr = np.zeros((3, nv)), np.zeros((3, nv))
-        self.full_mass = np.ndarray(shape=(nv, nv), dtype=np.float64, order="C")
+        self.kernels = (opspace_matrices, orientation_error, nullspace_torques)  # robosuite's numba kernels
         self.bound: _Bound | None = None
+        self.fused = 0  # substeps computed here (tests, benchmarks)
         env._pre_action = self.pre_action
 
     @property
@@ -91,67 +108,69 @@ class FusedSubsteps:
         return self.bound is not None
 
     def pre_action(self, action, policy_step: bool = False) -> None:
-        if policy_step or self.bound is None or self.env.lite_physics is not True:
-            self.stock_pre_action(action, policy_step)
-            if policy_step:
-                robot = self.env.robots[0] if len(self.env.robots) == 1 else None
-                if self.bound is None or robot is None or robot.composite_controller is not self.bound.composite:
-                    self.bound = None if robot is None else _bind(robot)
-            return
         bound = self.bound
-        data = self.data
+        if policy_step or bound is None or bound.sim is not self.env.sim:
+            self.stock_pre_action(action, policy_step)
+            if policy_step:  # (re)bind after robosuite's goal setting: new controllers come with each reset
+                robots = self.env.robots
+                if (bound is None or len(robots) != 1 or robots[0].composite_controller is not bound.composite
+                        or bound.sim is not self.env.sim):
+                    self.bound = _bind(self.env, robots[0]) if len(robots) == 1 else None
+            return
+        data, model = bound.data, bound.model
         # robot.control: the composite controller's update_state (the arm's base frame) ...
         origin_pos = np.array(data.site_xpos[bound.centre_site])
         origin_ori = np.array(data.site_xmat[bound.centre_site].reshape([3, 3]))
         bound.arm.update_origin(origin_pos, origin_ori)
         # ... then every part's run_controller, clipped to the actuators' ranges
-        torques = self._arm_torques(bound.arm)
-        vels = self._gripper_vels(bound.gripper)
-        ctrlrange = self.model.actuator_ctrlrange
+        torques = self._arm_torques(bound)
+        vels = self._gripper_vels(bound)
+        ctrlrange = model.actuator_ctrlrange
         data.ctrl[bound.arm_actuators] = np.clip(
             torques, ctrlrange[bound.arm_actuators, 0], ctrlrange[bound.arm_actuators, 1]
         )
         data.ctrl[bound.gripper_actuators] = np.clip(
             vels, ctrlrange[bound.gripper_actuators, 0], ctrlrange[bound.gripper_actuators, 1]
         )
+        self.fused += 1
 
-    def _update_arm(self, arm) -> None:
+    @staticmethod
+    def _update_arm(bound: _Bound) -> None:
         """Controller.update (lite physics: no forward) with its one reference site."""
-        model, data = self.model, self.data
-        site = self.bound.ref_site
+        model, data, arm, site = bound.model, bound.data, bound.arm, bound.ref_site
         arm.ref_pos[:] = np.array(data.site_xpos[site])
         arm.ref_ori_mat[:, :] = np.array(data.site_xmat[site].reshape([3, 3]))
         # robosuite asks MuJoCo for jacp and jacr in separate calls, three times; they are
         # computed independently, so one call gives the same numbers
-        mujoco.mj_jacSite(model, data, self.jacp, self.jacr, site)
-        arm.ref_pos_vel[:] = np.array(np.dot(self.jacp, data.qvel))
-        arm.ref_ori_vel[:] = np.array(np.dot(self.jacr, data.qvel))
-        arm.J_pos[:, :] = np.array(self.jacp.reshape((3, -1))[:, arm.qvel_index])
-        arm.J_ori[:, :] = np.array(self.jacr.reshape((3, -1))[:, arm.qvel_index])
+        mujoco.mj_jacSite(model, data, bound.jacp, bound.jacr, site)
+        arm.ref_pos_vel[:] = np.array(np.dot(bound.jacp, data.qvel))
+        arm.ref_ori_vel[:] = np.array(np.dot(bound.jacr, data.qvel))
+        arm.J_pos[:, :] = np.array(bound.jacp.reshape((3, -1))[:, arm.qvel_index])
+        arm.J_ori[:, :] = np.array(bound.jacr.reshape((3, -1))[:, arm.qvel_index])
         arm.J_full[:, :] = np.vstack([arm.J_pos, arm.J_ori])
         arm.joint_pos = np.array(data.qpos[arm.qpos_index])
         arm.joint_vel = np.array(data.qvel[arm.qvel_index])
-        mujoco.mj_fullM(model, self.full_mass, data.qM)
-        arm.mass_matrix = self.full_mass[arm.qvel_index, :][:, arm.qvel_index]
+        mujoco.mj_fullM(model, bound.full_mass, data.qM)
+        arm.mass_matrix = bound.full_mass[arm.qvel_index, :][:, arm.qvel_index]
         arm.new_update = False
 
-    def _arm_torques(self, arm) -> np.ndarray:
+    def _arm_torques(self, bound: _Bound) -> np.ndarray:
         """OperationalSpaceController.run_controller without interpolators, goal in the base frame."""
-        from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
-
-        self._update_arm(arm)
+        opspace_matrices, orientation_error, nullspace_torques = self.kernels
+        arm, data = bound.arm, bound.data
+        self._update_arm(bound)
         desired_world_pos = arm.origin_pos + np.dot(arm.origin_ori, arm.goal_pos)
         desired_world_ori = np.dot(arm.origin_ori, arm.goal_ori)
         ori_error = orientation_error(desired_world_ori, arm.ref_ori_mat)
 
         position_error = desired_world_pos - arm.ref_pos
-        mujoco.mj_jacSite(self.model, self.data, self.centre_jacp, self.centre_jacr, self.bound.centre_site)
-        base_pos_vel = np.array(np.dot(self.centre_jacp, self.data.qvel))
+        mujoco.mj_jacSite(bound.model, data, bound.centre_jacp, bound.centre_jacr, bound.centre_site)
+        base_pos_vel = np.array(np.dot(bound.centre_jacp, data.qvel))
         vel_pos_error = -(arm.ref_pos_vel - base_pos_vel)
         desired_force = np.multiply(np.array(position_error), np.array(arm.kp[0:3])) + np.multiply(
             vel_pos_error, arm.kd[0:3]
         )
-        base_ori_vel = np.array(np.dot(self.centre_jacr, self.data.qvel))
+        base_ori_vel = np.array(np.dot(bound.centre_jacr, data.qvel))
         vel_ori_error = -(arm.ref_ori_vel - base_ori_vel)
         desired_torque = np.multiply(np.array(ori_error), np.array(arm.kp[3:6])) + np.multiply(
             vel_ori_error, arm.kd[3:6]
@@ -164,15 +183,17 @@ class FusedSubsteps:
             decoupled_wrench = np.concatenate([np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)])
         else:
             decoupled_wrench = np.dot(lambda_full, np.concatenate([desired_force, desired_torque]))
-        arm.torques = np.dot(arm.J_full.T, decoupled_wrench) + self.data.qfrc_bias[arm.qvel_index]
+        arm.torques = np.dot(arm.J_full.T, decoupled_wrench) + data.qfrc_bias[arm.qvel_index]
         arm.torques += nullspace_torques(arm.mass_matrix, nullspace_matrix, arm.initial_joint, arm.joint_pos, arm.joint_vel)
         arm.new_update = True
         return arm.torques
 
-    def _gripper_vels(self, gripper) -> np.ndarray:
+    @staticmethod
+    def _gripper_vels(bound: _Bound) -> np.ndarray:
         """SimpleGripController.run_controller without an interpolator (its goal set at the policy step)."""
-        gripper.joint_pos = np.array(self.data.qpos[gripper.qpos_index])
-        gripper.joint_vel = np.array(self.data.qvel[gripper.qvel_index])
+        gripper, data = bound.gripper, bound.data
+        gripper.joint_pos = np.array(data.qpos[gripper.qpos_index])
+        gripper.joint_vel = np.array(data.qvel[gripper.qvel_index])
         desired_qvel = np.array(gripper.goal_qvel)
         gripper.vels = desired_qvel
         if gripper.use_action_scaling:

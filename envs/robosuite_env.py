@@ -287,8 +287,13 @@ class RobosuiteEnv:
         return self.env.sim.model._model, self.env.sim.data._data, substeps
 
     def native_step(self, action: np.ndarray) -> None:
-        """robosuite's own step, without our observation (benchmarks)."""
-        self.env.step(action)
+        """robosuite's own step, its own controller at every substep, without our observation (benchmarks)."""
+        fused = vars(self.env).pop("_pre_action", None)  # the class's method shows through
+        try:
+            self.env.step(action)
+        finally:
+            if fused is not None:
+                self.env._pre_action = fused
 
     def mujoco_state(self) -> MujocoState:
         return MujocoState.of(self.env.sim.data._data)

@@ -6,16 +6,18 @@ The explore, evaluate, expert-table and replay stages and the gym adapter all ru
 from __future__ import annotations
 
 import atexit
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from envs.observation import Observation
+from envs.robosuite_control import STOCK_CONTROL
 from schemas.config import RenderConfig
 from schemas.tasks import TaskRecord
 
-_ENVS: dict[tuple[str, str, str], object] = {}
+_ENVS: dict[tuple[str, str, str, str], object] = {}
 
 
 def _close_envs() -> None:
@@ -35,7 +37,9 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     """One environment per (family, env, render settings) per worker process, reused across units."""
     from envs.registry import make_env
 
-    key = (task.family, task.env_name, render.model_dump_json() if render else "no camera")
+    # robosuite's controller path is chosen when an environment is made (envs/robosuite_control.py)
+    key = (task.family, task.env_name, render.model_dump_json() if render else "no camera",
+           os.environ.get(STOCK_CONTROL, ""))
     if key not in _ENVS:
         _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
         if len(_ENVS) == 1:

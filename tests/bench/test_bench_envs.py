@@ -1,6 +1,6 @@
 """`sim2act bench envs` runs every family's layers in real simulators and writes its table."""
 
-from bench.envs import LAYERS, MESH_DETAIL_FAMILIES
+from bench.envs import LAYERS, MESH_DETAIL_FAMILIES, STOCK_CONTROL_LAYERS
 from flows.cli import main
 from schemas.tasks import FAMILIES
 
@@ -20,6 +20,7 @@ def test_bench_envs_reports_every_layer_per_family_against_the_raw_step(tmp_path
     for family, layers in by_family.items():
         expected = set(LAYERS) - ({"simulator env.step"} if family == "navigation" else set())
         expected -= set() if family in MESH_DETAIL_FAMILIES else {LAYERS[4]}
+        expected |= set(STOCK_CONTROL_LAYERS) if family == "robosuite" else set()
         assert set(layers) == expected, family
         assert layers["raw mj_step"][1] == 1.0
         assert all(rate > 0 for rate, _ in layers.values())

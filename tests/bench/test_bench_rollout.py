@@ -47,6 +47,7 @@ def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, ca
     """--mix: the stage over a sample of the generalist's tasks, as it was, with decimated meshes, and
     with the fused substeps too, per family."""
     monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv(STOCK_CONTROL, raising=False)
     out = tmp_path / "mix.md"
     assert main(["bench", "rollout", "--mix", "--quick", "--json", "--scratch", str(tmp_path), "--out", str(out)]) == 0
     bench = json.loads(capsys.readouterr().out)

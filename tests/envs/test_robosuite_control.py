@@ -50,13 +50,15 @@ def test_fused_substeps_give_robosuites_states_bit_for_bit_through_a_grasp(monke
     stock, fused = _pair(monkeypatch, "Lift")
     task = _task("Lift", "lift-red", {"target": "red"}, horizon=80)
     try:
-        successes = 0
+        successes, total = 0, 0
         for seed in range(2):
             steps, success, gripper = _step_both(stock, fused, task, seed, make_expert(task, 0.1, np.random.default_rng(seed)))
             successes += success
+            total += steps
             assert gripper > 0.5  # the expert closed the gripper: contact and the gripper's controller covered
         assert successes >= 1
-        assert fused.fused_control.active  # the fused path ran, not robosuite's
+        # the fused path computed every substep but each step's first (robosuite's goal setting)
+        assert fused.fused_control.fused == 24 * total
     finally:
         stock.close()
         fused.close()
@@ -68,11 +70,12 @@ def test_fused_substeps_follow_robosuites_new_controllers_across_resets(monkeypa
     task = _task("Door", "door-red", {"door": "red"}, horizon=25)
     rng = np.random.default_rng(0)
     try:
-        controllers = set()
+        controllers, total = [], 0
         for seed in range(3):
-            _step_both(stock, fused, task, seed, lambda _obs: rng.uniform(-1, 1, 7))
-            controllers.add(id(fused.fused_control.bound.arm))
-        assert len(controllers) == 3
+            total += _step_both(stock, fused, task, seed, lambda _obs: rng.uniform(-1, 1, 7))[0]
+            controllers.append(fused.fused_control.bound.arm)  # kept alive: their ids stay distinct
+        assert len({id(arm) for arm in controllers}) == 3
+        assert fused.fused_control.fused == 24 * total
     finally:
         stock.close()
         fused.close()
@@ -85,17 +88,17 @@ def test_a_controller_setup_not_reproduced_keeps_robosuites_path(monkeypatch):
     try:
         env.reset(task, 0)
         arm = env.env.robots[0].composite_controller.part_controllers["right"]
-        assert robosuite_control._bind(env.env.robots[0]) is not None
+        assert robosuite_control._bind(env.env, env.env.robots[0]) is not None
         arm.input_ref_frame = "world"
-        assert robosuite_control._bind(env.env.robots[0]) is None
+        assert robosuite_control._bind(env.env, env.env.robots[0]) is None
 
-        monkeypatch.setattr(robosuite_control, "_bind", lambda robot: None)
+        monkeypatch.setattr(robosuite_control, "_bind", lambda env, robot: None)
         env.reset(task, 1)
         arm = env.env.robots[0].composite_controller.part_controllers["right"]
         calls, stock_run = [], arm.run_controller
         arm.run_controller = lambda: calls.append(1) or stock_run()
         env.step(np.zeros(7, dtype=np.float32))
-        assert not env.fused_control.active
+        assert not env.fused_control.active and env.fused_control.fused == 0
         assert len(calls) == 25  # robosuite's controller at every substep, not only the policy's
     finally:
         env.close()
