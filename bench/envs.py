@@ -5,8 +5,9 @@ For each family, side by side in one run: the raw MuJoCo physics of one control 
 without a camera, our adapter without a camera, and our adapter rendering 84x84 frames (for
 robosuite and MetaWorld also with their visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
 show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). For
-robosuite, the adapter's two layers again with robosuite's own arm controller at every substep instead of the
-fused substeps (envs/robosuite_control.py: the same states bit for bit). Every family runs in a fresh
+robosuite, the adapter's layers without a camera and with decimated meshes again with robosuite's own arm
+controller at every substep instead of the fused substeps (envs/robosuite_control.py: the same states bit for
+bit), each measured in turns with its fused counterpart. Every family runs in a fresh
 process, one after the other, so GL contexts and core use do not mix.
 """
 
@@ -51,22 +52,45 @@ class BenchRow(BaseModel):
     relative_to_raw: float
 
 
-def _rate(step: Callable[[int], None], reset: Callable[[], None], steps: int) -> float:
-    """Control steps per second of `step`, resetting every EPISODE_STEPS steps off the clock."""
-    elapsed, done = 0.0, 0
+Layer = tuple[Callable[[int], None], Callable[[], None]]  # (step i, reset)
+
+
+def _rates(layers: dict[str, Layer], steps: int) -> dict[str, float]:
+    """Control steps per second of each layer, resetting every EPISODE_STEPS steps off the clock.
+    Several layers are measured in turns of EPISODE_STEPS, the order reversed each turn, so that
+    a drift in the machine's speed falls on all of them alike."""
+    elapsed, done = dict.fromkeys(layers, 0.0), 0
     while done < steps:
-        reset()
         chunk = min(EPISODE_STEPS, steps - done)
-        started = time.perf_counter()
-        for i in range(chunk):
-            step(i)
-        elapsed += time.perf_counter() - started
+        turn = list(layers.items())
+        for name, (step, reset) in turn if (done // EPISODE_STEPS) % 2 == 0 else reversed(turn):
+            reset()
+            started = time.perf_counter()
+            for i in range(chunk):
+                step(i)
+            elapsed[name] += time.perf_counter() - started
         done += chunk
-    return steps / elapsed
+    return {name: steps / seconds for name, seconds in elapsed.items()}
+
+
+def _rate(step: Callable[[int], None], reset: Callable[[], None], steps: int) -> float:
+    return _rates({"": (step, reset)}, steps)[""]
+
+
+def _make_stock(family: str, env_name: str, render: RenderConfig | None):
+    """An environment with robosuite's own controller at every substep (read when it is made)."""
+    from envs.registry import make_env
+
+    os.environ[STOCK_CONTROL] = "1"
+    try:
+        return make_env(family, env_name, render)
+    finally:
+        del os.environ[STOCK_CONTROL]
 
 
 def measure_family(case: BenchCase) -> list[BenchRow]:
-    """Worker: every layer of one family, the same actions for each."""
+    """Worker: every layer of one family, the same actions for each; for robosuite, each adapter
+    layer interleaved with the same layer through robosuite's own controller."""
     from envs.registry import make_env
     from envs.suite import generate_tasks
 
@@ -76,6 +100,21 @@ def measure_family(case: BenchCase) -> list[BenchRow]:
         actions = rng.integers(0, 4, size=(EPISODE_STEPS, 1)).astype(np.float32)
     else:
         actions = rng.uniform(-1, 1, size=(EPISODE_STEPS, 7)).astype(np.float32)
+    stock_too = case.family == "robosuite"
+
+    def layer(env) -> Layer:
+        return (lambda i: env.step(actions[i])), (lambda: env.reset(task, seed=0))
+
+    def with_stock(name: str, env, stock_name: str, render: RenderConfig | None) -> dict[str, float]:
+        """`env`'s layer, and interleaved with it the same through robosuite's controller."""
+        if not stock_too:
+            return _rates({name: layer(env)}, case.steps)
+        stock = _make_stock(case.family, task.env_name, render)
+        try:
+            return _rates({name: layer(env), stock_name: layer(stock)}, case.steps)
+        finally:
+            stock.close()
+
     plain = make_env(case.family, task.env_name, None)
     model, data, substeps = plain.physics()
     rates: dict[str, float] = {}
@@ -86,22 +125,16 @@ def measure_family(case: BenchCase) -> list[BenchRow]:
     rates[LAYERS[0]] = _rate(lambda i: mujoco.mj_step(model, data, nstep=substeps), reset_plain, case.steps)
     if hasattr(plain, "native_step"):  # navigation is ours all the way down
         rates[LAYERS[1]] = _rate(lambda i: plain.native_step(actions[i]), reset_plain, case.steps)
-    rates[LAYERS[2]] = _rate(lambda i: plain.step(actions[i]), reset_plain, case.steps)
+    rates.update(with_stock(LAYERS[2], plain, STOCK_CONTROL_LAYERS[0], None))
     plain.close()
     rendered = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size))
     rates[LAYERS[3]] = _rate(lambda i: rendered.step(actions[i]), lambda: rendered.reset(task, seed=0), case.steps)
     rendered.close()
     if case.family in MESH_DETAIL_FAMILIES:
-        coarse = make_env(case.family, task.env_name, RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL))
-        rates[LAYERS[4]] = _rate(lambda i: coarse.step(actions[i]), lambda: coarse.reset(task, seed=0), case.steps)
+        render = RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL)
+        coarse = make_env(case.family, task.env_name, render)
+        rates.update(with_stock(LAYERS[4], coarse, STOCK_CONTROL_LAYERS[1], render))
         coarse.close()
-    if case.family == "robosuite":  # the same two adapter layers through robosuite's own controller
-        os.environ[STOCK_CONTROL] = "1"  # read when an environment is made; this worker process is the bench's own
-        for layer, render in zip(STOCK_CONTROL_LAYERS, (None, RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL))):
-            stock = make_env(case.family, task.env_name, render)
-            rates[layer] = _rate(lambda i: stock.step(actions[i]), lambda: stock.reset(task, seed=0), case.steps)
-            stock.close()
-        del os.environ[STOCK_CONTROL]
     raw = rates[LAYERS[0]]
     return [BenchRow(family=case.family, env=task.env_name, layer=layer, steps_per_s=rate, relative_to_raw=rate / raw)
             for layer, rate in rates.items()]
