@@ -14,7 +14,6 @@ process, one after the other, so GL contexts and core use do not mix.
 from __future__ import annotations
 
 import datetime
-import os
 import time
 from collections.abc import Callable
 
@@ -24,7 +23,7 @@ from pydantic import BaseModel
 
 from bench.tables import table
 from envs.pool import run_in_pool
-from envs.robosuite_control import STOCK_CONTROL
+from envs.robosuite_control import controller_path
 from schemas.config import RenderConfig, TasksConfig
 
 # one representative task per family
@@ -81,11 +80,8 @@ def _make_stock(family: str, env_name: str, render: RenderConfig | None):
     """An environment with robosuite's own controller at every substep (read when it is made)."""
     from envs.registry import make_env
 
-    os.environ[STOCK_CONTROL] = "1"
-    try:
+    with controller_path(stock=True):
         return make_env(family, env_name, render)
-    finally:
-        del os.environ[STOCK_CONTROL]
 
 
 def measure_family(case: BenchCase) -> list[BenchRow]:

@@ -17,7 +17,6 @@ episodes on every side (issue 11 item 2: explore triplets/s per core over the ge
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 import time
@@ -27,7 +26,7 @@ from pydantic import BaseModel
 
 from bench.rollout import LoadMeter
 from bench.tables import table
-from envs.robosuite_control import STOCK_CONTROL
+from envs.robosuite_control import controller_path
 from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, load_config
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -111,17 +110,10 @@ def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: 
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
     config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": side.mesh_detail})})
-    before = os.environ.get(STOCK_CONTROL)
-    os.environ[STOCK_CONTROL] = "0" if side.fused_control else "1"  # the stage's workers are spawned: they inherit it
-    try:
+    with controller_path(stock=not side.fused_control):  # the stage's workers are spawned: they inherit it
         meter = LoadMeter()
         run_explore(workspace, config, 0, tasks, None, {})
         wall = time.perf_counter() - meter.wall
-    finally:
-        if before is None:
-            os.environ.pop(STOCK_CONTROL)
-        else:
-            os.environ[STOCK_CONTROL] = before
     family_of = {t.task_id: t.family for t in tasks}
     per_family: dict[str, list] = {}
     for task_id, episodes, steps, seconds in catalog.query(

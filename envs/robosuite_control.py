@@ -16,6 +16,9 @@ robosuite's own path throughout.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import mujoco
@@ -24,6 +27,21 @@ import numpy as np
 # set to "1" in a process's environment (before it makes its environments): robosuite's own path
 # throughout, for benchmarks that compare the two
 STOCK_CONTROL = "SIM2ACT_STOCK_ROBOSUITE_CONTROL"
+
+
+@contextmanager
+def controller_path(stock: bool) -> Iterator[None]:
+    """Environments made meanwhile (here, or in workers spawned meanwhile) take robosuite's own
+    controller path (stock) or the fused substeps; the variable is restored afterwards."""
+    before = os.environ.get(STOCK_CONTROL)
+    os.environ[STOCK_CONTROL] = "1" if stock else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[STOCK_CONTROL]
+        else:
+            os.environ[STOCK_CONTROL] = before
 
 
 @dataclass

@@ -111,12 +111,14 @@ def whole_sqlite_store(workspace: Workspace) -> None:
     process was first (its store, maybe with runs already, is kept). A kill leaves a temporary file,
     removed by the next process that makes the store.
     """
-    path = workspace.mlflow / "mlflow.db"
+    path = workspace.tracking_db
     if path.exists():
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in path.parent.glob(f"{path.name}.making-*"):  # a killed maker's; a live one's is still being made
-        if not _alive(int(stale.suffix.removeprefix(".making-") or 0)):
+    # a killed maker's store and its SQLite journal (`.making-<pid>-journal`); a live one's is still being made
+    for stale in path.parent.glob(f"{path.name}.making-*"):
+        pid = stale.name.removeprefix(f"{path.name}.making-").split("-")[0]
+        if not (pid.isdigit() and _alive(int(pid))):
             stale.unlink(missing_ok=True)
     making = path.with_name(f"{path.name}.making-{os.getpid()}")
     from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore

@@ -51,8 +51,12 @@ class Workspace:
         return self.root / "mlflow"
 
     @property
+    def tracking_db(self) -> Path:
+        return self.mlflow / "mlflow.db"
+
+    @property
     def tracking_uri(self) -> str:
-        return f"sqlite:///{self.mlflow / 'mlflow.db'}"
+        return f"sqlite:///{self.tracking_db}"
 
     @property
     def artifact_root(self) -> Path:
