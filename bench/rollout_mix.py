@@ -6,13 +6,16 @@ episodes on every side (issue 11 item 2: explore triplets/s per core over the ge
 1. the sample: per family (robosuite, MetaWorld, navigation), `tasks_per_family` of the preset's
    specs with a seen task, evenly spaced in the preset's order, each spec's first seen task;
 2. the decimated meshes made beforehand in a worker (a host makes them once, not once per campaign);
-3. the explore stage (`run_explore`, one worker) on a fresh workspace per side (`sides`): the same
+3. the explore stage (`run_explore`, one worker) on a fresh workspace per side (`sides`), twice on
+   the same worker: cold (each unit makes its task's environment, as a run of one unit per task pays
+   it), then warm (the same episodes again, the environments made: as a campaign pays it, its kept
+   workers reusing each environment over every later unit, `envs.pool.keep_workers`); the same
    seeds and physics, hence the same steps (checked);
 4. per family, from the units the stage registered: steps, the units' seconds (one worker: CPU
    seconds of the one core it holds), steps per core-second, and each side's ratio to the first;
 5. over the preset's own mix: the families' rates weighted by the steps the preset explores in each
    (its seen tasks' expert mean episode lengths, as `sim2act run` estimates them), i.e. the explore
-   stage's steps per core-second over the whole campaign on each side.
+   stage's steps per core-second over the whole campaign on each side, cold and warm.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ class MixSizes(BaseModel):
     preset: str = "generalist"
     tasks_per_family: int = 4  # per family, evenly spaced over the preset's specs with a seen task
     episodes_per_task: int = 8
-    episodes_per_shard: int = 8  # one unit per task, the generalist's shard: env creation counted as a campaign pays it
+    episodes_per_shard: int = 8  # one unit per task (cold: it makes the environment), the generalist's shard
     mesh_detail: float = 0.1
 
 
@@ -62,7 +65,8 @@ class FamilyRate(BaseModel):
     tasks: int
     episodes: int
     steps: int
-    seconds: list[float]  # summed unit seconds on each side, in the bench's order of sides
+    seconds: list[float]  # summed unit seconds on each side, cold (the units made their environments), in the order of sides
+    warm_seconds: list[float]  # the same units again on the same worker, its environments already made
 
 
 class MixBench(BaseModel):
@@ -71,7 +75,7 @@ class MixBench(BaseModel):
     tasks: list[str]
     families: list[FamilyRate]
     preset_steps: dict[str, int]  # family -> the steps the preset's iteration 0 explores in it (estimated)
-    wall_s: list[float]  # the stage's wall seconds on each side
+    wall_s: list[float]  # the stage's wall seconds on each side, cold and warm together
     other_load: list[float]  # cores the machine's other processes kept busy meanwhile, on each side
 
 
@@ -101,19 +105,8 @@ def _sample(sizes: MixSizes) -> tuple[CampaignConfig, list[TaskRecord], dict[str
     return config, tasks, preset_steps
 
 
-def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: Side) -> tuple[dict, float, float]:
-    """family -> (tasks, episodes, steps, unit seconds); the stage's wall seconds and the other load."""
-    from stages.explore import run_explore
-    from warehouse.catalog import Catalog
-
-    workspace = Workspace.at(root / f"side-{side.mesh_detail:g}-{'fused' if side.fused_control else 'stock'}").create()
-    catalog = Catalog(workspace.catalog)
-    catalog.initialise()
-    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": side.mesh_detail})})
-    with controller_path(stock=not side.fused_control):  # the stage's workers are spawned: they inherit it
-        meter = LoadMeter()
-        run_explore(workspace, config, 0, tasks, None, {})
-        wall = time.perf_counter() - meter.wall
+def _per_family(catalog, tasks: list[TaskRecord]) -> dict[str, list]:
+    """family -> [task ids, episodes, steps, the units' summed seconds], from a workspace's catalog."""
     family_of = {t.task_id: t.family for t in tasks}
     per_family: dict[str, list] = {}
     for task_id, episodes, steps, seconds in catalog.query(
@@ -124,7 +117,30 @@ def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: 
         row[1] += episodes
         row[2] += steps
         row[3] += seconds
-    return per_family, wall, meter.other_load()
+    return per_family
+
+
+def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: Side) -> tuple[dict, dict, float, float]:
+    """(family -> [task ids, episodes, steps, unit seconds], cold; the same, warm; the two stages'
+    wall seconds; the other load)."""
+    from envs.pool import keep_workers
+    from stages.explore import run_explore
+    from warehouse.catalog import Catalog
+
+    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": side.mesh_detail})})
+    runs = []
+    # the stage's workers are spawned and inherit the controller path; both runs on one kept worker
+    with controller_path(stock=not side.fused_control), keep_workers():
+        meter = LoadMeter()
+        for phase in ("cold", "warm"):
+            name = f"side-{side.mesh_detail:g}-{'fused' if side.fused_control else 'stock'}-{phase}"
+            workspace = Workspace.at(root / name).create()
+            catalog = Catalog(workspace.catalog)
+            catalog.initialise()
+            run_explore(workspace, config, 0, tasks, None, {})
+            runs.append(_per_family(catalog, tasks))
+        wall = time.perf_counter() - meter.wall
+    return runs[0], runs[1], wall, meter.other_load()
 
 
 def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
@@ -146,43 +162,58 @@ def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
     families = []
     for family in sorted(runs[0][0]):
         names, episodes, steps, _ = runs[0][0][family]
-        for side, (per_family, _, _) in zip(sides(sizes), runs):
-            if per_family[family][2] != steps:
-                raise RuntimeError(f"bench mix: {family} explored {steps} steps at first and {per_family[family][2]} "
-                                   f"with {side.label}: the same episodes should take the same steps")
+        for side, (cold, warm, _, _) in zip(sides(sizes), runs):
+            for phase, per_family in (("cold", cold), ("warm", warm)):
+                if per_family[family][2] != steps:
+                    raise RuntimeError(f"bench mix: {family} explored {steps} steps at first and {per_family[family][2]} "
+                                       f"with {side.label} ({phase}): the same episodes should take the same steps")
         families.append(FamilyRate(family=family, tasks=len(names), episodes=episodes, steps=steps,
-                                   seconds=[per_family[family][3] for per_family, _, _ in runs]))
+                                   seconds=[cold[family][3] for cold, _, _, _ in runs],
+                                   warm_seconds=[warm[family][3] for _, warm, _, _ in runs]))
     return MixBench(sizes=sizes, sides=sides(sizes), tasks=[t.task_id for t in tasks], families=families,
-                    preset_steps=preset_steps, wall_s=[wall for _, wall, _ in runs], other_load=[load for _, _, load in runs])
+                    preset_steps=preset_steps, wall_s=[run[2] for run in runs], other_load=[run[3] for run in runs])
 
 
-def preset_rates(bench: MixBench) -> list[float]:
-    """Steps per core-second over the preset's mix on each side: each family's rate weighted by the
-    steps the preset explores in it (seconds per step, summed by share)."""
+def preset_rates(bench: MixBench, warm: bool = False) -> list[float]:
+    """Steps per core-second over the preset's mix on each side, cold or warm: each family's rate
+    weighted by the steps the preset explores in it (seconds per step, summed by share)."""
     rates = {f.family: f for f in bench.families}
     steps = {family: n for family, n in bench.preset_steps.items() if family in rates}
     total = sum(steps.values())
-    return [1 / sum(n / total * rates[family].seconds[i] / rates[family].steps for family, n in steps.items())
+    seconds = {f.family: f.warm_seconds if warm else f.seconds for f in bench.families}
+    return [1 / sum(n / total * seconds[family][i] / rates[family].steps for family, n in steps.items())
             for i in range(len(bench.sides))]
 
 
-def markdown(bench: MixBench, command: str) -> str:
+def _rows(bench: MixBench, warm: bool) -> list[list]:
+    """The table's rows, cold or warm: per family, all of them, and the preset's mix."""
+    def seconds(f: FamilyRate) -> list[float]:
+        return f.warm_seconds if warm else f.seconds
     total = FamilyRate(family="all", tasks=sum(f.tasks for f in bench.families),
                        episodes=sum(f.episodes for f in bench.families), steps=sum(f.steps for f in bench.families),
-                       seconds=[sum(f.seconds[i] for f in bench.families) for i in range(len(bench.sides))])
-    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", *(f"{f.steps / s:.1f}" for s in f.seconds),
-             *(f"{f.seconds[0] / s:.2f}×" for s in f.seconds[1:])] for f in [*bench.families, total]]
-    rates = preset_rates(bench)
+                       seconds=[sum(f.seconds[i] for f in bench.families) for i in range(len(bench.sides))],
+                       warm_seconds=[sum(f.warm_seconds[i] for f in bench.families) for i in range(len(bench.sides))])
+    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", *(f"{f.steps / s:.1f}" for s in seconds(f)),
+             *(f"{seconds(f)[0] / s:.2f}×" for s in seconds(f)[1:])] for f in [*bench.families, total]]
+    rates = preset_rates(bench, warm)
     shares = sum(bench.preset_steps.values())
     rows.append([f"the `{bench.sizes.preset}` mix, by its steps ("
                  + ", ".join(f"{family} {n / shares:.0%}" for family, n in sorted(bench.preset_steps.items())) + ")",
                  "", "", "", *(f"{rate:.1f}" for rate in rates), *(f"**{rate / rates[0]:.2f}×**" for rate in rates[1:])])
+    return rows
+
+
+def markdown(bench: MixBench, command: str) -> str:
+    headings = ["family", "tasks", "episodes", "steps", *(f"steps/s per core, {side.label}" for side in bench.sides),
+                *(f"{side.label} / the first" for side in bench.sides[1:])]
     walls = ", ".join(f"{wall:.0f} s" for wall in bench.wall_s)
     loads = " / ".join(f"{load:.2f}" for load in bench.other_load)
     return "\n".join([
         f"`{command}`: the explore stage, one worker, over {len(bench.tasks)} tasks of the `{bench.sizes.preset}` "
         f"preset ({', '.join(bench.tasks)}), {bench.sizes.episodes_per_task} episodes each, the same seeds on every "
         f"side (the same steps: checked). Steps per core-second = steps / the units' summed seconds (one worker holds "
-        f"one core). Stage wall, side by side: {walls}; other load {loads} cores.", "",
-        *table(["family", "tasks", "episodes", "steps", *(f"steps/s per core, {side.label}" for side in bench.sides),
-                *(f"{side.label} / the first" for side in bench.sides[1:])], rows)]) + "\n"
+        f"one core). Stage wall per side, cold and warm together: {walls}; other load {loads} cores.", "",
+        "**Warm** (the worker's environments already made, as a campaign's kept workers explore every unit after "
+        "their first):", "", *table(headings, _rows(bench, warm=True)), "",
+        "**Cold** (each unit makes its task's environment: imports, model compilation, GL upload counted):", "",
+        *table(headings, _rows(bench, warm=False))]) + "\n"

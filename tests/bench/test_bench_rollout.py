@@ -45,7 +45,7 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
 
 def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, capsys, monkeypatch):
     """--mix: the stage over a sample of the generalist's tasks, as it was, with decimated meshes, and
-    with the fused substeps too, per family."""
+    with the fused substeps too, per family, cold and then warm on the same worker."""
     monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.delenv(STOCK_CONTROL, raising=False)
     out = tmp_path / "mix.md"
@@ -57,13 +57,19 @@ def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, ca
     assert sorted(families) == ["metaworld", "navigation", "robosuite"]
     for family in families.values():  # the same steps on every side is checked by the bench itself
         assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
-        assert len(family["seconds"]) == 3 and min(family["seconds"]) > 0
+        assert len(family["seconds"]) == len(family["warm_seconds"]) == 3 and min(family["warm_seconds"]) > 0
+    # cold, each unit made its environment; warm, the same worker had it: robosuite's ~2 s scene build
+    robosuite = families["robosuite"]
+    assert all(cold > warm + 0.5 for cold, warm in zip(robosuite["seconds"], robosuite["warm_seconds"]))
     # the preset's mix: each family's seconds per step weighted by the steps the preset explores in it
     shares = bench["preset_steps"]
     assert sorted(shares) == sorted(families) and shares["robosuite"] > shares["navigation"] > 0
-    weighted = [sum(n * families[f]["seconds"][side] / families[f]["steps"] for f, n in shares.items()) / sum(shares.values())
-                for side in range(3)]
     table = out.read_text()
-    assert "| all | 3 | 3 |" in table
-    assert f"**{weighted[0] / weighted[1]:.2f}×** | **{weighted[0] / weighted[2]:.2f}×** |" in table
+    assert table.count("| all | 3 | 3 |") == 2
+    for phase in ("warm_seconds", "seconds"):  # the warm table first
+        weighted = [sum(n * families[f][phase][side] / families[f]["steps"] for f, n in shares.items())
+                    / sum(shares.values()) for side in range(3)]
+        ratios = f"**{weighted[0] / weighted[1]:.2f}×** | **{weighted[0] / weighted[2]:.2f}×** |"
+        assert ratios in table
+        table = table[table.index(ratios) + len(ratios):]
     assert os.environ.get(STOCK_CONTROL) is None  # the bench leaves the variable as it found it
