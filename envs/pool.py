@@ -114,6 +114,22 @@ def _init_worker() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
+_exit_hooks: list[Callable[[], None]] = []  # this worker's, run when it is told to stop
+
+
+def at_worker_exit(hook: Callable[[], None]) -> None:
+    """In a pool worker, `hook` runs when the worker is told to stop (or its parent is gone), before
+    the interpreter's teardown: unlike atexit, whose order is the order libraries happened to register
+    in (MuJoCo's EGL display ends before the GL contexts made after it are freed). Elsewhere, never."""
+    if hook not in _exit_hooks:
+        _exit_hooks.append(hook)
+
+
+def _leave() -> None:
+    for hook in _exit_hooks:
+        hook()
+
+
 def _serve(connection: Connection) -> None:
     """A worker's loop: (work, unit) in, ("ok", result, seconds) or ("error", text, 0) out."""
     _init_worker()
@@ -121,8 +137,10 @@ def _serve(connection: Connection) -> None:
         try:
             message = connection.recv()
         except EOFError:  # the parent is gone
+            _leave()
             return
         if message is None:
+            _leave()
             return
         work, unit = message
         started = time.monotonic()

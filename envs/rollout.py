@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.observation import Observation
+from envs.pool import at_worker_exit
 from envs.robosuite_control import STOCK_CONTROL
 from schemas.config import RenderConfig
 from schemas.tasks import TaskRecord
@@ -21,12 +22,14 @@ _ENVS: dict[tuple[str, str, str, str], object] = {}
 
 
 def _close_envs() -> None:
-    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown).
-    Registered after the first environment, so after the GL libraries' own exit hooks, which then
-    run after it (last registered, first run). Another library's hook may still have terminated
-    the EGL display first (MetaWorld's glfw): then the contexts are gone with it, and the process
-    is ending anyway."""
-    for env in _ENVS.values():
+    """Free GL contexts while the process can still do so cleanly (not in interpreter teardown). A
+    pool worker runs it when told to stop (`envs.pool.at_worker_exit`); elsewhere it is an atexit
+    hook, registered after the first environment, so before the GL libraries' exit hooks that
+    environment's construction registered — but not before one registered at a later first render
+    (MuJoCo's EGL display, made when a MetaWorld environment first draws): then the contexts are
+    gone with the display, and the process is ending anyway."""
+    while _ENVS:
+        _, env = _ENVS.popitem()
         try:
             env.close()
         except Exception:
@@ -44,6 +47,7 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
         _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
         if len(_ENVS) == 1:
             atexit.register(_close_envs)
+            at_worker_exit(_close_envs)
     return _ENVS[key]
 
 

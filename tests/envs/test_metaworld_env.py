@@ -89,3 +89,27 @@ def test_a_metaworld_explore_unit_writes_shards(tmp_path):
     [unit] = plan_explore(config, 0, tasks, None, {}, Workspace.at(tmp_path).create())
     episodes = pq.read_table(run_explore_unit(unit)[0].path).to_pylist()
     assert episodes[0]["task_id"] == "mw-reach" and episodes[0]["num_steps"] > 0
+
+
+def draw_metaworld_scenes(specs: list[str]) -> int:
+    """Worker: make and draw one MetaWorld scene per spec, each on its own GL context."""
+    from envs.rollout import worker_env
+
+    tasks = generate_tasks(TasksConfig(specs=specs), seed=0)
+    for task in {task.env_name: task for task in tasks}.values():
+        worker_env(task, RenderConfig()).reset(task, 0)
+    return len(tasks)
+
+
+def test_a_worker_that_drew_metaworld_scenes_stops_without_gl_errors(capfd):
+    """MetaWorld makes its GL context at the first draw, after the worker's environments registered
+    their atexit close: MuJoCo's EGL display (its atexit hook, registered then) ended first, and every
+    context's free printed a traceback as the worker exited, a dozen per worker of a MetaWorld campaign.
+    A worker now closes its environments when told to stop, before the interpreter's teardown."""
+    from envs.pool import WorkerPool
+
+    with WorkerPool(1) as pool:
+        drawn, _ = pool.run(draw_metaworld_scenes, ["mw-reach", "mw-push"])
+    assert drawn >= 2
+    err = capfd.readouterr().err
+    assert "Exception ignored" not in err and "EGLError" not in err, err[-2000:]
