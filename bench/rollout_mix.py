@@ -8,7 +8,7 @@ episodes on every side (issue 11 item 2: explore triplets/s per core over the ge
 2. the decimated meshes made beforehand in a worker (a host makes them once, not once per campaign);
 3. the explore stage (`run_explore`, one worker) on a fresh workspace per side (`sides`), twice on
    the same worker: cold (each unit makes its task's environment, as a run of one unit per task pays
-   it), then warm (the same episodes again, the environments made: as a campaign pays it, its kept
+   it; the worker's own start, its imports, lands in its first unit), then warm (the same episodes again, the environments made: as a campaign pays it, its kept
    workers reusing each environment over every later unit, `envs.pool.keep_workers`); the same
    seeds and physics, hence the same steps (checked);
 4. per family, from the units the stage registered: steps, the units' seconds (one worker: CPU
@@ -147,8 +147,14 @@ def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
     """The explore stage over the mix on each side (steps in the module docstring).
 
     Raises:
-        RuntimeError: two sides explored different steps (the physics differ: a bug)."""
+        RuntimeError: two sides explored different steps (the physics differ: a bug); or called inside
+            keep_workers, whose one pool would serve every side (its worker spawned with the first
+            side's controller path, and every side after the first warm)."""
     from bench.rollout import fill_mesh_cache
+    from envs.pool import keeping_workers
+
+    if keeping_workers():
+        raise RuntimeError("bench mix: expected a fresh worker per side, got a caller's keep_workers pool")
 
     config, tasks, preset_steps = _sample(sizes)
     if scratch is not None:

@@ -127,20 +127,34 @@ def at_worker_exit(hook: Callable[[], None]) -> None:
 
 def _leave() -> None:
     for hook in _exit_hooks:
-        hook()
+        try:
+            hook()
+        except Exception:  # the process is ending: say so, and let the other hooks run
+            traceback.print_exc()
+
+
+def keeping_workers() -> bool:
+    """Whether stages here borrow the kept pool (inside keep_workers)."""
+    return _keeping
 
 
 def _serve(connection: Connection) -> None:
-    """A worker's loop: (work, unit) in, ("ok", result, seconds) or ("error", text, 0) out."""
+    """A worker's loop: (work, unit) in, ("ok", result, seconds) or ("error", text, 0) out. However
+    it ends (told to stop, the parent gone, an interrupt), its exit hooks run before the teardown."""
     _init_worker()
+    try:
+        _serve_units(connection)
+    finally:
+        _leave()
+
+
+def _serve_units(connection: Connection) -> None:
     while True:
         try:
             message = connection.recv()
         except EOFError:  # the parent is gone
-            _leave()
             return
         if message is None:
-            _leave()
             return
         work, unit = message
         started = time.monotonic()

@@ -79,7 +79,7 @@ def _index(indexes) -> slice | np.ndarray:
     """robosuite's index list as a slice where it is a contiguous run (a view, no gather), else an array:
     the same elements either way."""
     indexes = np.asarray(indexes, dtype=np.int64).ravel()
-    if len(indexes) and np.array_equal(indexes, np.arange(indexes[0], indexes[0] + len(indexes))):
+    if len(indexes) and indexes[0] >= 0 and np.array_equal(indexes, np.arange(indexes[0], indexes[0] + len(indexes))):
         return slice(int(indexes[0]), int(indexes[0]) + len(indexes))
     return indexes
 

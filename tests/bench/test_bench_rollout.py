@@ -57,7 +57,8 @@ def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, ca
     assert sorted(families) == ["metaworld", "navigation", "robosuite"]
     for family in families.values():  # the same steps on every side is checked by the bench itself
         assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
-        assert len(family["seconds"]) == len(family["warm_seconds"]) == 3 and min(family["warm_seconds"]) > 0
+        assert len(family["seconds"]) == len(family["warm_seconds"]) == 3
+        assert min(family["seconds"]) > 0 and min(family["warm_seconds"]) > 0
     # cold, each unit made its environment; warm, the same worker had it: robosuite's ~2 s scene build
     robosuite = families["robosuite"]
     assert all(cold > warm + 0.5 for cold, warm in zip(robosuite["seconds"], robosuite["warm_seconds"]))
@@ -73,3 +74,13 @@ def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, ca
         assert ratios in table
         table = table[table.index(ratios) + len(ratios):]
     assert os.environ.get(STOCK_CONTROL) is None  # the bench leaves the variable as it found it
+
+
+def test_bench_rollout_mix_refuses_a_callers_kept_pool():
+    """Inside keep_workers every side would borrow one worker, spawned with the first side's
+    controller path and warm after it: the bench says so before any work."""
+    from bench.rollout_mix import QUICK, bench_mix
+    from envs.pool import keep_workers
+
+    with keep_workers(), pytest.raises(RuntimeError, match="fresh worker per side"):
+        bench_mix(QUICK)

@@ -112,3 +112,13 @@ def test_the_variable_keeps_robosuites_path(monkeypatch):
         assert "_pre_action" not in vars(env.env)
     finally:
         env.close()
+
+
+def test_index_lists_become_slices_only_where_they_select_the_same_elements():
+    from envs.robosuite_control import _index
+
+    values = np.arange(10.0)
+    for indexes in ([0, 1, 2, 3, 4, 5, 6], [7, 8], [3], [1, 3, 4], [5, 4], [-3, -2, -1], [-2, -1, 0], []):
+        index = _index(indexes)
+        assert np.array_equal(values[index], values[indexes]), indexes
+    assert _index([7, 8]) == slice(7, 9) and not isinstance(_index([-2, -1]), slice)
