@@ -21,7 +21,7 @@ from schemas.tasks import TaskRecord
 _ENVS: dict[tuple[str, str, str, str], object] = {}
 
 
-def _close_envs() -> None:
+def close_envs() -> None:
     """Free GL contexts while the process can still do so cleanly (not in interpreter teardown). A
     pool worker runs it when told to stop (`envs.pool.at_worker_exit`); elsewhere it is an atexit
     hook, registered after the first environment, so before the GL libraries' exit hooks that
@@ -46,8 +46,8 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     if key not in _ENVS:
         _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
         if len(_ENVS) == 1:
-            atexit.register(_close_envs)
-            at_worker_exit(_close_envs)
+            atexit.register(close_envs)
+            at_worker_exit(close_envs)
     return _ENVS[key]
 
 

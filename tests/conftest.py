@@ -48,6 +48,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.e2e)
 
 
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Close the environments tests made in this process (envs.rollout's cache) while their GL display
+    is still up: at the interpreter's exit the display's own atexit end may come first (its first
+    context was made after the cache's close was registered), and each context then printed a traceback."""
+    from envs.rollout import close_envs
+
+    close_envs()
+
+
 @pytest.fixture(autouse=True)
 def _mlflow_tracking_restored() -> Iterator[None]:
     """MLflow's fluent API writes the URI it is given into MLFLOW_TRACKING_URI, which the settings read
