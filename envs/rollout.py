@@ -23,11 +23,11 @@ _ENVS: dict[tuple[str, str, str, str], object] = {}
 
 def close_envs() -> None:
     """Free GL contexts while the process can still do so cleanly (not in interpreter teardown). A
-    pool worker runs it when told to stop (`envs.pool.at_worker_exit`); elsewhere it is an atexit
-    hook, registered after the first environment, so before the GL libraries' exit hooks that
-    environment's construction registered — but not before one registered at a later first render
-    (MuJoCo's EGL display, made when a MetaWorld environment first draws): then the contexts are
-    gone with the display, and the process is ending anyway."""
+    pool worker runs it when told to stop (`envs.pool.at_worker_exit`), the test session when it
+    finishes; elsewhere it is an atexit hook, registered after the first environment, so it runs
+    before the GL libraries' exit hooks that environment's construction registered — but not before
+    one registered at a later first draw (MuJoCo's EGL display, made when a MetaWorld environment
+    first renders): then the contexts are gone with the display, and the process is ending anyway."""
     while _ENVS:
         _, env = _ENVS.popitem()
         try:
