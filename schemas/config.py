@@ -159,6 +159,12 @@ class ExploreConfig(_Strict):
     expert_labels: bool = Field(
         default=True, description="record the noiseless expert action at every state (DAgger labels)"
     )
+    expert_takeover: float = Field(
+        default=0.0, ge=0.0, le=1.0, description="DAgger's beta: in the policy's episodes, the share of steps on which "
+        "the noiseless expert's action is executed instead of the policy's (drawn per step from the episode's seed; "
+        "its labels recorded at every step as always), so the labelled states reach the phases a weak policy never "
+        "gets to alone (a grasp, a carry); explorer_stats counts the steps it drove"
+    )
     curriculum: bool = Field(
         default=False, description="long-horizon tasks (specs with subtasks) are learnt from their sub-tasks: no "
         "scripted expert explores or labels them; from iteration 1 the champion explores them by following each "
@@ -180,6 +186,9 @@ class ExploreConfig(_Strict):
     def _schedule_not_empty(self) -> ExploreConfig:
         if self.expert_noise == []:
             raise ValueError("expert_noise: the schedule is empty; give one level or several")
+        if self.expert_takeover > 0 and not self.expert_labels:
+            raise ValueError(f"expert_takeover: expected expert_labels true (the expert that takes over is the one "
+                             f"that labels), got expert_takeover {self.expert_takeover} with expert_labels false")
         return self
 
     def noise_of(self, expert_episode: int) -> float:

@@ -36,7 +36,7 @@ STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a 
 EXPERT, VLM = "expert", "vlm"
 CHAINED = "via subtasks"  # suffix of the champion's name on the episodes it explores by chaining sub-tasks
 # Fields added after VERSION, at the value that does what the stage did before them (stages/train.py)
-LEGACY_VALUES = {"curriculum": False, "relabel": False}
+LEGACY_VALUES = {"curriculum": False, "relabel": False, "expert_takeover": 0.0}
 log = logging.getLogger("sim2act.stages.explore")
 
 
@@ -75,6 +75,7 @@ class ExploreUnit(BaseModel):
     # instruction -> embedding, only the few this unit's episodes say (small vectors)
     embeddings: dict[str, list[float]]
     relabel_to: list[TaskRecord] = []  # explore.relabel: the seen tasks a failed episode may have done instead
+    expert_takeover: float = 0.0  # explore.expert_takeover: the share of the policy's steps the expert drives
     # where the warehouse keeps shards (warehouse/store.py; not part of the key): a worker, which has no
     # catalog, writes there with the credentials of its own environment
     shard_store: str = FOLDER
@@ -167,6 +168,7 @@ def plan_explore(
                     # seen tasks only: a held-out task is never trained on, relabelled or not
                     relabel_to=[t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
                                 and t.task_id != task.task_id],
+                    expert_takeover=explore.expert_takeover,
                 )
             )
     return units
@@ -206,6 +208,32 @@ def _labeller(unit: ExploreUnit, plan: EpisodePlan) -> Act | None:
     return make_expert(unit.task, 0.0, np.random.default_rng([plan.seed, 1])) if labelled else None
 
 
+def expert_takeover(policy_act: Act, expert_act: Act, share: float, rng: np.random.Generator) -> tuple[Explorer, Act]:
+    """DAgger's mixture (Ross et al. 2011, beta): at each step the expert's action is executed with
+    probability `share`, else the policy's; both are asked at every state in the rollout's order (the
+    actor, then the labeller), so the policy's chunks stay in step and the stateful expert sees every
+    state once. -> (the explorer, whose stats count the steps the expert drove; the labeller, which
+    returns the expert action the explorer just asked for)."""
+    asked: list[np.ndarray] = []
+    driven = [0, 0]  # steps the expert drove, steps in all
+
+    def act(obs: Observation) -> np.ndarray:
+        policy_action = policy_act(obs)  # every step: a chunked policy keeps its queue in step
+        expert_action = np.asarray(expert_act(obs), dtype=np.float32)
+        asked.append(expert_action)
+        driven[1] += 1
+        if rng.random() < share:
+            driven[0] += 1
+            return expert_action
+        return policy_action
+
+    def label(obs: Observation) -> np.ndarray:
+        return asked.pop()
+
+    return (Explorer(act=act, stats=lambda: {"expert_takeover": share, "expert_steps": driven[0], "steps": driven[1]}),
+            label)
+
+
 def relabel(rows: list[dict], achieved: TaskRecord, plan: EpisodePlan, intended: TaskRecord,
             stats: dict | None) -> tuple[dict, dict, bool]:
     """Hindsight relabelling of a failed episode that ended doing `achieved` instead: -> (the task and
@@ -243,11 +271,12 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
     for plan in unit.episodes:
         error = None
         randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
-        explorer = _explorer(unit, plan, policy)
+        explorer, label = _explorer(unit, plan, policy), _labeller(unit, plan)
+        if unit.expert_takeover > 0 and label is not None and unit.policy and plan.explorer == unit.policy.name:
+            explorer, label = expert_takeover(explorer.act, label, unit.expert_takeover,
+                                              np.random.default_rng([plan.seed, 3]))
         try:
-            rows, final, success = rollout(
-                env, unit.task, plan.seed, explorer.act, randomisation, _labeller(unit, plan)
-            )
+            rows, final, success = rollout(env, unit.task, plan.seed, explorer.act, randomisation, label)
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         done = {**common, "instruction": plan.instruction}

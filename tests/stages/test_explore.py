@@ -21,7 +21,7 @@ from policies.policy import Normaliser, Policy, policy_state
 from schemas.config import CampaignConfig, ExploreConfig, ModelConfig, TasksConfig, VlmExplorerConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
-from stages.explore import (CHAINED, EXPERT, STAGE, VERSION, PolicyExplorer, _explorer, curriculum_subgoals,
+from stages.explore import (CHAINED, EXPERT, STAGE, VERSION, PolicyExplorer, _explorer, curriculum_subgoals, expert_takeover,
                             plan_explore, run_explore_unit)
 from envs.suite import generate_tasks
 from tests.chat_server import closed_port
@@ -81,6 +81,39 @@ def test_a_shard_records_vlm_counters_and_the_experts_labels_everywhere(tmp_path
             assert all(s["action"] == [ACTIONS.index("forward")] for s in own)
     assert len(server.requests) == sum(1 for s in steps if s["episode_id"] in
                                        {e["episode_id"] for e in episodes if e["explorer"] != EXPERT})
+
+
+def test_the_expert_takes_over_its_share_of_the_policys_steps_and_labels_every_one():
+    """DAgger's beta: per step the expert's action is executed with probability `share`; the policy is
+    asked at every step (its chunks stay in step), the expert once per step, and the label is the
+    expert's action in every state either way."""
+    for share, expected in ((0.0, 0), (1.0, 300), (0.5, None)):
+        calls = Counter()
+
+        def policy(obs):
+            calls["policy"] += 1
+            return np.full(ACTION_DIM, -1.0, dtype=np.float32)
+
+        def expert(obs):
+            calls["expert"] += 1
+            return np.full(ACTION_DIM, float(obs), dtype=np.float32)  # says which state it saw
+
+        explorer, label = expert_takeover(policy, expert, share, np.random.default_rng(0))
+        driven = 0
+        for state in range(300):  # the rollout's order: the actor, then the labeller, on one state
+            action = explorer.act(state)
+            assert label(state)[0] == state
+            driven += int(action[0] == state)
+        assert calls == {"policy": 300, "expert": 300}
+        assert explorer.stats() == {"expert_takeover": share, "expert_steps": driven, "steps": 300}
+        assert driven == expected if expected is not None else 120 < driven < 180
+
+
+def test_expert_takeover_needs_the_labelling_expert():
+    with pytest.raises(ValueError, match="expert_takeover: expected expert_labels true"):
+        ExploreConfig(expert_takeover=0.5, expert_labels=False)
+    with pytest.raises(ValueError):
+        ExploreConfig(expert_takeover=1.5)
 
 
 def test_without_labels_the_column_stays_empty(tmp_path):
@@ -187,7 +220,8 @@ def test_without_a_curriculum_long_tasks_are_the_experts_and_keys_stay_as_before
     units = _plan_curriculum(config, tasks, tmp_path, None)
     assert {u.task.task_id for u in units} == {t.task_id for t in tasks}
     assert all(e.explorer == EXPERT and not e.subgoals for u in units for e in u.episodes)
-    explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum", "relabel"})  # added later
+    explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum", "relabel",
+                                                 "expert_takeover"})  # added later
     render = config.render.model_dump(exclude={"mesh_detail"})  # added later
     reads = {"campaign": config.name, "seed": config.seed, "iteration": 0, "render": render,
              "randomise": config.randomise, "explore": explore, "policy": None}
@@ -244,3 +278,24 @@ def test_the_navigation_scene_says_which_task_the_agent_is_doing_now():
         found = env.achieved([t for t in tasks.values() if t.env_name == "GoToRoom"])
         assert (found.task_id if found else None) == (wanted if wanted in tasks else None)
     assert env.achieved([tasks["nav-ball-red"]]) is None  # another environment's task
+
+
+def test_with_expert_takeover_the_policys_episodes_say_how_many_steps_the_expert_drove(tmp_path):
+    config, tasks, checkpoint = _curriculum(tmp_path, curriculum=False)
+    config = config.model_copy(update={"tasks": config.tasks.model_copy(update={"specs": ["nav-room"],
+                                                                                 "horizon": {"nav-room": 6}})})
+    tasks = generate_tasks(config.tasks, config.seed)
+    policy = PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint=str(checkpoint))
+    plain = _plan_curriculum(config, tasks, tmp_path, policy)
+    taken = config.model_copy(update={"explore": config.explore.model_copy(update={"expert_takeover": 1.0})})
+    units = _plan_curriculum(taken, tasks, tmp_path, policy)
+    assert {u.unit_key for u in units}.isdisjoint(u.unit_key for u in plain)  # the share enters the key
+    episodes, steps = _shards(units[0])
+    by_policy = [e for e in episodes if e["explorer"] == "policy:m/1"]
+    assert by_policy and all(e["error"] is None for e in episodes)
+    for episode in by_policy:
+        own = [s for s in steps if s["episode_id"] == episode["episode_id"]]
+        assert json.loads(episode["explorer_stats"]) == {"expert_takeover": 1.0, "expert_steps": len(own), "steps": len(own)}
+        assert all(s["action"] == s["expert_action"] for s in own)  # the expert drove every step
+    episodes, _ = _shards(plain[0])
+    assert all(e["explorer_stats"] is None for e in episodes if e["explorer"] == "policy:m/1")
