@@ -8,9 +8,10 @@ episodes on every side (issue 11 item 2: explore triplets/s per core over the ge
 2. the decimated meshes made beforehand in a worker (a host makes them once, not once per campaign);
 3. the explore stage (`run_explore`, one worker) on a fresh workspace per side (`sides`), twice on
    the same worker: cold (each unit makes its task's environment, as a run of one unit per task pays
-   it; the worker's own start, its imports, lands in its first unit), then warm (the same episodes again, the environments made: as a campaign pays it, its kept
-   workers reusing each environment over every later unit, `envs.pool.keep_workers`); the same
-   seeds and physics, hence the same steps (checked);
+   it; the worker's own start, its imports, lands in its first unit), then warm (the same episodes
+   again, the environments made: as a campaign pays it, its kept workers reusing each environment
+   over every later unit, `envs.pool.keep_workers`); the same seeds and physics, hence the same
+   steps (checked);
 4. per family, from the units the stage registered: steps, the units' seconds (one worker: CPU
    seconds of the one core it holds), steps per core-second, and each side's ratio to the first;
 5. over the preset's own mix: the families' rates weighted by the steps the preset explores in each
@@ -67,6 +68,9 @@ class FamilyRate(BaseModel):
     steps: int
     seconds: list[float]  # summed unit seconds on each side, cold (the units made their environments), in the order of sides
     warm_seconds: list[float]  # the same units again on the same worker, its environments already made
+
+    def phase_seconds(self, warm: bool) -> list[float]:
+        return self.warm_seconds if warm else self.seconds
 
 
 class MixBench(BaseModel):
@@ -186,21 +190,19 @@ def preset_rates(bench: MixBench, warm: bool = False) -> list[float]:
     rates = {f.family: f for f in bench.families}
     steps = {family: n for family, n in bench.preset_steps.items() if family in rates}
     total = sum(steps.values())
-    seconds = {f.family: f.warm_seconds if warm else f.seconds for f in bench.families}
-    return [1 / sum(n / total * seconds[family][i] / rates[family].steps for family, n in steps.items())
+    return [1 / sum(n / total * rates[family].phase_seconds(warm)[i] / rates[family].steps for family, n in steps.items())
             for i in range(len(bench.sides))]
 
 
 def _rows(bench: MixBench, warm: bool) -> list[list]:
     """The table's rows, cold or warm: per family, all of them, and the preset's mix."""
-    def seconds(f: FamilyRate) -> list[float]:
-        return f.warm_seconds if warm else f.seconds
     total = FamilyRate(family="all", tasks=sum(f.tasks for f in bench.families),
                        episodes=sum(f.episodes for f in bench.families), steps=sum(f.steps for f in bench.families),
                        seconds=[sum(f.seconds[i] for f in bench.families) for i in range(len(bench.sides))],
                        warm_seconds=[sum(f.warm_seconds[i] for f in bench.families) for i in range(len(bench.sides))])
-    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", *(f"{f.steps / s:.1f}" for s in seconds(f)),
-             *(f"{seconds(f)[0] / s:.2f}×" for s in seconds(f)[1:])] for f in [*bench.families, total]]
+    rows = [[f.family, f.tasks, f.episodes, f"{f.steps:,}", *(f"{f.steps / s:.1f}" for s in f.phase_seconds(warm)),
+             *(f"{f.phase_seconds(warm)[0] / s:.2f}×" for s in f.phase_seconds(warm)[1:])]
+            for f in [*bench.families, total]]
     rates = preset_rates(bench, warm)
     shares = sum(bench.preset_steps.values())
     rows.append([f"the `{bench.sizes.preset}` mix, by its steps ("
