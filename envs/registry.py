@@ -90,7 +90,21 @@ def cameras(family: str, env_name: str) -> list[str]:
     return list(CAMERAS)
 
 
+WRIST_FAMILIES = {"robosuite"}  # the families with a camera in the hand (render.wrist_camera)
+
+
+def check_render(render: RenderConfig, tasks: list[TaskRecord]) -> None:
+    """Raises ConfigError (one line) when the render settings ask for a view some task's scene lacks."""
+    lacking = [t.task_id for t in tasks if render.wrist_camera and t.family not in WRIST_FAMILIES]
+    if lacking:
+        shown = ", ".join(lacking[:4]) + (f" and {len(lacking) - 4} more" if len(lacking) > 4 else "")
+        raise ConfigError(f"render.wrist_camera: expected {', '.join(sorted(WRIST_FAMILIES))} tasks only (a camera in "
+                          f"the hand), got {shown}")
+
+
 def make_env(family: str, env_name: str, render: RenderConfig | None):
+    if render is not None and render.wrist_camera and family not in WRIST_FAMILIES:
+        raise ValueError(f"render.wrist_camera: {family} environments have no camera in the hand ({env_name})")
     if family == "robosuite":
         from envs.robosuite_env import RobosuiteEnv
 

@@ -145,6 +145,7 @@ ROBOSUITE_SCENES: dict[str, Scene] = {
 MODEL_SEED = 0
 FINGERS = ("gripper0_right_leftfinger", "gripper0_right_rightfinger")
 PROPRIO_KEYS = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+WRIST_CAMERA = "robot0_eye_in_hand"  # the Panda's camera in its hand (render.wrist_camera)
 
 
 def finger_bodies(env) -> list[int]:
@@ -153,11 +154,17 @@ def finger_bodies(env) -> list[int]:
     return [model.body(name).id for name in FINGERS]
 
 
-def observe(env, scene: Scene, raw: dict[str, np.ndarray], camera: str | None, fingers: list[int]) -> Observation:
-    """Our Observation of robosuite's raw observation: `camera`'s image upright (none if None),
-    proprio, and what the scene's expert reads. Works on any robosuite env of the scene, ours or
-    one made by hand (bench rollout)."""
-    image = NO_IMAGE if camera is None else raw[f"{camera}_image"][::-1].copy()
+def observe(env, scene: Scene, raw: dict[str, np.ndarray], camera: str | None, fingers: list[int],
+            wrist: bool = False) -> Observation:
+    """Our Observation of robosuite's raw observation: `camera`'s image upright (none if None; with
+    `wrist`, the hand camera's beside it, schemas/frames.py), proprio, and what the scene's expert
+    reads. Works on any robosuite env of the scene, ours or one made by hand (bench rollout)."""
+    if camera is None:
+        image = NO_IMAGE
+    elif wrist:
+        image = np.concatenate([raw[f"{camera}_image"][::-1], raw[f"{WRIST_CAMERA}_image"][::-1]], axis=1)
+    else:
+        image = raw[f"{camera}_image"][::-1].copy()
     zbuffer = None if camera is None else raw.get(f"{camera}_depth")  # robosuite's camera_depths
     depth = None if zbuffer is None else metric_depth(zbuffer[::-1, :, 0], env.sim.model._model)
     proprio = np.concatenate([raw[key] for key in PROPRIO_KEYS]).astype(np.float32)
@@ -181,7 +188,8 @@ class RobosuiteEnv:
         self.scene = ROBOSUITE_SCENES[env_name]
         self.RANDOMISES = self.scene.randomises
         camera = {} if render is None else {
-            "camera_names": render.camera, "camera_heights": render.image_size, "camera_widths": render.image_size,
+            "camera_names": [render.camera, WRIST_CAMERA] if render.wrist_camera else render.camera,
+            "camera_heights": render.image_size, "camera_widths": render.image_size,
             "camera_depths": render.depth,
         }
         self.env = robosuite.make(
@@ -257,8 +265,9 @@ class RobosuiteEnv:
         return self._observation(raw), float(reward), bool(self.env._check_success())
 
     def _observation(self, raw: dict[str, np.ndarray]) -> Observation:
-        camera = None if self.render_config is None else self.render_config.camera
-        return observe(self.env, self.scene, raw, camera, self.fingers)
+        if self.render_config is None:
+            return observe(self.env, self.scene, raw, None, self.fingers)
+        return observe(self.env, self.scene, raw, self.render_config.camera, self.fingers, self.render_config.wrist_camera)
 
     def _observe_again(self) -> dict[str, np.ndarray]:
         """robosuite's observations of the state as it is now, with its observable clocks restarted

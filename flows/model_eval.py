@@ -87,7 +87,7 @@ def parse_registry_ref(ref: str, default_name: str) -> tuple[str, str | None, st
 
 
 def check_model_fits(config: CampaignConfig, model: ModelRef) -> None:
-    """The campaign must render what the model reads (image size, RGB or RGB-D): refused before any rollout."""
+    """The campaign must render what the model reads (image size, RGB or RGB-D, its views): refused before any rollout."""
     reads = ModelDims(**torch.load(model.checkpoint, map_location="cpu", weights_only=False)["dims"])
     rendered = model_dims(config)
     if reads.image_size != rendered.image_size:
@@ -97,6 +97,10 @@ def check_model_fits(config: CampaignConfig, model: ModelRef) -> None:
         depth = reads.channels == 4
         raise ConfigError(f"render.depth: {model.label} reads {'RGB-D' if depth else 'RGB'} frames; "
                           f"set render.depth={str(depth).lower()}")
+    if reads.views != rendered.views:
+        wrist = reads.views == 2
+        raise ConfigError(f"render.wrist_camera: {model.label} reads {reads.views} camera view(s); "
+                          f"set render.wrist_camera={str(wrist).lower()}")
 
 
 def campaign_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskRecord]:

@@ -40,6 +40,7 @@ class ModelDims:
     language_dim: int
     channels: int = 3  # 4: RGB-D, for campaigns that record depth (render.depth)
     state_dim: int = 0  # the simulator state the auxiliary head predicts (train.state_weight); 0: no head
+    views: int = 1  # square camera views side by side in a frame: 2 with the hand's camera (render.wrist_camera)
 
 
 @dataclass
@@ -67,6 +68,22 @@ class ModelOutput:
 def _transformer(dim: int, depth: int, heads: int) -> nn.TransformerEncoder:
     layer = nn.TransformerEncoderLayer(dim, heads, dim_feedforward=4 * dim, dropout=0.0, batch_first=True, norm_first=True)
     return nn.TransformerEncoder(layer, depth, enable_nested_tensor=False)
+
+
+def split_views(image: torch.Tensor, views: int) -> torch.Tensor:
+    """(B, C, H, views*H) frames -> (B*views, C, H, H): each square view its own image, a frame's views adjacent."""
+    if views == 1:
+        return image
+    b, c, h, w = image.shape
+    return image.unflatten(3, (views, h)).permute(0, 3, 1, 2, 4).flatten(0, 1)
+
+
+def join_views(image: torch.Tensor, views: int) -> torch.Tensor:
+    """The inverse of `split_views`."""
+    if views == 1:
+        return image
+    bv, c, h, _ = image.shape
+    return image.unflatten(0, (bv // views, views)).permute(0, 2, 3, 1, 4).flatten(3, 4)
 
 
 def pixels(image: torch.Tensor, depth: torch.Tensor | None = None) -> torch.Tensor:
@@ -197,6 +214,10 @@ class VLAModel(nn.Module):
         self.config, self.dims = config, dims
         d = config.dim
         self.vision = vision_encoder(config, dims.image_size, dims.channels)
+        # the hand's view (render.wrist_camera) through an encoder of its own, as robomimic gives each camera one;
+        # its tokens and the main view's told apart by a learnt embedding (absent with one view: old checkpoints load)
+        self.wrist_vision = vision_encoder(config, dims.image_size, dims.channels) if dims.views == 2 else None
+        self.view = nn.Parameter(torch.randn(dims.views, d) * 0.02) if dims.views > 1 else None
         if config.language_trainable:
             from policies.language import TextEncoder
 
@@ -230,17 +251,20 @@ class VLAModel(nn.Module):
         return cached
 
     def forward(self, image: torch.Tensor, language: torch.Tensor, proprio: torch.Tensor) -> ModelOutput:
-        """image (B, C, H, W) in [0, 1] (`pixels`); language (B, language_dim); proprio normalised."""
+        """image (B, C, H, W) in [0, 1] (`pixels`; W = views * H); language (B, language_dim); proprio normalised."""
         if image.shape[1] != self.dims.channels:
             kind = "RGB-D (a campaign with render.depth)" if self.dims.channels == 4 else "RGB"
             raise ValueError(f"this model reads {kind} frames, got {image.shape[1]} channels")
+        if image.shape[3] != self.dims.views * image.shape[2]:
+            raise ValueError(f"this model reads frames of {self.dims.views} square view(s) side by side "
+                             f"(render.wrist_camera), got {image.shape[2]}x{image.shape[3]}")
         batch = image.shape[0]
         tokens = torch.cat(
             [
                 self.cls.expand(batch, -1, -1) + self.modality[0],
                 (self.language(language) + self.modality[1]).unsqueeze(1),
                 (self.proprio(proprio) + self.modality[2]).unsqueeze(1),
-                self.vision(image) + self.modality[3],
+                self.vision_tokens(image) + self.modality[3],
             ],
             dim=1,
         )
@@ -252,6 +276,13 @@ class VLAModel(nn.Module):
             chunk_logits=self.logits(joint).unflatten(-1, (self.chunk, -1)),
             state=None if self.state is None else self.state(joint),
         )
+
+    def vision_tokens(self, image: torch.Tensor) -> torch.Tensor:
+        """(B, tokens, dim): the main view's tokens, then the hand's, each marked with its view."""
+        if self.wrist_vision is None:
+            return self.vision(image)
+        main, wrist = image.chunk(2, dim=3)
+        return torch.cat([self.vision(main) + self.view[0], self.wrist_vision(wrist) + self.view[1]], dim=1)
 
     def encode_action(self, action: torch.Tensor, action_index: torch.Tensor) -> torch.Tensor:
         """z_a: continuous actions (B, k, action_dim) through an MLP, discrete ones (B, k) through an

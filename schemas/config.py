@@ -91,10 +91,26 @@ class RenderConfig(_Strict):
     # physics unchanged, pixels not, so a campaign keeps one value (docs/rollouts.md has the speed-up).
     mesh_detail: float = Field(default=1.0, gt=0, le=1,
                                description="fraction of visual mesh faces drawn (robosuite, MetaWorld)")
+    # Precise placing (a nut on its peg) is a few pixels at 84 px from the agent's view; robomimic's and Diffusion
+    # Policy's image figures for Square and Can see a second camera in the hand. Stored beside the main view in one
+    # frame (H x 2H, schemas/frames.py), read by an encoder of its own (policies/model.py).
+    wrist_camera: bool = Field(default=False, description="robosuite only: also render the hand's camera "
+                               "(robot0_eye_in_hand) at image_size, right of the main view; the model reads both")
+
+    @model_validator(mode="after")
+    def _one_depth_view(self) -> RenderConfig:
+        if self.wrist_camera and self.depth:
+            raise ValueError("wrist_camera: depth maps are recorded for one view only, so not with render.depth")
+        return self
+
+    @property
+    def views(self) -> int:
+        """Camera views side by side in every frame."""
+        return 2 if self.wrist_camera else 1
 
 
 # render fields added after the stages that key on the render settings: at these values a key reads as before
-RENDER_LEGACY_VALUES = {"mesh_detail": 1.0}
+RENDER_LEGACY_VALUES = {"mesh_detail": 1.0, "wrist_camera": False}
 
 
 def render_key_fields(render: RenderConfig) -> dict[str, Any]:

@@ -1,5 +1,7 @@
 """How a camera frame is stored in the warehouse: its raw RGB bytes, row-major (H, W, 3), uint8,
-upright, square. The Parquet file's zstd compresses them: on rendered robosuite frames that is
+upright, square — or, for campaigns with a wrist camera (`render.wrist_camera`), two square views side
+by side, (H, 2H, 3): the main camera left, the hand's right. The byte count alone says which (3·H² is never
+3·2·S²: √2 is irrational), so a stored frame decodes without its campaign's config. The Parquet file's zstd compresses them: on rendered robosuite frames that is
 ~2.9 KB per 84x84 frame against ~8 KB as PNG, and it decodes ~5x faster (measured; see
 docs/warehouse.md), which is what lets training read >5,000 frames/s on two cores.
 
@@ -19,8 +21,10 @@ import numpy as np
 
 
 def encode_frame(image: np.ndarray) -> bytes:
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or image.shape[0] != image.shape[1]:
-        raise ValueError(f"a frame is a square uint8 RGB array, got {image.dtype} {image.shape}")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or image.shape[1] not in (
+            image.shape[0], 2 * image.shape[0]):
+        raise ValueError(f"a frame is a uint8 RGB array of one or two square views (H, H or 2H, 3), "
+                         f"got {image.dtype} {image.shape}")
     return np.ascontiguousarray(image).tobytes()
 
 
@@ -29,9 +33,14 @@ def _square_side(data: bytes, bytes_per_pixel: int) -> int | None:
     return side if side > 0 and side * side * bytes_per_pixel == len(data) else None
 
 
-def frame_side(data: bytes) -> int | None:
-    """The side of the square RGB frame these bytes hold, or None if they cannot be one."""
-    return _square_side(data, 3)
+def frame_shape(data: bytes) -> tuple[int, int] | None:
+    """(height, width) of the RGB frame these bytes hold — one square view or two side by side — or
+    None if they cannot be one."""
+    for views in (1, 2):
+        side = _square_side(data, 3 * views)
+        if side is not None:
+            return side, views * side
+    return None
 
 
 def encode_depth(depth_m: np.ndarray) -> bytes:
@@ -54,7 +63,7 @@ def decode_depth(data: bytes) -> np.ndarray:
 
 
 def decode_frame(data: bytes) -> np.ndarray:
-    side = frame_side(data)
-    if side is None:
-        raise ValueError(f"{len(data)} bytes are not a square RGB frame")
-    return np.frombuffer(data, dtype=np.uint8).reshape(side, side, 3)
+    shape = frame_shape(data)
+    if shape is None:
+        raise ValueError(f"{len(data)} bytes are not an RGB frame of one or two square views")
+    return np.frombuffer(data, dtype=np.uint8).reshape(*shape, 3)

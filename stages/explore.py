@@ -340,6 +340,18 @@ def curriculum_subgoals(config: CampaignConfig, tasks: list[TaskRecord]) -> dict
     return {t.task_id: chain for t in tasks if (chain := subtask_instructions(t, suite))}
 
 
+def unit_summary(unit: ExploreUnit, shards: list) -> dict:
+    """What the ledger keeps of an explored unit: its counts, and the render settings replay needs that
+    episodes.render (a shard schema older than them) lacks, where not at their defaults."""
+    by_table = {s.table: s for s in shards}
+    summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
+    if unit.render is not None and unit.render.mesh_detail < 1.0:
+        summary["mesh_detail"] = unit.render.mesh_detail  # its frames' mesh detail
+    if unit.render is not None and unit.render.wrist_camera:
+        summary["wrist_camera"] = True  # its frames hold the hand's view beside the main one
+    return summary
+
+
 def run_explore(
     workspace: Workspace,
     config: CampaignConfig,
@@ -380,11 +392,7 @@ def run_explore(
     episodes = steps = 0
     try:
         for unit, shards, seconds in execute(todo):
-            by_table = {s.table: s for s in shards}
-            summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
-            if unit.render is not None and unit.render.mesh_detail < 1.0:
-                # its frames' mesh detail, for replay: episodes.render (a shard schema) predates the field
-                summary["mesh_detail"] = unit.render.mesh_detail
+            summary = unit_summary(unit, shards)
             ledger.register(unit.unit_key, UnitOutput(summary, shards), seconds)
             episodes += summary["episodes"]
             steps += summary["steps"]

@@ -15,7 +15,7 @@ import pyarrow as pa
 
 from envs.registry import action_bounds
 from schemas.config import CampaignConfig, FilterConfig
-from schemas.frames import depth_side, frame_side
+from schemas.frames import depth_side, frame_shape
 from schemas.keys import unit_key
 from schemas.tables import FILTER_DECISIONS
 from schemas.workspace import Workspace
@@ -53,9 +53,11 @@ class EpisodeFacts:
     bad_image: str | None  # the first frame (or depth map) that is not one of the campaign's size
 
 
-def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: int, depth: bool = False) -> EpisodeFacts:
+def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: int, depth: bool = False,
+                  views: int = 1) -> EpisodeFacts:
     """Pure: facts about one episode's steps (rows with STEP_COLUMNS, in step order); `depth`: the
-    campaign records depth maps, so every step must carry one."""
+    campaign records depth maps, so every step must carry one; `views`: square views side by side
+    in each frame (render.views)."""
     digest = hashlib.blake2b(digest_size=16)
     invalid = out_of_bounds = bad_image = None
     low, high = bounds
@@ -68,8 +70,9 @@ def episode_facts(steps: list[dict], bounds: tuple[float, float], image_size: in
                 invalid = f"step {index}: non-finite {column}"
         if out_of_bounds is None and any(not low <= v <= high for v in row["action"]):
             out_of_bounds = f"step {index}: action {[round(v, 3) for v in row['action']]} outside [{low:g}, {high:g}]"
-        if bad_image is None and frame_side(row["image"]) != image_size:
-            bad_image = f"step {index}: image of {len(row['image'])} bytes is not a {image_size}x{image_size} RGB frame"
+        if bad_image is None and frame_shape(row["image"]) != (image_size, views * image_size):
+            bad_image = (f"step {index}: image of {len(row['image'])} bytes is not a {image_size}x{views * image_size} "
+                         f"RGB frame")
         if bad_image is None and depth and (row["depth"] is None or depth_side(row["depth"]) != image_size):
             size = "no" if row["depth"] is None else f"{len(row['depth'])} bytes of"
             bad_image = f"step {index}: {size} depth map, not a {image_size}x{image_size} one"
@@ -106,7 +109,8 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
     the explore unit. Registers one `filter_decisions` shard: each episode kept or rejected, why."""
     catalog = Catalog(workspace.catalog)
     units = StageUnits(catalog, STAGE, config.name, iteration)
-    reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth}
+    reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth,
+             **({"views": config.render.views} if config.render.views > 1 else {})}  # one view: keys as before
     keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
     pending = set(units.pending(keys.values()))
     families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
@@ -125,7 +129,7 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
         for episode in catalog.read_unit_shard("episodes", explore_key).to_pylist():
             bounds = action_bounds(families[episode["task_id"]])
             facts = episode_facts(steps.get(episode["episode_id"], []), bounds, config.render.image_size,
-                                  config.render.depth)
+                                  config.render.depth, config.render.views)
             reason, detail = decide(episode, facts, config.filter, kept_digests)
             if reason == "kept":
                 kept_digests[facts.digest] = episode["episode_id"]

@@ -11,6 +11,7 @@ import logging
 
 import pyarrow as pa
 
+from envs.registry import check_render
 from envs.suite import generate_tasks
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
@@ -59,6 +60,7 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig) -> TasksRes
     with a proposer, the LLM's tasks in place of the templates'."""
     catalog = Catalog(workspace.catalog)
     tasks = generate_tasks(config.tasks, config.seed)
+    check_render(config.render, tasks)  # a flow started from the UI is refused as `sim2act run` refuses it
     key = tasks_unit_key(config, tasks)
 
     def work() -> UnitOutput:

@@ -22,7 +22,7 @@ from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from envs.pool import Progress
 from policies.ema import WeightAverage
 from policies.language import ENCODERS
-from policies.model import ModelDims, VLAModel, pixels, vla_loss
+from policies.model import ModelDims, VLAModel, join_views, pixels, split_views, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
 from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
 from schemas.config import MODEL_LEGACY_VALUES, CampaignConfig, TrainConfig
@@ -64,7 +64,8 @@ class TrainResult(StageResult):
 
 def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str) -> str:
     reads = {"train": key_fields(config.train, EXECUTION_FIELDS, LEGACY_VALUES), "seed": config.seed,
-             "image": config.render.image_size, "depth": config.render.depth}
+             "image": config.render.image_size, "depth": config.render.depth,
+             **({"views": config.render.views} if config.render.views > 1 else {})}  # one view: keys as before
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 
 
@@ -82,7 +83,7 @@ def model_dims(config: CampaignConfig, state: Normaliser | None = None) -> Model
     head predicts (train.state_weight), None for none."""
     return ModelDims(config.render.image_size, PROPRIO_DIM, ACTION_DIM, len(NAVIGATION_ACTIONS),
                      ENCODERS[config.train.model.language_encoder].dim, channels=4 if config.render.depth else 3,
-                     state_dim=0 if state is None else len(state.mean))
+                     state_dim=0 if state is None else len(state.mean), views=config.render.views)
 
 
 def split_actions(actions: list[list[float]]) -> tuple[np.ndarray, np.ndarray]:
@@ -267,13 +268,17 @@ class _Means:
         return {name: [float(total), count] for name, (total, count) in self.sums.items()}
 
 
-def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | None = None,
+                 views: int = 1) -> torch.Tensor:
     """Each frame moved by up to `pad` pixels each way, edges repeated (DrQ's augmentation: with few
     demonstrations it keeps a from-scratch encoder from memorising where things are on screen).
     The shifts are drawn on the CPU from `generator` (the training's own, which its checkpoints
-    save: the DataLoader draws from torch's global one when it starts, so a resume would shift it)."""
+    save: the DataLoader draws from torch's global one when it starts, so a resume would shift it).
+    A frame of `views` square views side by side: each view moved on its own, none into another."""
     if pad == 0:
         return image
+    if views > 1:
+        return join_views(random_shift(split_views(image, views), pad, generator), views)
     b, c, h, w = image.shape
     shifts = torch.randint(0, 2 * pad + 1, (b, 2), generator=generator).to(image.device)
     padded = F.pad(image, (pad, pad, pad, pad), mode="replicate")
@@ -288,7 +293,8 @@ def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device
     """One optimiser step. `bf16`, `channels_last`: None for this device's choice (policies/precision.py);
     the benchmark sets them to compare."""
     depth = batch["depth"].to(device, non_blocking=True) if "depth" in batch else None
-    image = random_shift(pixels(batch["image"].to(device, non_blocking=True), depth), cfg.augment_shift, shifts)
+    image = random_shift(pixels(batch["image"].to(device, non_blocking=True), depth), cfg.augment_shift, shifts,
+                         model.dims.views)
     image = image_layout(image, device, channels_last)
     bf16 = uses_bf16(device, cfg.amp) if bf16 is None else bf16
     cached = batch["language"].to(device, non_blocking=True) if "language" in batch else None

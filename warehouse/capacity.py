@@ -51,7 +51,7 @@ def bytes_per_step(config: CampaignConfig, catalog: Catalog | None) -> tuple[flo
                                        "AND campaign = ?", [config.name])  # its own frames: another may differ in size
         if rows:
             return size / rows, True
-    scale = (config.render.image_size / 84) ** 2 * (DEPTH_FACTOR if config.render.depth else 1.0)
+    scale = (config.render.image_size / 84) ** 2 * config.render.views * (DEPTH_FACTOR if config.render.depth else 1.0)
     return BYTES_PER_STEP_84PX * scale, False
 
 

@@ -16,11 +16,13 @@ from schemas.workspace import write_text_atomically
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
+    from envs.registry import check_render
     from envs.suite import generate_tasks, weak_tasks_left_out
     from warehouse.capacity import check_disk
     from warehouse.training_reader import check_where
 
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
+    check_render(config.render, tasks)
     check_where(config.train.where)
     if config.adapt.episodes_per_task:
         from stages.adapt import adapted_tasks

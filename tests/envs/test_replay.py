@@ -127,16 +127,18 @@ def test_a_bad_request_is_one_line_before_anything_is_rendered(workspace, tmp_pa
     assert not out.exists()
 
 
-def test_an_episode_explored_with_simplified_meshes_replays_with_them(tmp_path, monkeypatch):
-    """render.mesh_detail is not a column of episodes.render (a shard schema older than it): the explore
-    stage records it in its unit's summary, and replay reads it there, so the frames are the stored ones."""
+@pytest.mark.parametrize("setting", [{"mesh_detail": 0.1}, {"wrist_camera": True}])
+def test_an_episode_explored_with_later_render_settings_replays_with_them(tmp_path, monkeypatch, setting):
+    """render.mesh_detail and render.wrist_camera are not columns of episodes.render (a shard schema older
+    than them): the explore stage records them in its unit's summary, and replay reads them there, so the
+    frames are the stored ones (with the wrist camera, the hand's view beside the main one)."""
     from schemas.config import RenderConfig
     from stages.explore import run_explore
 
     monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
-    config = CONFIG.model_copy(update={"render": RenderConfig(mesh_detail=0.1),
+    config = CONFIG.model_copy(update={"render": RenderConfig(**setting),
                                        "explore": CONFIG.explore.model_copy(update={"workers": 1})})
-    workspace = Workspace.at(tmp_path / "coarse").create()
+    workspace = Workspace.at(tmp_path / "explored").create()
     catalog = Catalog(workspace.catalog)
     catalog.initialise()
     tasks = [t for t in generate_tasks(config.tasks, config.seed) if t.task_id == TASKS["robosuite"]]
@@ -145,8 +147,10 @@ def test_an_episode_explored_with_simplified_meshes_replays_with_them(tmp_path, 
     run_explore(workspace, config, 0, tasks, None, {})
     [(episode_id,)] = catalog.query("SELECT episode_id FROM episodes")
     episode = load_episode(catalog, episode_id)
-    assert episode.render.mesh_detail == 0.1
+    assert episode.render == config.render
     stored, replayed = _stored_frames(workspace, episode_id), list(replay_frames(episode, replay_render(episode)))
+    assert stored[0].shape == (84, 84 * config.render.views, 3)
     assert len(replayed) == len(stored) > 1 and all(np.array_equal(a, b) for a, b in zip(replayed, stored))
-    full = list(replay_frames(episode, replay_render(episode).model_copy(update={"mesh_detail": 1.0})))
-    assert not all(np.array_equal(a, b) for a, b in zip(full, stored))  # at full detail, other pixels
+    default = {field: RenderConfig.model_fields[field].default for field in setting}
+    plain = list(replay_frames(episode, replay_render(episode).model_copy(update=default)))
+    assert not all(np.array_equal(a, b) for a, b in zip(plain, stored))  # at the defaults, other pixels

@@ -9,7 +9,7 @@ from envs.observation import PROPRIO_DIM
 from envs.robosuite_env import RobosuiteEnv
 from envs.rollout import rollout
 from envs.suite import generate_tasks
-from schemas.config import CampaignConfig, RenderConfig
+from schemas.config import CampaignConfig, RenderConfig, TasksConfig
 from schemas.frames import decode_frame
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
@@ -227,3 +227,31 @@ def test_simplified_visual_meshes_change_pixels_not_physics(lift_env, tmp_path, 
     assert [p.stat().st_mtime_ns for p in cached] == stamps and 0 < after < 0.2 * before
     # a campaign at full detail keys its units as before the field existed
     assert key_fields(RenderConfig(), set(), RENDER_LEGACY_VALUES) == RenderConfig().model_dump(exclude={"mesh_detail"})
+
+
+def test_the_wrist_camera_is_drawn_beside_the_main_view(lift_env):
+    """render.wrist_camera: the frame is the agent view (as without it) and the hand's view to its right,
+    which moves with the hand while the agent view keeps its framing."""
+    env = RobosuiteEnv("Lift", RenderConfig(wrist_camera=True))
+    try:
+        obs = env.reset(_lift("red"), seed=3)
+        assert obs.image.shape == (84, 168, 3) and obs.image.dtype == np.uint8
+        assert np.array_equal(obs.image[:, :84], lift_env.reset(_lift("red"), seed=3).image)  # the main view as it was
+        lowered = obs
+        for _ in range(15):
+            lowered, _, _ = env.step(np.array([0.0, 0.0, -0.6, 0.0, 0.0, 0.0, -1.0]))
+        hand_moved = np.abs(lowered.image[:, 84:].astype(int) - obs.image[:, 84:].astype(int)).mean()
+        assert hand_moved > 5  # the table comes nearer in the hand's view
+    finally:
+        env.close()
+
+
+def test_a_wrist_camera_is_refused_for_families_without_one():
+    from envs.registry import check_render
+    from schemas.config import ConfigError
+
+    tasks = generate_tasks(TasksConfig(specs=["lift", "nav-room"]), 0)
+    with pytest.raises(ConfigError, match=r"^render.wrist_camera: expected robosuite tasks only .*got "):
+        check_render(RenderConfig(wrist_camera=True), tasks)
+    check_render(RenderConfig(wrist_camera=True), [t for t in tasks if t.family == "robosuite"])
+    check_render(RenderConfig(), tasks)

@@ -37,6 +37,28 @@ def test_forward_shapes(vision):
     assert out.logits.shape == (5, 4)
 
 
+def test_a_two_view_model_reads_each_view_with_its_own_encoder():
+    """render.wrist_camera: frames (B, 3, H, 2H); the main view's tokens come from `vision`, the hand's
+    from `wrist_vision`, each marked with its view; a one-view model keeps its parameters' names."""
+    model = VLAModel(SMALL, ModelDims(**{**DIMS.__dict__, "views": 2})).eval()
+    image, language, proprio, _, _ = _batch(3)
+    frames = torch.cat([image, torch.rand(3, 3, 84, 84)], dim=3)
+    with torch.no_grad():
+        tokens = model.vision_tokens(frames)
+        main = model.vision(frames[..., :84]) + model.view[0]
+        assert torch.equal(tokens[:, : main.shape[1]], main)
+        assert torch.equal(tokens[:, main.shape[1]:], model.wrist_vision(frames[..., 84:]) + model.view[1])
+        assert model(frames, language, proprio).mu.shape == (3, 7)
+        moved = frames.clone()
+        moved[..., 84:] = torch.rand(3, 3, 84, 84)
+        assert not torch.allclose(model(moved, language, proprio).mu, model(frames, language, proprio).mu)
+    with pytest.raises(ValueError, match=r"reads frames of 2 square view\(s\) side by side .*got 84x84"):
+        model(image, language, proprio)
+    one_view = set(VLAModel(SMALL, DIMS).state_dict())
+    assert not any(name.startswith(("wrist_vision", "view")) for name in one_view)
+    assert one_view < set(model.state_dict())
+
+
 def test_resnet18_has_the_paper_layout():
     model = VLAModel(ModelConfig(dim=32, heads=4, vision="resnet18", resnet_width=64, keypoints=0), DIMS)
     convs = [m for m in model.vision.features.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size != (1, 1)]

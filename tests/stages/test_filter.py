@@ -5,7 +5,7 @@ import pytest
 
 from bench.synthetic import explore_unit
 from schemas.config import FilterConfig
-from schemas.frames import encode_depth
+from schemas.frames import encode_depth, encode_frame
 from stages.filter import STEP_COLUMNS, decide, episode_facts
 
 BOUNDS = (-1.0, 1.0)
@@ -57,6 +57,14 @@ def test_a_depth_campaign_rejects_a_step_without_its_depth_map():
     steps[2]["depth"] = encode_depth(np.ones((64, 64), np.float32))
     assert "step 2: 8192 bytes of depth map" in episode_facts(steps, BOUNDS, 84, depth=True).bad_image
     assert episode_facts(steps, BOUNDS, 84).bad_image is None  # an RGB campaign reads no depth
+
+
+def test_a_wrist_camera_campaign_wants_frames_of_two_views():
+    steps = _steps()
+    assert "is not a 84x168 RGB frame" in episode_facts(steps, BOUNDS, 84, views=2).bad_image
+    two_views = [{**row, "image": encode_frame(np.zeros((84, 168, 3), np.uint8))} for row in steps]
+    assert episode_facts(two_views, BOUNDS, 84, views=2).bad_image is None
+    assert "is not a 84x84 RGB frame" in episode_facts(two_views, BOUNDS, 84).bad_image
 
 
 def test_rejection_sampling_on_success_and_return():

@@ -279,6 +279,9 @@ def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the
     for change in ({"model": {"chunk": 4}}, {"seed": 1}, {"model": {"chunk": 4, "execution": "receding"}}):
         other = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}, **change}})
         assert train_unit_key(other, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key), change
+    wrist = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}},
+                                                "render": {"wrist_camera": True}})
+    assert train_unit_key(wrist, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key)  # reads two views
 
 
 def test_random_shift_moves_whole_frames_by_at_most_the_pad():
@@ -295,6 +298,46 @@ def test_random_shift_moves_whole_frames_by_at_most_the_pad():
     assert len(moves) > 4  # frames of one batch move independently
     torch.rand(3)  # the global generator moves (as the DataLoader's start moves it): the shifts do not
     assert torch.equal(random_shift(frames, 2, torch.Generator().manual_seed(0)), shifted)
+
+
+def test_random_shift_moves_each_view_of_a_two_view_frame_within_itself():
+    """A frame of the main and the hand's view (render.wrist_camera): no pixel of one view shifts into
+    the other, and the two views of a frame move independently."""
+    main, hand = torch.rand(8, 3, 12, 12), torch.rand(8, 3, 12, 12) + 2.0  # told apart by range
+    shifted = random_shift(torch.cat([main, hand], dim=3), 2, torch.Generator().manual_seed(0), views=2)
+    assert shifted.shape == (8, 3, 12, 24)
+    assert shifted[..., :12].max() < 1.0 and shifted[..., 12:].min() >= 2.0
+
+    def move(padded: torch.Tensor, out: torch.Tensor) -> tuple[int, int]:
+        [found] = [(dy, dx) for dy in range(5) for dx in range(5) if torch.equal(padded[:, dy:dy + 12, dx:dx + 12], out)]
+        return found
+
+    pad = lambda frames: torch.nn.functional.pad(frames, (2, 2, 2, 2), mode="replicate")  # noqa: E731
+    moves = [(move(pad(main)[i], shifted[i, :, :, :12]), move(pad(hand)[i], shifted[i, :, :, 12:])) for i in range(8)]
+    assert any(a != b for a, b in moves)
+
+
+def test_a_wrist_camera_campaign_trains_a_two_view_model_on_its_frames():
+    """model_dims follows render.wrist_camera, and one optimiser step runs on (B, 84, 168, 3) frames."""
+    from policies.model import VLAModel
+    from stages.train import model_dims, optimiser_for, train_step
+
+    config = load_config("smoke", None, {"render": {"wrist_camera": True}, "train": {"model": {"chunk": 1}}})
+    model = VLAModel(config.train.model, model_dims(config))
+    assert model.dims.views == 2 and model.wrist_vision is not None
+    generator = torch.Generator().manual_seed(0)
+    batch = {"image": torch.randint(0, 256, (4, 84, 168, 3), dtype=torch.uint8, generator=generator),
+             "language": torch.randn(4, model.dims.language_dim, generator=generator), "instruction": ["x"] * 4,
+             "proprio": torch.randn(4, model.dims.proprio_dim, generator=generator),
+             "action": torch.randn(4, model.dims.action_dim, generator=generator),
+             "action_index": torch.full((4,), -1)}
+    optimiser = optimiser_for(model, config.train)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, lambda _: 1.0)
+    before = [p.detach().clone() for p in model.wrist_vision.parameters()]
+    losses = train_step(model, optimiser, schedule, batch, config.train, torch.device("cpu"),
+                        torch.Generator().manual_seed(0))
+    assert math.isfinite(losses.total.item())
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.wrist_vision.parameters()))  # the hand's view learns
 
 
 def test_language_augmentation_rewords_instructions_reproducibly_and_brings_their_embeddings():
