@@ -6,6 +6,7 @@
     meta/episodes/chunk-000/file-000.parquet   per episode: length, tasks, where its rows and frames lie, its stats
     data/chunk-000/file-000.parquet     one row per step, one row group per episode
     videos/observation.images.image/chunk-000/file-000.mp4   many episodes' frames back to back
+    videos/observation.images.wrist_image/...   the hand camera's, where frames hold two views (render.wrist_camera)
 
 Files roll over to file-001, ... past `data_files_size_in_mb` / `video_files_size_in_mb`, as
 LeRobot's own writer does. The format follows lerobot's datasets/{utils,io_utils,dataset_writer,
@@ -35,6 +36,7 @@ from warehouse.video import CONTROL_FPS, VIDEO_CODEC, video_writer
 
 CODEBASE_VERSION = "v3.0"
 CAMERA = "observation.images.image"  # LeRobot's name for a single robosuite/LIBERO agent-view camera
+WRIST_CAMERA = "observation.images.wrist_image"  # LIBERO's for the hand camera: the right view of a two-view frame
 CHUNKS_SIZE = 1000  # files per chunk folder
 DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
@@ -237,8 +239,8 @@ class _Videos:
     """One mp4 per chunk/file with episodes back to back (LeRobot v3 finds an episode by its
     from/to timestamps); a new file once the current one has passed the limit."""
 
-    def __init__(self, root: Path, fps: int, limit_mb: float):
-        self.root, self.fps, self.limit = root, fps, limit_mb * (1 << 20)
+    def __init__(self, root: Path, fps: int, limit_mb: float, video_key: str = CAMERA):
+        self.root, self.fps, self.limit, self.video_key = root, fps, limit_mb * (1 << 20), video_key
         self.chunk = self.file = self.frames = 0
         self.path: Path | None = None
         self.encoder = None  # imageio's ffmpeg writer of the open file
@@ -266,7 +268,8 @@ class _Videos:
                 f"{self.shape[0]}x{self.shape[1]}: narrow the selection with --where"
             )
         if self.encoder is None:
-            self.path = self.root / VIDEO_PATH.format(video_key=CAMERA, chunk_index=self.chunk, file_index=self.file)
+            self.path = self.root / VIDEO_PATH.format(video_key=self.video_key, chunk_index=self.chunk,
+                                                      file_index=self.file)
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.encoder = video_writer(self.path, self.fps)
         self.encoder.append_data(frame)
@@ -370,7 +373,7 @@ class _Writer:
         self.hf_metadata = {b"huggingface": json.dumps({"info": {"features": hf}}).encode()}
         self.data = _RollingParquet(root, DATA_PATH, data_mb)
         self.meta = _RollingParquet(root, EPISODES_PATH, data_mb)
-        self.videos = _Videos(root, fps, video_mb)
+        self.videos: dict[str, _Videos] = {}  # camera -> its files, once the first episode shows one view or two
         self.limits = (data_mb, video_mb)
         self.tasks: dict[str, int] = {}
         self.stats = _Aggregate()
@@ -381,10 +384,12 @@ class _Writer:
     def add_episode(self, steps: pa.Table) -> None:
         n = steps.num_rows
         episode_id = steps["episode_id"][0].as_py()
-        chunk, file, from_ts = self.videos.start_episode()
-        images = np.stack([decode_frame(b) for b in steps["image"].to_pylist()])
-        for frame in images:
-            self.videos.write(frame, episode_id)
+        views = self._views(np.stack([decode_frame(b) for b in steps["image"].to_pylist()]), episode_id)
+        placed = {}  # camera -> (chunk, file, from_timestamp)
+        for camera, frames in views.items():
+            placed[camera] = self.videos[camera].start_episode()
+            for frame in frames:
+                self.videos[camera].write(np.ascontiguousarray(frame), episode_id)
 
         # One task per instruction said; an episode's frames may carry more than one.
         instructions = steps["instruction"].to_pylist()
@@ -409,7 +414,7 @@ class _Writer:
         table = pa.table(arrays).replace_schema_metadata(self.hf_metadata)
         data_chunk, data_file = self.data.write(table)
 
-        stats = {CAMERA: _image_stats(images)}
+        stats = {camera: _image_stats(frames) for camera, frames in views.items()}
         for name, values in columns.items():
             stats[name] = _stats(values.reshape(n, -1), n)
         self.stats.add(stats)
@@ -417,8 +422,9 @@ class _Writer:
             "episode_index": self.episodes, "tasks": list(dict.fromkeys(instructions)), "length": n,
             "data/chunk_index": data_chunk, "data/file_index": data_file,
             "dataset_from_index": self.frames, "dataset_to_index": self.frames + n,
-            f"videos/{CAMERA}/chunk_index": chunk, f"videos/{CAMERA}/file_index": file,
-            f"videos/{CAMERA}/from_timestamp": from_ts, f"videos/{CAMERA}/to_timestamp": from_ts + n / self.fps,
+            **{key: value for camera, (chunk, file, from_ts) in placed.items() for key, value in (
+                (f"videos/{camera}/chunk_index", chunk), (f"videos/{camera}/file_index", file),
+                (f"videos/{camera}/from_timestamp", from_ts), (f"videos/{camera}/to_timestamp", from_ts + n / self.fps))},
             **{f"stats/{feature}/{k}": v.tolist() for feature, s in stats.items() for k, v in s.items()},
             "meta/episodes/chunk_index": 0, "meta/episodes/file_index": 0,  # set when written
         }
@@ -428,6 +434,18 @@ class _Writer:
         self.episodes += 1
         if len(self.rows) >= 1000:
             self._flush_rows()
+
+    def _views(self, images: np.ndarray, episode_id: str) -> dict[str, np.ndarray]:
+        """An episode's frames (n, H, W, 3) by camera: one square view, or the main and the hand's side by side."""
+        height, width = images.shape[1:3]
+        cameras = [CAMERA] if width != 2 * height else [CAMERA, WRIST_CAMERA]
+        if not self.videos:
+            self.videos = {camera: _Videos(self.root, self.fps, self.limits[1], camera) for camera in cameras}
+        elif list(self.videos) != cameras:
+            raise ExportError(f"episode {episode_id} has {height}x{width} images ({len(cameras)} camera view(s)), "
+                              f"earlier ones {len(self.videos)}: narrow the selection with --where")
+        return {camera: images[:, :, i * height:(i + 1) * height] if len(cameras) > 1 else images
+                for i, camera in enumerate(cameras)}
 
     def _flush_rows(self) -> None:
         if not self.rows:
@@ -443,16 +461,11 @@ class _Writer:
 
     def finish(self, repo_id: str, robot_type: str | None) -> None:
         self._flush_rows()
-        for part in (self.data, self.meta, self.videos):
+        for part in (self.data, self.meta, *self.videos.values()):
             part.close()
-        height, width = self.videos.shape or (0, 0)
-        camera = {
-            "dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
-            "info": {"video.height": height, "video.width": width, "video.codec": VIDEO_CODEC,
-                     "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "is_depth_map": False,
-                     "video.fps": self.fps, "video.channels": 3, "has_audio": False},
-        }
-        features = {CAMERA: camera, **{k: {**f, "shape": list(f["shape"])} for k, f in self.features.items()}}
+        cameras = {camera: videos.shape or (0, 0) for camera, videos in self.videos.items()} or {CAMERA: (0, 0)}
+        features = {camera: _video_feature(height, width, self.fps) for camera, (height, width) in cameras.items()}
+        features |= {k: {**f, "shape": list(f["shape"])} for k, f in self.features.items()}
         info = {
             "codebase_version": CODEBASE_VERSION, "robot_type": robot_type, "total_episodes": self.episodes,
             "total_frames": self.frames, "total_tasks": len(self.tasks), "chunks_size": CHUNKS_SIZE,
@@ -475,6 +488,15 @@ class _Writer:
             f"sim2act: {self.episodes} episodes, {self.frames} frames, {len(self.tasks)} tasks. "
             "meta/sim2act_episodes.parquet maps episode_index to the warehouse's episode_id.\n"
         )
+
+
+def _video_feature(height: int, width: int, fps: int) -> dict:
+    return {
+        "dtype": "video", "shape": [height, width, 3], "names": ["height", "width", "channels"],
+        "info": {"video.height": height, "video.width": width, "video.codec": VIDEO_CODEC,
+                 "video.pix_fmt": "yuv420p", "video.is_depth_map": False, "is_depth_map": False,
+                 "video.fps": fps, "video.channels": 3, "has_audio": False},
+    }
 
 
 def _vector(dtype: str, dim: int, prefix: str) -> dict:

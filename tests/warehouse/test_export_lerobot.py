@@ -15,7 +15,7 @@ from schemas.frames import encode_frame
 from schemas.tables import CATALOG_TABLES, EPISODES, FILTER_DECISIONS, STEPS
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
-from warehouse.export_lerobot import CAMERA, ExportError, _Videos, export_lerobot
+from warehouse.export_lerobot import CAMERA, WRIST_CAMERA, ExportError, _Videos, export_lerobot
 from warehouse.shard_writer import write_shard
 
 SIZE = 84  # not a multiple of 16: the encoder must not pad it
@@ -45,9 +45,10 @@ def _frame(episode: int, step: int) -> np.ndarray:
     return img
 
 
-def _build(root, spec=EPISODES_SPEC) -> tuple[Catalog, dict]:
+def _build(root, spec=EPISODES_SPEC, wrist: set[str] = frozenset()) -> tuple[Catalog, dict]:
     """Write and register one unit of episodes, steps and filter decisions; -> the catalog and
-    the frames and actions written, by episode_id."""
+    the frames and actions written, by episode_id. Episodes in `wrist` have two-view frames (render.wrist_camera):
+    the hand's view a step further on."""
     ws = Workspace.at(root).create()
     catalog = Catalog(ws.catalog)
     catalog.initialise()
@@ -55,7 +56,8 @@ def _build(root, spec=EPISODES_SPEC) -> tuple[Catalog, dict]:
     episodes, steps, decisions, truth = [], [], [], {}
     for e, (episode_id, (task_id, instruction, n, kept, action_dim)) in enumerate(spec.items()):
         common = dict(campaign="t", iteration=0, episode_id=episode_id, task_id=task_id)
-        frames = [_frame(e, s) for s in range(n)]
+        frames = [np.concatenate([_frame(e, s), _frame(e, s + 1)], axis=1) if episode_id in wrist else _frame(e, s)
+                  for s in range(n)]
         actions = rng.uniform(-1, 1, (n, action_dim)).astype(np.float32)
         proprio = rng.uniform(-1, 1, (n, 9)).astype(np.float32)
         truth[episode_id] = {"frames": frames, "actions": actions, "proprio": proprio}
@@ -285,3 +287,30 @@ def test_mixed_action_shapes_are_refused_naming_both(tmp_path):
                                           r"\(tasks lift-red, stack-blue\).*--where"):
         export_lerobot(catalog, tmp_path / "out")
     assert export_lerobot(catalog, tmp_path / "out", where="task_id LIKE 'nav%'").frames == 4
+
+
+def test_two_view_frames_go_out_as_two_cameras(tmp_path):
+    """render.wrist_camera frames (84x168: the main view, the hand's) become LIBERO's two cameras, each
+    its own 84x84 video, stats and episode entries; a selection mixing one and two views is refused."""
+    catalog, truth = _build(tmp_path / "ws", wrist=set(EPISODES_SPEC))
+    out = tmp_path / "lerobot"
+    summary = export_lerobot(catalog, out)
+    kept = ["ep-a", "ep-c"]
+    info = json.loads((out / "meta/info.json").read_text())
+    assert list(info["features"])[:2] == [CAMERA, WRIST_CAMERA]
+    assert all(info["features"][c]["shape"] == [SIZE, SIZE, 3] for c in (CAMERA, WRIST_CAMERA))
+    stats = json.loads((out / "meta/stats.json").read_text())
+    for side, camera in enumerate((CAMERA, WRIST_CAMERA)):
+        views = [f[:, side * SIZE:(side + 1) * SIZE] for e in kept for f in truth[e]["frames"]]
+        assert np.asarray(stats[camera]["mean"]).ravel() == pytest.approx(
+            np.stack(views).reshape(-1, 3).mean(0) / 255, abs=1e-6)
+        decoded = _decode(out / f"videos/{camera}/chunk-000/file-000.mp4")
+        assert len(decoded) == summary.frames == len(views)
+        assert max(np.abs(d.astype(int) - v.astype(int)).mean() for d, v in zip(decoded, views)) < 6
+    [first, _] = pq.read_table(out / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    assert first[f"videos/{WRIST_CAMERA}/to_timestamp"] == first[f"videos/{CAMERA}/to_timestamp"] > 0
+
+    mixed, _ = _build(tmp_path / "mixed", wrist={"ep-c"})
+    with pytest.raises(ExportError, match=r"episode ep-c has 84x168 images \(2 camera view\(s\)\), earlier ones 1"):
+        export_lerobot(mixed, tmp_path / "out-mixed")
+    assert not (tmp_path / "out-mixed").exists()
