@@ -23,9 +23,10 @@ def adapter_action(action, family: str) -> np.ndarray:
     return np.asarray([action] if family in DISCRETE_FAMILIES else action, dtype=np.float32).reshape(-1)
 
 
-def observation_space(image_size: int, embedding_dim: int) -> gym.spaces.Dict:
+def observation_space(image_size: int, embedding_dim: int, views: int = 1) -> gym.spaces.Dict:
+    """`views`: square camera views side by side in a frame (render.views)."""
     return gym.spaces.Dict({
-        "image": gym.spaces.Box(0, 255, (image_size, image_size, 3), np.uint8),
+        "image": gym.spaces.Box(0, 255, (image_size, views * image_size, 3), np.uint8),
         "proprio": gym.spaces.Box(-np.inf, np.inf, (PROPRIO_DIM,), np.float32),
         "instruction": gym.spaces.Box(-np.inf, np.inf, (embedding_dim,), np.float32),
     })
@@ -52,7 +53,8 @@ class InstructedTasksEnv(gym.Env):
         self.tasks, self.embeddings, self.randomise = tasks, embeddings, randomise
         self.family = families.pop()
         self.envs = {task.env_name: worker_env(task, render) for task in tasks}  # one adapter per env name
-        self.observation_space = observation_space(render.image_size, len(next(iter(embeddings.values()))))
+        self.observation_space = observation_space(render.image_size, len(next(iter(embeddings.values()))),
+                                                   render.views)
         self.action_space = action_space(self.family)
         self._task, self._embedding, self._steps = tasks[0], None, 0
         self.episodes_finished, self.successes = 0, 0  # over the environment's life: what training achieved

@@ -63,6 +63,9 @@ _MEANING = {
 }
 
 
+TWO_VIEWS = " The image is two views side by side: the scene's camera left, the camera in the robot's hand right."
+
+
 def png_data_url(image: np.ndarray) -> str:
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(image)).save(buffer, format="PNG")
@@ -87,8 +90,9 @@ class VlmExplorer:
         return dict(self.counts)
 
     def messages(self, image: np.ndarray) -> list[dict]:
+        two_views = image.shape[1] == 2 * image.shape[0]  # render.wrist_camera: schemas/frames.py
         return [
-            {"role": "system", "content": self.system},
+            {"role": "system", "content": self.system + (TWO_VIEWS if two_views else "")},
             {"role": "user", "content": [
                 {"type": "text", "text": f"Instruction: {self.instruction}\nYour next action?"},
                 {"type": "image_url", "image_url": {"url": png_data_url(image)}},

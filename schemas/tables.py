@@ -85,7 +85,7 @@ STEPS = pa.schema(
         ("task_id", pa.string()),
         ("step", pa.int32()),
         ("instruction", pa.string()),
-        ("image", pa.binary()),  # raw RGB frame, image_size x image_size, upright (schemas.frames)
+        ("image", pa.binary()),  # raw RGB frame, image_size square (or two side by side: render.wrist_camera), upright
         ("depth", pa.binary()),  # its depth map, uint16 millimetres (schemas.frames); null unless render.depth
         ("proprio", pa.list_(pa.float32())),
         ("action", pa.list_(pa.float32())),

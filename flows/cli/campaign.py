@@ -118,11 +118,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     configure_environment(workspace)
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     log_stages_to_stderr()
+    from envs.registry import check_render
     from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
     from flows.tracking import Tracking
     from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
 
     suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
+    check_render(config.render, [task for task, _, _ in cases])  # a view a case's scene lacks: one line, here
     models = [resolve_model(workspace, config, ref) for ref in args.model]
     for model in models:
         check_model_fits(config, model)

@@ -10,11 +10,18 @@ from envs.suite import generate_tasks
 from schemas.config import RandomiseConfig, RenderConfig, TasksConfig
 
 
-def _env(specs: list[str], colours: list[str]) -> InstructedTasksEnv:
+def _env(specs: list[str], colours: list[str], **render) -> InstructedTasksEnv:
     tasks = generate_tasks(TasksConfig(specs=specs, colours=colours), seed=0)
     said = sorted({text for task in tasks for text in task.instructions})
     embeddings = {text: np.full(8, i, dtype=np.float32) for i, text in enumerate(said)}  # one vector per instruction
-    return InstructedTasksEnv(tasks, embeddings, RenderConfig(image_size=48), RandomiseConfig())
+    return InstructedTasksEnv(tasks, embeddings, RenderConfig(image_size=48, **render), RandomiseConfig())
+
+
+def test_with_the_wrist_camera_the_space_holds_both_views():
+    env = _env(["lift"], ["red"], wrist_camera=True)
+    check_sb3_env(env, warn=True)  # SB3's own check: the observations it gets fit the declared space
+    obs, _ = env.reset(seed=3)
+    assert obs["image"].shape == env.observation_space["image"].shape == (48, 96, 3)
 
 
 @pytest.mark.parametrize("specs", [["lift"], ["nav-room"]])

@@ -290,7 +290,8 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
     assert {"success.unseen", "success.unseen.ci_low", "success.lift-elsewhere-red"} <= set(run.data.metrics)
 
     for args, named in ((["--model", "v99"], "--model"), (["--model", "champion", "--tasks", "missing.yaml"], "--tasks"),
-                        (["--model", "1", "--set", "render.depth=true"], "render.depth")):
+                        (["--model", "1", "--set", "render.depth=true"], "render.depth"),
+                        (["--model", "1", "--set", "render.wrist_camera=true"], "render.wrist_camera")):
         refused = evaluate(*args)
         assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.splitlines()) == 1, refused.stderr
     assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before

@@ -145,3 +145,12 @@ def test_an_episode_applies_the_actions_the_server_chose(serve_chat):
     moved = np.hypot(*np.subtract(rows[3]["proprio"][:2], rows[1]["proprio"][:2]))
     assert moved > 0.1  # two forwards drove the agent
     assert explorer.stats()["calls"] == 5 and explorer.stats()["fallback_actions"] == 0
+
+
+def test_a_two_view_frame_is_explained_to_the_model():
+    """render.wrist_camera frames (H, 2H): the system message says which view is which; one view: as before."""
+    from policies.vlm_explorer import TWO_VIEWS
+
+    explorer = _explorer("http://127.0.0.1:9")  # messages only: nothing is sent
+    assert explorer.messages(_obs(40, 80).image)[0]["content"].endswith(TWO_VIEWS)
+    assert explorer.messages(_obs(40, 40).image)[0]["content"] == explorer.system
