@@ -13,7 +13,8 @@ from mlflow import MlflowClient
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, Param, RunTag
 from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
-from schemas.config import CampaignConfig
+from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig
+from schemas.keys import key_fields
 from schemas.settings import tracking_uri
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
@@ -35,6 +36,23 @@ def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
 MLFLOW_SOURCE_CHARACTERS = 65_535  # the longest dataset source MLflow accepts (mlflow.utils.validation)
 
 
+def campaign_settings(config: CampaignConfig) -> dict:
+    """What tells one campaign's MLflow run from another's: its name plus everything but the iteration count
+    and the adaptation after its iterations (asking for more iterations, or for an adaptation, continues the
+    same run), without the fields added since that hold their legacy values, as unit keys leave them out — so
+    a campaign resumed by newer code continues its run instead of opening another."""
+    from stages.explore import LEGACY_VALUES as EXPLORE_LEGACY_VALUES
+    from stages.train import LEGACY_VALUES as TRAIN_LEGACY_VALUES
+
+    legacy = {"render": RENDER_LEGACY_VALUES, "explore": EXPLORE_LEGACY_VALUES, "train": TRAIN_LEGACY_VALUES}
+    return key_fields(config, {"iterations", "adapt"}, legacy)
+
+
+def campaign_hash(config: CampaignConfig) -> str:
+    settings = json.dumps(campaign_settings(config), sort_keys=True, default=str)
+    return hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
+
+
 class Tracking:
     def __init__(self, workspace: Workspace, config: CampaignConfig):
         uri = tracking_uri(workspace)
@@ -49,10 +67,7 @@ class Tracking:
         self.experiment_id = (
             experiment.experiment_id if experiment else self.client.create_experiment(EXPERIMENT, artifact_location=location)
         )
-        # A campaign is its name plus everything but the iteration count and the adaptation after its
-        # iterations: asking for more iterations, or for an adaptation, continues the same campaign run.
-        settings = config.model_dump_json(exclude={"iterations", "adapt"})
-        self.config_hash = hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
+        self.config_hash = campaign_hash(config)
 
     def _find_or_create(self, tags: dict[str, str], name: str, params: dict[str, str] | None = None) -> str:
         query = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())

@@ -7,7 +7,7 @@ import json
 
 from mlflow import MlflowClient
 
-from flows.tracking import MLFLOW_SOURCE_CHARACTERS, Tracking
+from flows.tracking import MLFLOW_SOURCE_CHARACTERS, Tracking, campaign_hash, campaign_settings
 from schemas.config import load_config
 from schemas.workspace import Workspace
 
@@ -30,3 +30,19 @@ def test_a_training_dataset_of_thousands_of_shards_names_them_in_an_artifact(tmp
     assert json.loads(inputs["b" * 32].profile) == {"triplets": 1_051_301, "shards": 5040}
     listed = client.download_artifacts(run_id, "training/shards-bbbbbbbbbbbb.json", str(tmp_path))
     assert json.loads(open(listed).read()) == many
+
+
+def test_a_campaign_keeps_its_mlflow_run_when_newer_code_adds_config_fields():
+    """Fields added since (a render, explore or train field at its legacy value) leave the campaign's hash
+    as it was without them; a field that changes what is made, or the name, makes another campaign; more
+    iterations or an adaptation continue the same one."""
+    config = load_config("hard-mix")
+    assert campaign_hash(config) == campaign_hash(config.model_copy(update={"iterations": 9}))
+    settings = campaign_settings(config)
+    for section, added in (("render", "wrist_camera"), ("render", "mesh_detail"), ("explore", "expert_takeover"),
+                           ("train", "language_augment")):
+        assert added not in settings[section]  # as code from before the field existed hashed the campaign
+    assert campaign_settings(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))["render"]["wrist_camera"]
+    assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))
+    assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"explore": {"expert_takeover": 0.5}}))
+    assert campaign_hash(config) != campaign_hash(config.model_copy(update={"name": "other"}))
