@@ -74,16 +74,14 @@ def split_views(image: torch.Tensor, views: int) -> torch.Tensor:
     """(B, C, H, views*H) frames -> (B*views, C, H, H): each square view its own image, a frame's views adjacent."""
     if views == 1:
         return image
-    b, c, h, w = image.shape
-    return image.unflatten(3, (views, h)).permute(0, 3, 1, 2, 4).flatten(0, 1)
+    return image.unflatten(3, (views, image.shape[2])).permute(0, 3, 1, 2, 4).flatten(0, 1)
 
 
 def join_views(image: torch.Tensor, views: int) -> torch.Tensor:
     """The inverse of `split_views`."""
     if views == 1:
         return image
-    bv, c, h, _ = image.shape
-    return image.unflatten(0, (bv // views, views)).permute(0, 2, 3, 1, 4).flatten(3, 4)
+    return image.unflatten(0, (-1, views)).permute(0, 2, 3, 1, 4).flatten(3, 4)
 
 
 def pixels(image: torch.Tensor, depth: torch.Tensor | None = None) -> torch.Tensor:

@@ -444,8 +444,7 @@ class _Writer:
         elif list(self.videos) != cameras:
             raise ExportError(f"episode {episode_id} has {height}x{width} images ({len(cameras)} camera view(s)), "
                               f"earlier ones {len(self.videos)}: narrow the selection with --where")
-        return {camera: images[:, :, i * height:(i + 1) * height] if len(cameras) > 1 else images
-                for i, camera in enumerate(cameras)}
+        return {camera: images[:, :, i * height:(i + 1) * height] for i, camera in enumerate(cameras)}
 
     def _flush_rows(self) -> None:
         if not self.rows:
