@@ -109,8 +109,12 @@ def test_every_campaign_file_of_the_docs_loads_on_the_preset_its_commands_name(p
     """docs/quality's files are run by the commands in their own comments: those must work."""
     presets = set(re.findall(r"--preset (\S+)", path.read_text()))
     assert len(presets) == 1, f"{path.name}: expected its commands to name one preset, got {presets}"
-    config = load_config(presets.pop(), path)
-    assert generate_tasks(config.tasks, config.seed) and config.name == path.stem
+    preset = presets.pop()
+    config = load_config(preset, path)
+    assert generate_tasks(config.tasks, config.seed)
+    # A file names its own campaign, or keeps its preset's name on purpose: then it explores and is evaluated on the
+    # preset's very episodes, and changes one thing against it (hard-mix-epochs: the training budget).
+    assert config.name in {path.stem, preset}, f"{path.name}: expected name {path.stem!r} or {preset!r}, got {config.name!r}"
 
 
 def test_each_split_gets_at_least_its_episodes_per_split():
