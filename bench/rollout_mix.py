@@ -1,7 +1,8 @@
 """`sim2act bench rollout --mix`: the explore stage over a sample of the generalist's mix, as it was
 (full visual meshes, robosuite's arm controller at every substep), with decimated meshes
-(`render.mesh_detail`), and with the fused substeps beside them (envs/robosuite_control.py), the same
-episodes on every side (issue 11 item 2: explore triplets/s per core over the generalist mix).
+(`render.mesh_detail`), with the fused substeps beside them (envs/robosuite_control.py), and with the
+colliding meshes drawn decimated too (`render.decimate_colliding`), the same episodes on every side
+(issue 11 item 2: explore triplets/s per core over the generalist mix).
 
 1. the sample: per family (robosuite, MetaWorld, navigation), `tasks_per_family` of the preset's
    specs with a seen task, evenly spaced in the preset's order, each spec's first seen task;
@@ -51,14 +52,27 @@ class Side(BaseModel):
     label: str  # the table's column heading
     mesh_detail: float  # render.mesh_detail
     fused_control: bool  # robosuite's substeps through envs/robosuite_control (False: robosuite's own path)
+    decimate_colliding: bool = False  # render.decimate_colliding: the colliding meshes drawn decimated too
+
+    def render(self, render: RenderConfig) -> RenderConfig:
+        return render.model_copy(update={"mesh_detail": self.mesh_detail, "decimate_colliding": self.decimate_colliding})
+
+    @property
+    def name(self) -> str:
+        """The side's workspace folder name."""
+        return (f"side-{self.mesh_detail:g}{'-colliding' if self.decimate_colliding else ''}"
+                f"-{'fused' if self.fused_control else 'stock'}")
 
 
 def sides(sizes: MixSizes) -> list[Side]:
-    """The explore stage as it was (the baseline), with decimated meshes, and with the fused substeps too."""
+    """The explore stage as it was (the baseline), with decimated meshes, with the fused substeps too, and with
+    the colliding meshes drawn decimated as well."""
     detail = f"{sizes.mesh_detail:g}"
     return [Side(label="meshes 1.0, robosuite's controller", mesh_detail=1.0, fused_control=False),
             Side(label=f"meshes {detail}", mesh_detail=sizes.mesh_detail, fused_control=False),
-            Side(label=f"meshes {detail}, fused substeps", mesh_detail=sizes.mesh_detail, fused_control=True)]
+            Side(label=f"meshes {detail}, fused substeps", mesh_detail=sizes.mesh_detail, fused_control=True),
+            Side(label=f"meshes {detail} colliding ones too, fused substeps", mesh_detail=sizes.mesh_detail,
+                 fused_control=True, decimate_colliding=True)]
 
 
 class FamilyRate(BaseModel):
@@ -131,14 +145,13 @@ def _explore(root: Path, config: CampaignConfig, tasks: list[TaskRecord], side: 
     from stages.explore import run_explore
     from warehouse.catalog import Catalog
 
-    config = config.model_copy(update={"render": config.render.model_copy(update={"mesh_detail": side.mesh_detail})})
+    config = config.model_copy(update={"render": side.render(config.render)})
     runs = []
     # the stage's workers are spawned and inherit the controller path; both runs on one kept worker
     with controller_path(stock=not side.fused_control), keep_workers():
         meter = LoadMeter()
         for phase in ("cold", "warm"):
-            name = f"side-{side.mesh_detail:g}-{'fused' if side.fused_control else 'stock'}-{phase}"
-            workspace = Workspace.at(root / name).create()
+            workspace = Workspace.at(root / f"{side.name}-{phase}").create()
             catalog = Catalog(workspace.catalog)
             catalog.initialise()
             run_explore(workspace, config, 0, tasks, None, {})
@@ -165,7 +178,7 @@ def bench_mix(sizes: MixSizes, scratch: Path | None = None) -> MixBench:
         Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-mix-", dir=scratch))
     try:
-        fill_mesh_cache(tasks, config.render.model_copy(update={"mesh_detail": sizes.mesh_detail}))
+        fill_mesh_cache(tasks, sides(sizes)[-1].render(config.render))  # every decimated mesh any side draws
         runs = [_explore(root, config, tasks, side) for side in sides(sizes)]
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -14,7 +14,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.gl import select_offscreen  # noqa: E402
-from envs.mesh_detail import apply_mesh_detail  # noqa: E402
+from envs.mesh_detail import apply_mesh_detail, renderer_meshes  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
 from schemas.config import RenderConfig  # noqa: E402
@@ -71,14 +71,14 @@ class MetaWorldEnv:
         """(frame, depth in metres or None), upright."""
         if self.render_config is None:
             return NO_IMAGE, None
-        self._make_context_current()
-        drawn = self.env.render()
-        if not self._scene_configured:  # the viewer exists only after the first render
-            scene = self._viewer().scn
+        if not self._scene_configured:  # gymnasium makes its renderer, uploading the meshes, when first asked
+            with renderer_meshes(self.env.model, self.render_config):
+                scene = self._viewer().scn
             scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = int(self.render_config.shadows)
             scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.render_config.reflections)
             self._scene_configured = True
-            drawn = self.env.render()
+        self._make_context_current()
+        drawn = self.env.render()
         image, zbuffer = drawn if self.render_config.depth else (drawn, None)
         depth = None if zbuffer is None else metric_depth(zbuffer[::-1], self.env.model)  # flipped as the frame
         return image[::-1].copy(), depth  # OpenGL rows run bottom-up

@@ -54,16 +54,17 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     """An episode's row, task, render settings and step states, read from the catalog (read-only)."""
     from warehouse.tasks import find_task
 
-    rows = catalog.query(  # the unit's mesh detail where below 1, its wrist camera where drawn (stages/explore.py)
+    rows = catalog.query(  # the render settings the unit's summary keeps where not at their defaults (stages/explore.py)
         "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, "
         "coalesce(json_extract(r.summary, '$.mesh_detail')::DOUBLE, 1.0), "
-        "coalesce(json_extract(r.summary, '$.wrist_camera')::BOOLEAN, false) FROM episodes e "
+        "coalesce(json_extract(r.summary, '$.wrist_camera')::BOOLEAN, false), "
+        "coalesce(json_extract(r.summary, '$.decimate_colliding')::BOOLEAN, false) FROM episodes e "
         "LEFT JOIN stage_runs r ON r.unit_key = e.shard_key WHERE e.episode_id = ?", [episode_id]
     )
     if not rows:
         raise ReplayError(f"replay: no episode {episode_id!r} in {catalog.path} "
                           "(`sim2act sql \"SELECT episode_id FROM episodes\"` lists them)")
-    campaign, task_id, seed, randomisation, render, error, mesh_detail, wrist_camera = rows[0]
+    campaign, task_id, seed, randomisation, render, error, mesh_detail, wrist_camera, decimate_colliding = rows[0]
     task = find_task(catalog, campaign, task_id)
     if task is None:
         raise ReplayError(f"replay: episode {episode_id!r}: its task {task_id!r} is not among campaign "
@@ -75,8 +76,9 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     return StoredEpisode(
         episode_id=episode_id, task=task, seed=seed,
         randomisation=Randomisation.model_validate(randomisation) if randomisation else None,
-        render=RenderConfig.model_validate({**render, "mesh_detail": mesh_detail, "wrist_camera": wrist_camera})
-        if render else None, states=states,
+        render=RenderConfig.model_validate({**render, "mesh_detail": mesh_detail, "wrist_camera": wrist_camera,
+                                            "decimate_colliding": decimate_colliding}) if render else None,
+        states=states,
     )
 
 

@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
 from envs.gl import select_offscreen  # noqa: E402
-from envs.mesh_detail import apply_mesh_detail  # noqa: E402
+from envs.mesh_detail import apply_mesh_detail, renderer_meshes  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
 from envs.robosuite_control import STOCK_CONTROL, FusedSubsteps  # noqa: E402
@@ -212,7 +212,8 @@ class RobosuiteEnv:
         if render is not None:
             # before the context is made again: it uploads the meshes as they are then
             apply_mesh_detail(self.env.sim.model._model, render)
-            self._apply_render_settings()
+            with renderer_meshes(self.env.sim.model._model, render):
+                self._apply_render_settings()
         # the arm's torques between policy steps computed without robosuite's bookkeeping, bit for
         # bit the same (envs/robosuite_control.py); the variable keeps robosuite's path (benchmarks)
         self.fused_control = None if os.environ.get(STOCK_CONTROL) == "1" else FusedSubsteps(self.env)

@@ -91,6 +91,11 @@ class RenderConfig(_Strict):
     # physics unchanged, pixels not, so a campaign keeps one value (docs/rollouts.md has the speed-up).
     mesh_detail: float = Field(default=1.0, gt=0, le=1,
                                description="fraction of visual mesh faces drawn (robosuite, MetaWorld)")
+    # A mesh that collides stays whole for physics, and was drawn whole too: MetaWorld's gripper base and last link
+    # are 16k of the 23k faces its frame still draws at 0.1. Off by default: on, the frames differ from a campaign
+    # that explored without it (a few edge pixels), so a campaign keeps one value.
+    decimate_colliding: bool = Field(default=False, description="with mesh_detail below 1, also draw the meshes "
+                                     "that collide decimated (the renderer's copy only: physics keeps the full mesh)")
     # Precise placing (a nut on its peg) is a few pixels at 84 px from the agent's view; robomimic's and Diffusion
     # Policy's image figures for Square and Can see a second camera in the hand. Stored beside the main view in one
     # frame (H x 2H, schemas/frames.py), read by an encoder of its own (policies/model.py).
@@ -101,6 +106,8 @@ class RenderConfig(_Strict):
     def _one_depth_view(self) -> RenderConfig:
         if self.wrist_camera and self.depth:
             raise ValueError("wrist_camera: depth maps are recorded for one view only, so not with render.depth")
+        if self.decimate_colliding and self.mesh_detail >= 1.0:
+            raise ValueError(f"decimate_colliding: expected render.mesh_detail below 1, got {self.mesh_detail}")
         return self
 
     @property
@@ -110,7 +117,7 @@ class RenderConfig(_Strict):
 
 
 # render fields added after the stages that key on the render settings: at these values a key reads as before
-RENDER_LEGACY_VALUES = {"mesh_detail": 1.0, "wrist_camera": False}
+RENDER_LEGACY_VALUES = {"mesh_detail": 1.0, "wrist_camera": False, "decimate_colliding": False}
 
 
 def render_key_fields(render: RenderConfig) -> dict[str, Any]:

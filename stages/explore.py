@@ -349,6 +349,8 @@ def unit_summary(unit: ExploreUnit, shards: list) -> dict:
         summary["mesh_detail"] = unit.render.mesh_detail  # its frames' mesh detail
     if unit.render is not None and unit.render.wrist_camera:
         summary["wrist_camera"] = True  # its frames hold the hand's view beside the main one
+    if unit.render is not None and unit.render.decimate_colliding:
+        summary["decimate_colliding"] = True  # its frames drew the colliding meshes decimated too
     return summary
 
 

@@ -44,20 +44,22 @@ def test_bench_rollout_reports_every_case_and_the_ratios_between_them(tmp_path, 
 
 
 def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, capsys, monkeypatch):
-    """--mix: the stage over a sample of the generalist's tasks, as it was, with decimated meshes, and
-    with the fused substeps too, per family, cold and then warm on the same worker."""
+    """--mix: the stage over a sample of the generalist's tasks, as it was, with decimated meshes, with the
+    fused substeps too, and with the colliding meshes decimated as well, per family, cold and then warm on
+    the same worker."""
     monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.delenv(STOCK_CONTROL, raising=False)
     out = tmp_path / "mix.md"
     assert main(["bench", "rollout", "--mix", "--quick", "--json", "--scratch", str(tmp_path), "--out", str(out)]) == 0
     bench = json.loads(capsys.readouterr().out)
     assert bench["tasks"] == ["mw-assembly", "nav-room-red", "lift-red"]  # each family's first spec with a seen task
-    assert [(s["mesh_detail"], s["fused_control"]) for s in bench["sides"]] == [(1.0, False), (0.1, False), (0.1, True)]
+    assert [(s["mesh_detail"], s["fused_control"], s["decimate_colliding"]) for s in bench["sides"]] == [
+        (1.0, False, False), (0.1, False, False), (0.1, True, False), (0.1, True, True)]
     families = {f["family"]: f for f in bench["families"]}
     assert sorted(families) == ["metaworld", "navigation", "robosuite"]
     for family in families.values():  # the same steps on every side is checked by the bench itself
         assert family["tasks"] == family["episodes"] == 1 and family["steps"] > 0
-        assert len(family["seconds"]) == len(family["warm_seconds"]) == 3
+        assert len(family["seconds"]) == len(family["warm_seconds"]) == 4
         assert min(family["seconds"]) > 0 and min(family["warm_seconds"]) > 0
     # cold, each unit made its environment; warm, the same worker had it: robosuite's ~2 s scene build
     robosuite = families["robosuite"]
@@ -69,8 +71,8 @@ def test_bench_rollout_mix_explores_the_same_episodes_on_every_side(tmp_path, ca
     assert table.count("| all | 3 | 3 |") == 2
     for phase in ("warm_seconds", "seconds"):  # the warm table first
         weighted = [sum(n * families[f][phase][side] / families[f]["steps"] for f, n in shares.items())
-                    / sum(shares.values()) for side in range(3)]
-        ratios = f"**{weighted[0] / weighted[1]:.2f}×** | **{weighted[0] / weighted[2]:.2f}×** |"
+                    / sum(shares.values()) for side in range(4)]
+        ratios = " | ".join(f"**{weighted[0] / weighted[side]:.2f}×**" for side in (1, 2, 3)) + " |"
         assert ratios in table
         table = table[table.index(ratios) + len(ratios):]
     assert os.environ.get(STOCK_CONTROL) is None  # the bench leaves the variable as it found it

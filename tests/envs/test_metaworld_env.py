@@ -62,6 +62,37 @@ def test_simplified_visual_meshes_change_pixels_not_physics(pick_place, tmp_path
     assert list((tmp_path / "meshes").glob("*.npz"))
 
 
+def test_colliding_meshes_are_drawn_decimated_and_stay_whole_for_physics(tmp_path, monkeypatch):
+    """render.decimate_colliding: the gripper's colliding meshes reach the renderer decimated, and the model
+    holds them whole again afterwards (physics reads their hulls): the same episode, a few pixels apart."""
+    from envs.mesh_detail import colliding_meshes
+
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path))
+    [task] = generate_tasks(TasksConfig(specs=["mw-pick-place"]), seed=0)
+    envs = [MetaWorldEnv("pick-place-v3", RenderConfig(mesh_detail=0.1, decimate_colliding=decimate))
+            for decimate in (False, True)]
+    try:
+        visual, both = (env.env.model for env in envs)
+        meshes = colliding_meshes(both)
+        assert sum(both.mesh_facenum[meshes]) > 10_000  # the gripper base and the last link, at least
+        for name in ("mesh_vert", "mesh_normal", "mesh_face", "mesh_facenormal", "mesh_vertnum", "mesh_facenum",
+                     "mesh_graphadr", "mesh_texcoordadr", "mesh_graph"):
+            assert np.array_equal(getattr(visual, name), getattr(both, name)), name
+        coarse, coarser = (rollout(env, task, 4, make_expert(task, 0.1, np.random.default_rng(4)))[0] for env in envs)
+    finally:
+        for env in envs:
+            env.close()
+    assert [(r["qpos"], r["action"], r["reward"]) for r in coarse] == [(r["qpos"], r["action"], r["reward"])
+                                                                       for r in coarser]
+    differences = [np.abs(a["image"].astype(int) - b["image"].astype(int)).mean() for a, b in zip(coarse, coarser)]
+    assert 0 < max(differences) < 6
+
+
+def test_colliding_meshes_are_decimated_only_below_full_detail():
+    with pytest.raises(ValueError, match="decimate_colliding: expected render.mesh_detail below 1, got 1.0"):
+        RenderConfig(decimate_colliding=True)
+
+
 def test_frames_are_upright(pick_place):
     env, task = pick_place
     image = env.reset(task, seed=1).image.astype(int)

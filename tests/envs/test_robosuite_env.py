@@ -226,7 +226,7 @@ def test_simplified_visual_meshes_change_pixels_not_physics(lift_env, tmp_path, 
     before, after = simplify_visual_meshes(again, 0.1, tmp_path / "meshes")
     assert [p.stat().st_mtime_ns for p in cached] == stamps and 0 < after < 0.2 * before
     # a campaign at full detail keys its units as before the field existed
-    added = {"mesh_detail", "wrist_camera"}  # render fields newer than the stages that key on them
+    added = {"mesh_detail", "wrist_camera", "decimate_colliding"}  # render fields newer than the stages that key on them
     assert key_fields(RenderConfig(), set(), RENDER_LEGACY_VALUES) == RenderConfig().model_dump(exclude=added)
 
 

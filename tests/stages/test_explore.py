@@ -72,7 +72,8 @@ def test_a_shard_records_vlm_counters_and_the_experts_labels_everywhere(tmp_path
         own = [s for s in steps if s["episode_id"] == episode["episode_id"]]
         assert episode["error"] is None and len(own) == episode["num_steps"] > 0
         assert all(len(s["expert_action"]) == 1 for s in own)  # the noiseless expert, on every state
-        assert episode["render"] == config.render.model_dump(exclude={"mesh_detail", "wrist_camera"})  # in the unit's summary
+        later = {"mesh_detail", "wrist_camera", "decimate_colliding"}  # in the unit's summary
+        assert episode["render"] == config.render.model_dump(exclude=later)
         if episode["explorer"] == EXPERT:
             assert json.loads(episode["explorer_stats"]) == {"expert_noise": config.explore.expert_noise}
         else:
@@ -222,7 +223,7 @@ def test_without_a_curriculum_long_tasks_are_the_experts_and_keys_stay_as_before
     assert all(e.explorer == EXPERT and not e.subgoals for u in units for e in u.episodes)
     explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum", "relabel",
                                                  "expert_takeover"})  # added later
-    render = config.render.model_dump(exclude={"mesh_detail", "wrist_camera"})  # added later
+    render = config.render.model_dump(exclude={"mesh_detail", "wrist_camera", "decimate_colliding"})  # added later
     reads = {"campaign": config.name, "seed": config.seed, "iteration": 0, "render": render,
              "randomise": config.randomise, "explore": explore, "policy": None}
     assert [u.unit_key for u in units] == [
