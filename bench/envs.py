@@ -3,7 +3,8 @@
 For each family, side by side in one run: the raw MuJoCo physics of one control step
 (`mj_step` times the substeps the simulator takes per action), the simulator's own env step
 without a camera, our adapter without a camera, and our adapter rendering 84x84 frames (for
-robosuite and MetaWorld also with their visual meshes decimated, `render.mesh_detail`). Ratios to the raw step
+robosuite and MetaWorld also with their visual meshes decimated, `render.mesh_detail`, and MetaWorld with its
+colliding meshes drawn decimated too, `render.decimate_colliding`). Ratios to the raw step
 show what each wrapper layer costs; the render share of an adapter step is 1 - (with frames / without). For
 robosuite, the adapter's layers without a camera and with decimated meshes again with robosuite's own arm
 controller at every substep instead of the fused substeps (envs/robosuite_control.py: the same states bit for
@@ -30,8 +31,11 @@ from schemas.config import RenderConfig, TasksConfig
 BENCH_SPECS = {"robosuite": "lift", "metaworld": "mw-pick-place", "navigation": "nav-room-sequence"}
 MESH_DETAIL = 0.1  # the decimated layer's render.mesh_detail
 LAYERS = ("raw mj_step", "simulator env.step", "sim2act adapter", "sim2act adapter + 84px render",
-          f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}")
+          f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}",
+          f"sim2act adapter + 84px render, meshes at {MESH_DETAIL:g}, colliding ones too")
 MESH_DETAIL_FAMILIES = {"robosuite", "metaworld"}  # the adapters that apply render.mesh_detail
+# the adapters whose cameras draw colliding meshes (robosuite hides its collision geoms: nothing it draws changes)
+COLLIDING_FAMILIES = {"metaworld"}
 STOCK_CONTROL_LAYERS = ("sim2act adapter, robosuite's controller",
                         f"sim2act adapter + 84px render, visual meshes at {MESH_DETAIL:g}, robosuite's controller")
 EPISODE_STEPS = 100  # reset this often, outside the timed calls
@@ -131,6 +135,11 @@ def measure_family(case: BenchCase) -> list[BenchRow]:
         coarse = make_env(case.family, task.env_name, render)
         rates.update(with_stock(LAYERS[4], coarse, STOCK_CONTROL_LAYERS[1], render))
         coarse.close()
+    if case.family in COLLIDING_FAMILIES:
+        coarser = make_env(case.family, task.env_name,
+                           RenderConfig(image_size=case.image_size, mesh_detail=MESH_DETAIL, decimate_colliding=True))
+        rates[LAYERS[5]] = _rate(lambda i: coarser.step(actions[i]), lambda: coarser.reset(task, seed=0), case.steps)
+        coarser.close()
     raw = rates[LAYERS[0]]
     return [BenchRow(family=case.family, env=task.env_name, layer=layer, steps_per_s=rate, relative_to_raw=rate / raw)
             for layer, rate in rates.items()]
@@ -145,11 +154,12 @@ def bench_envs(families: list[str], steps: int) -> list[BenchRow]:
 
 
 def render_shares(rows: list[BenchRow]) -> list[list[str]]:
-    """Per family: 1 - (steps/s with frames) / (steps/s without), at full detail and decimated."""
+    """Per family: 1 - (steps/s with frames) / (steps/s without), at full detail, decimated, and with the
+    colliding meshes decimated too."""
     shares = []
     for family in dict.fromkeys(r.family for r in rows):
         rate = {r.layer: r.steps_per_s for r in rows if r.family == family}
-        share = [f"{1 - rate[layer] / rate[LAYERS[2]]:.0%}" if layer in rate else "—" for layer in LAYERS[3:5]]
+        share = [f"{1 - rate[layer] / rate[LAYERS[2]]:.0%}" if layer in rate else "—" for layer in LAYERS[3:6]]
         shares.append([family, *share])
     return shares
 
@@ -166,7 +176,8 @@ def markdown(rows: list[BenchRow], command: str) -> str:
         "",
         "The render's share of an adapter step (target ≤ 30%, issue 11):",
         "",
-        *table(["family", "render share", f"with visual meshes at {MESH_DETAIL:g}"], render_shares(rows)),
+        *table(["family", "render share", f"with visual meshes at {MESH_DETAIL:g}", "and colliding ones too"],
+               render_shares(rows)),
     ]
     return "\n".join(lines) + "\n"
 
