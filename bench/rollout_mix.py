@@ -55,7 +55,8 @@ class Side(BaseModel):
     decimate_colliding: bool = False  # render.decimate_colliding: the colliding meshes drawn decimated too
 
     def render(self, render: RenderConfig) -> RenderConfig:
-        return render.model_copy(update={"mesh_detail": self.mesh_detail, "decimate_colliding": self.decimate_colliding})
+        return render.model_copy(update={"mesh_detail": self.mesh_detail,
+                                         "decimate_colliding": self.decimate_colliding})
 
     @property
     def name(self) -> str:

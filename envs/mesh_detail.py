@@ -14,8 +14,9 @@ the hash of its compiled vertices and faces, so a worker decimates a mesh once p
 A mesh that collides stays whole in the model: physics reads it (its convex hull indexes its
 vertices). With `render.decimate_colliding` the renderer is given a decimated copy anyway: the mesh
 is decimated in place while the adapter makes its renderer (which uploads every mesh then) and
-restored bit for bit afterwards (`renderer_meshes`; the config refuses it at full detail). MetaWorld's Sawyer draws its gripper base
-and last link this way: 16k of the 23k faces left at 0.1, ~1 ms of a ~3.3 ms frame here.
+restored bit for bit afterwards (`renderer_meshes`; the config refuses it at full detail).
+MetaWorld's Sawyer draws its gripper base and last link this way: 16k of the 23k faces left at
+0.1, ~1 ms of a ~3.3 ms frame here.
 """
 
 from __future__ import annotations
@@ -127,7 +128,8 @@ def renderer_meshes(model: mujoco.MjModel, render: RenderConfig) -> Iterator[Non
             _restore_mesh(model, mesh, record)
 
 
-_MESH_COUNTS = ("mesh_vertnum", "mesh_normalnum", "mesh_facenum", "mesh_texcoordadr", "mesh_texcoordnum", "mesh_graphadr")
+_MESH_COUNTS = ("mesh_vertnum", "mesh_normalnum", "mesh_facenum", "mesh_texcoordadr", "mesh_texcoordnum",
+                "mesh_graphadr")
 
 
 def _mesh_record(model: mujoco.MjModel, mesh: int) -> dict[str, np.ndarray | int]:

@@ -54,7 +54,8 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     """An episode's row, task, render settings and step states, read from the catalog (read-only)."""
     from warehouse.tasks import find_task
 
-    rows = catalog.query(  # the render settings the unit's summary keeps where not at their defaults (stages/explore.py)
+    # the render settings the unit's summary keeps where not at their defaults (stages/explore.py)
+    rows = catalog.query(
         "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, "
         "coalesce(json_extract(r.summary, '$.mesh_detail')::DOUBLE, 1.0), "
         "coalesce(json_extract(r.summary, '$.wrist_camera')::BOOLEAN, false), "
