@@ -351,8 +351,9 @@ class TrainConfig(_Strict):
     checkpoint_every: PositiveInt = Field(default=200, description="steps between resumable checkpoints")
     log_every: PositiveInt = Field(default=20, description="steps between MLflow metric points")
     device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="auto: cuda when there is one")
-    amp: bool = Field(default=True, description="bf16 autocast where the device has bf16 units: cuda, and CPUs with "
-                      "AMX or AVX-512 BF16 (elsewhere emulated bf16 is ~15x slower, so fp32 runs); policies/precision.py")
+    amp: bool = Field(default=True, description="bf16 autocast where the device has bf16 matrix units: cuda, and "
+                      "CPUs with AMX (AVX-512 BF16 alone measured 0.94x fp32, emulated bf16 ~10x slower, so fp32 "
+                      "runs there); policies/precision.py")
     threads: PositiveInt = 2
     model: ModelConfig = ModelConfig()
 
