@@ -117,6 +117,16 @@ def test_every_campaign_file_of_the_docs_loads_on_the_preset_its_commands_name(p
     assert config.name in {path.stem, preset}, f"{path.name}: expected name {path.stem!r} or {preset!r}, got {config.name!r}"
 
 
+@pytest.mark.parametrize("path", sorted(Path(__file__).resolve().parents[2].glob("docs/tasks/*.yaml")),
+                         ids=lambda path: path.name)
+def test_every_task_file_of_the_docs_is_valid(path, capsys):
+    """docs/tasks's files are given to `sim2act eval --tasks` by the docs' commands: `tasks validate` accepts them."""
+    from flows.cli import main
+
+    assert main(["tasks", "validate", str(path)]) == 0
+    assert capsys.readouterr().out.strip().endswith("valid")
+
+
 def test_each_split_gets_at_least_its_episodes_per_split():
     from schemas.config import EvaluateConfig
 
