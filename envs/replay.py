@@ -10,6 +10,8 @@ final `next_image` is not among them.
 
 from __future__ import annotations
 
+import json
+
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -20,7 +22,7 @@ from pydantic import ValidationError
 
 from envs.observation import MujocoState
 from envs.randomisation import Randomisation
-from schemas.config import RenderConfig
+from schemas.config import RENDER_LEGACY_VALUES, RenderConfig
 from schemas.errors import Sim2ActError
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -54,18 +56,17 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     """An episode's row, task, render settings and step states, read from the catalog (read-only)."""
     from warehouse.tasks import find_task
 
-    # the render settings the unit's summary keeps where not at their defaults (stages/explore.py)
     rows = catalog.query(
-        "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, "
-        "coalesce(json_extract(r.summary, '$.mesh_detail')::DOUBLE, 1.0), "
-        "coalesce(json_extract(r.summary, '$.wrist_camera')::BOOLEAN, false), "
-        "coalesce(json_extract(r.summary, '$.decimate_colliding')::BOOLEAN, false) FROM episodes e "
+        "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, r.summary FROM episodes e "
         "LEFT JOIN stage_runs r ON r.unit_key = e.shard_key WHERE e.episode_id = ?", [episode_id]
     )
     if not rows:
         raise ReplayError(f"replay: no episode {episode_id!r} in {catalog.path} "
                           "(`sim2act sql \"SELECT episode_id FROM episodes\"` lists them)")
-    campaign, task_id, seed, randomisation, render, error, mesh_detail, wrist_camera, decimate_colliding = rows[0]
+    campaign, task_id, seed, randomisation, render, error, summary = rows[0]
+    # render fields newer than episodes.render: the unit's summary keeps those not at their legacy values
+    kept = json.loads(summary) if summary else {}
+    later = {field: kept.get(field, legacy) for field, legacy in RENDER_LEGACY_VALUES.items()}
     task = find_task(catalog, campaign, task_id)
     if task is None:
         raise ReplayError(f"replay: episode {episode_id!r}: its task {task_id!r} is not among campaign "
@@ -77,9 +78,7 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     return StoredEpisode(
         episode_id=episode_id, task=task, seed=seed,
         randomisation=Randomisation.model_validate(randomisation) if randomisation else None,
-        render=RenderConfig.model_validate({**render, "mesh_detail": mesh_detail, "wrist_camera": wrist_camera,
-                                            "decimate_colliding": decimate_colliding}) if render else None,
-        states=states,
+        render=RenderConfig.model_validate({**render, **later}) if render else None, states=states,
     )
 
 

@@ -20,7 +20,8 @@ from pydantic import BaseModel
 from envs.observation import Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import Act, Explorer, rollout, worker_env
-from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig, render_key_fields
+from schemas.config import (RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig,
+                            render_key_fields)
 from schemas.frames import encode_depth, encode_frame
 from schemas.keys import derive_seed, key_fields, unit_key
 from schemas.tables import EPISODES, STEPS
@@ -345,12 +346,9 @@ def unit_summary(unit: ExploreUnit, shards: list) -> dict:
     episodes.render (a shard schema older than them) lacks, where not at their defaults."""
     by_table = {s.table: s for s in shards}
     summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
-    if unit.render is not None and unit.render.mesh_detail < 1.0:
-        summary["mesh_detail"] = unit.render.mesh_detail  # its frames' mesh detail
-    if unit.render is not None and unit.render.wrist_camera:
-        summary["wrist_camera"] = True  # its frames hold the hand's view beside the main one
-    if unit.render is not None and unit.render.decimate_colliding:
-        summary["decimate_colliding"] = True  # its frames drew the colliding meshes decimated too
+    if unit.render is not None:  # the render fields added since that schema, where not at their legacy values
+        keyed = render_key_fields(unit.render)
+        summary.update({field: keyed[field] for field in RENDER_LEGACY_VALUES if field in keyed})
     return summary
 
 
