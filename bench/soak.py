@@ -57,6 +57,7 @@ class Kill(BaseModel):
     units_then: int  # units finished when the campaign was next seen ended (checked there)
     campaign_ended: bool  # the kill ended the campaign (else it went on: a replaced worker)
     outlived: int = 0  # the campaign's processes still alive GONE_WAIT_S after it ended (then killed here)
+    outlived_what: list[str] = []  # their command lines, to tell which kind its watchdog missed
     next_unit_s: float | None = None  # from the kill to the next unit registered
 
 
@@ -227,7 +228,14 @@ def _kill(run: subprocess.Popen, kind: str, number: int, run_started: float) -> 
     _, alive = psutil.wait_procs([p for p in tree if p.pid != run.pid], timeout=GONE_WAIT_S)
     kill.outlived = len(alive)  # its watchdog (flows/lifetime.py) should have left none
     for process in alive:
-        process.kill()
+        try:
+            kill.outlived_what.append(" ".join(process.cmdline())[:200])
+            process.kill()
+        except psutil.Error:
+            pass
+    if alive:
+        log.error("soak: kill %d: %d process(es) outlived the campaign by %.0f s: %s", number, len(alive),
+                  GONE_WAIT_S, kill.outlived_what)
     return kill
 
 

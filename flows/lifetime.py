@@ -7,10 +7,16 @@ Popen we do not control, PR_SET_PDEATHSIG fires when the *thread* that started a
 process), and a process group cannot be used without taking the command out of its terminal's
 foreground group (Ctrl-C would no longer reach it). The watchdog follows the command's process tree
 instead: every `POLL_S` it records the tree's processes (pid and start time, so a reused pid is
-never hit), and once the command is gone it SIGKILLs those still alive, then exits. A child started
-and orphaned within one poll is the only one it can miss.
+never hit), and once the command is gone it SIGKILLs those still alive, then exits.
 
-    python -m flows.lifetime <pid>      # what `watch()` starts, detached from the command's group
+A child started within one poll of the command's death is not in that record (on 2 loaded cores one
+poll of the tree takes longer than `POLL_S`; CI once saw a process outlive a soak's SIGKILLed run by
+over 30 s), nor is anything when the command dies before its watchdog has started. So the command
+also marks its environment, which every child it execs inherits (rollout workers are spawned,
+Prefect's server is a Popen): `LINEAGE_ENV` lists a token per watched ancestor, and once the command
+is gone the watchdog also kills every process whose environment carries its token, recorded or not.
+
+    python -m flows.lifetime <pid> <token>   # what `watch()` starts, detached from the command's group
 
 The other way round, a run does not outlive its temporary API server (`ends_with_its_server`): once
 Prefect's embedded server dies, the run can no longer record its flow's state, and Prefect's client
@@ -32,14 +38,18 @@ from contextlib import contextmanager
 import psutil
 
 POLL_S = 0.25
+LINEAGE_ENV = "SIM2ACT_LINEAGE"  # ":"-joined tokens, one per watched ancestor (a run inside a soak: two)
 
 
 def watch() -> subprocess.Popen:
     """Start the watchdog of this process; it ends by itself when this process ends. Idempotent per
-    process (a command that calls it twice keeps one watchdog)."""
+    process (a command that calls it twice keeps one watchdog). Marks this process's environment
+    first, so every child started from now on carries the token the watchdog looks for."""
     if _WATCHDOG:
         return _WATCHDOG[0]
-    watchdog = subprocess.Popen([sys.executable, "-m", "flows.lifetime", str(os.getpid())],
+    token = _token(psutil.Process())
+    os.environ[LINEAGE_ENV] = ":".join(filter(None, [os.environ.get(LINEAGE_ENV), token]))
+    watchdog = subprocess.Popen([sys.executable, "-m", "flows.lifetime", str(os.getpid()), token],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 start_new_session=True)  # not in the command's group: a group kill spares it
     _WATCHDOG.append(watchdog)
@@ -47,6 +57,11 @@ def watch() -> subprocess.Popen:
 
 
 _WATCHDOG: list[subprocess.Popen] = []
+
+
+def _token(process: psutil.Process) -> str:
+    """The lineage token of `process`: its pid and start time (a reused pid gets another)."""
+    return f"{process.pid}.{int(process.create_time() * 1000)}"
 
 
 def _descendants(parent: psutil.Process) -> dict[int, float]:
@@ -71,16 +86,33 @@ def _alive(process: psutil.Process) -> bool:
         return False
 
 
-def guard(pid: int) -> list[int]:
-    """Follow `pid`'s process tree until `pid` ends, then SIGKILL what is left of it. -> the pids killed."""
+def _carrying(token: str) -> dict[int, float]:
+    """Every process (of this user: others' environments are unreadable) whose environment lists `token`."""
+    found = {}
+    for process in psutil.process_iter():
+        try:
+            if process.pid != os.getpid() and token in process.environ().get(LINEAGE_ENV, "").split(":"):
+                found[process.pid] = process.create_time()
+        except psutil.Error:
+            pass
+    return found
+
+
+def guard(pid: int, token: str | None = None) -> list[int]:
+    """Follow `pid`'s process tree until `pid` ends, then SIGKILL what is left of it, and every process
+    whose environment carries `token` (a child too young for the last poll). -> the pids killed."""
+    seen: dict[int, float] = {}
     try:
         command = psutil.Process(pid)
-    except psutil.NoSuchProcess:
-        return []
-    seen: dict[int, float] = {}
-    while _alive(command):
+        if token and _token(command) != token:  # gone before this watchdog started, its pid reused
+            raise psutil.NoSuchProcess(pid)
+    except psutil.NoSuchProcess:  # gone before this watchdog started: its lineage is all there is to go by
+        command = None
+    while command is not None and _alive(command):
         seen.update(_descendants(command))
         time.sleep(POLL_S)
+    if token:
+        seen.update(_carrying(token))
     killed = []
     for child, started in seen.items():
         try:
@@ -145,4 +177,4 @@ def ends_with_its_server(resume_hint: str) -> Iterator[None]:
 
 
 if __name__ == "__main__":
-    guard(int(sys.argv[1]))
+    guard(int(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else None)

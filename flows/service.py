@@ -20,6 +20,7 @@ from urllib.parse import urlsplit
 from dataclasses import dataclass
 from pathlib import Path
 
+from flows.lifetime import LINEAGE_ENV
 from schemas.config import CampaignConfig
 from schemas.errors import Sim2ActError
 from schemas.service import HOST, ServiceConfig
@@ -62,7 +63,8 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
     of its own, the MLflow server proxies the artifacts and every run logs through it."""
     # each server gets its own database URL and no other; the dashboard and the deployments' process neither
     databases = {PREFECT_DATABASE_ENV, BACKEND_STORE_ENV, ARTIFACTS_DESTINATION_ENV}
-    base = {k: v for k, v in os.environ.items() if k != PREFECT_API_ENV and k not in databases}
+    # and no run's lineage (flows/lifetime.py): the stack outlives whatever started it, by design
+    base = {k: v for k, v in os.environ.items() if k not in (PREFECT_API_ENV, LINEAGE_ENV) and k not in databases}
     prefect, mlflow, dashboard = (service.url(s) for s in ("prefect", "mlflow", "dashboard"))
     own_database = bool(os.environ.get(BACKEND_STORE_ENV))
     mlflow_command = [_bin("mlflow"), "server", "--host", HOST, "--port", str(service.mlflow_port), "--workers", "1"]
