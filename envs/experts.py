@@ -28,6 +28,12 @@ def horizontal(vector: np.ndarray) -> np.ndarray:
     return flat / max(float(np.linalg.norm(flat)), 1e-9)
 
 
+def grip_turn(grip_axis: np.ndarray, finger_angle: float) -> float:
+    """Radians to turn fingers heading `finger_angle` (atan2 of their axis) onto `grip_axis`, the
+    shorter way: two fingers look the same every half turn, so within [-pi/2, pi/2)."""
+    return float((np.arctan2(grip_axis[1], grip_axis[0]) - finger_angle + np.pi / 2) % np.pi - np.pi / 2)
+
+
 def _matrix(quat_xyzw: np.ndarray) -> np.ndarray:
     """Rotation matrix of a robosuite quaternion (x, y, z, w order)."""
     matrix = np.zeros(9)
@@ -79,7 +85,7 @@ class PickPlaceExpert:
         wanted = obs.privileged["grip_axis"]
         if not wanted[:2].any():
             return 0.0
-        turn = float((np.arctan2(wanted[1], wanted[0]) - self.finger_angle + np.pi / 2) % np.pi - np.pi / 2)
+        turn = grip_turn(wanted, self.finger_angle)
         ways = (turn, turn - np.pi, turn + np.pi)
         if self.aim is not None:  # keep the way chosen: at a right angle both are equally near, and noise flips them
             turn = min(ways, key=lambda way: abs(self.wrist + way - self.aim))

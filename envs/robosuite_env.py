@@ -285,11 +285,17 @@ class RobosuiteEnv:
             select_offscreen(context.gl_ctx, context.con)
 
     def render_state(self, state: MujocoState, after_step: bool) -> np.ndarray:
-        """The frame an observation at `state` showed, through robosuite's camera observable.
-        after_step: `state` ended a step, whose frame robosuite sampled at its last substep."""
+        """The frame an observation at `state` showed, through robosuite's camera observable."""
+        return self.observe_state(state, after_step).image
+
+    def observe_state(self, state: MujocoState, after_step: bool) -> Observation:
+        """The observation at `state` as exploring saw it: its frame (robosuite's camera observable)
+        and its privileged points, which the expert's labels were computed from (bit for bit:
+        envs/label_audit.py checks). after_step: `state` ended a step, whose observables robosuite
+        sampled at its last substep."""
         self._make_context_current()
         state.restore(self.env.sim.model._model, self.env.sim.data._data, before_last_substep=after_step)
-        return self._observation(self._observe_again()).image
+        return self._observation(self._observe_again())
 
     def physics(self) -> tuple[mujoco.MjModel, mujoco.MjData, int]:
         """The MuJoCo model and data underneath, and the mj_steps one action takes (benchmarks)."""

@@ -1,4 +1,4 @@
-"""The warehouse: `sim2act sql`, `export lerobot`, `replay`, `warehouse verify`, `warehouse compact`."""
+"""The warehouse: `sim2act sql`, `export lerobot`, `replay`, `labels`, `warehouse verify`, `warehouse compact`."""
 
 from __future__ import annotations
 
@@ -64,6 +64,30 @@ def cmd_replay(args: argparse.Namespace) -> int:
     result = replay(Workspace.at(args.workspace), args.episode_id, args.camera, args.size, args.out, args.fps)
     print(f"{result.frames} frames of {args.episode_id} ({result.render.camera}, {result.render.image_size} px, "
           f"one per step) written to {result.path}")
+    return 0
+
+
+def cmd_labels(args: argparse.Namespace) -> int:
+    from envs.label_audit import audit_labels, markdown
+    from envs.pool import Progress
+
+    if args.iteration < 0:
+        raise ConfigError(f"labels: --iteration must be 0 or more, got {args.iteration}")
+    _, catalog = open_catalog(args)
+    log_stages_to_stderr()
+    bar: list[Progress] = []
+
+    def report(done: int, total: int) -> None:  # the bar on a terminal; a log line per episode (rate, ETA)
+        if not bar:
+            bar.append(Progress(logging.getLogger("sim2act.labels"), "labels", total, "episodes", "episodes"))
+        bar[0].advance(1, 1)
+
+    table = markdown(audit_labels(catalog, args.iteration, args.explorer, progress=report))
+    if bar:
+        bar[0].close()
+    if args.out:
+        args.out.write_text(table + "\n")
+    print(table)
     return 0
 
 
@@ -135,6 +159,14 @@ def register(commands: Commands) -> None:
     replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
     replay.add_argument("--fps", type=int, default=None, help=f"frames per second (one frame per step; default {CONTROL_FPS})")
     add_workspace_option(replay).set_defaults(handler=cmd_replay)
+
+    labels = commands.add_parser(
+        "labels", help="replay an iteration's expert-labelled episodes: what the labels say, in which phase, and why")
+    labels.add_argument("--iteration", type=int, required=True, metavar="K")
+    labels.add_argument("--explorer", default="policy%",
+                        help="SQL LIKE pattern on episodes.explorer (default 'policy%%': the champion's; 'expert')")
+    labels.add_argument("--out", type=Path, help="also write the table to this Markdown file")
+    add_workspace_option(labels).set_defaults(handler=cmd_labels)
 
     warehouse = commands.add_parser("warehouse", help="warehouse upkeep")
     warehouse_commands = warehouse.add_subparsers(dest="warehouse_command", required=True)

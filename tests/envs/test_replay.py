@@ -11,7 +11,7 @@ from flows.cli import main
 from schemas.config import CampaignConfig
 from schemas.frames import decode_frame
 from schemas.workspace import Workspace
-from stages.explore import plan_explore, run_explore_unit
+from tests.explored import explored_workspace
 from warehouse.catalog import Catalog
 from warehouse.tasks import task_rows
 
@@ -28,16 +28,7 @@ CONFIG = CampaignConfig.model_validate({
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory: pytest.TempPathFactory) -> Workspace:
     """One real explore unit per family (84 px agentview, default randomisation), registered."""
-    workspace = Workspace.at(tmp_path_factory.mktemp("replay")).create()
-    catalog = Catalog(workspace.catalog)
-    catalog.initialise()
-    tasks = generate_tasks(CONFIG.tasks, CONFIG.seed)
-    catalog.register_unit(unit_key="tasks", stage="generate_tasks", campaign=CONFIG.name, iteration=0, summary={},
-                          rows={"tasks": task_rows(tasks, CONFIG.name, "tasks")})
-    for unit in plan_explore(CONFIG, 0, tasks, None, {}, workspace):
-        catalog.register_unit(unit_key=unit.unit_key, stage="explore", campaign=CONFIG.name, iteration=0,
-                              summary={}, shards=run_explore_unit(unit))
-    return workspace
+    return explored_workspace(tmp_path_factory.mktemp("replay"), CONFIG)
 
 
 def _episode_id(workspace: Workspace, family: str) -> str:

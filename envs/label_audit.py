@@ -1,0 +1,157 @@
+"""`sim2act labels`: what the expert's labels on an explorer's states say, and why (DAgger, issue 9
+item 5). An iteration's labelled episodes are replayed state by state through a fresh noiseless
+expert, as explore's labeller followed them (`stages/explore._labeller`):
+
+1. select the iteration's episodes whose explorer matches (the champion's by default) and whose
+   steps carry expert labels; robosuite's only (a MetaWorld observation keeps the previous frame's
+   positions, which its stored state does not restore): the others are counted and named;
+2. reset each episode's environment as exploring did (no camera) and restore its steps' states in
+   order (`RobosuiteEnv.observe_state`), asking the expert at each;
+3. check every replayed label against the stored one (`mismatched`: 0 means the replay is faithful,
+   and the counts below are the labeller's own);
+4. count per task: the labels that close the gripper, the expert's phase at each step, the steps
+   with the hand at the grasp point (`AT_GRASP`) or near it (twice that), and how far the fingers
+   were turned from the grip axis there (the labeller calls a grasp only within `ALIGNED`).
+
+What it found first: the hard-mix champion's 8,280 nut and stack steps of iteration 1 were labelled
+"open" at every step, because its hand was at a grasp point on 12 of them (docs/results.md).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envs.experts import AT_GRASP, grip_turn
+from schemas.errors import Sim2ActError
+from warehouse.catalog import Catalog
+
+REPLAYABLE_FAMILIES = ("robosuite",)
+
+
+class LabelAuditError(Sim2ActError, ValueError):
+    """`sim2act labels` refused before replaying anything; its message is one line."""
+
+
+@dataclass
+class TaskLabels:
+    task_id: str
+    episodes: int = 0
+    steps: int = 0
+    closed: int = 0  # replayed labels that close the gripper
+    mismatched: int = 0  # steps whose replayed label differs from the stored one (0: a faithful replay)
+    phases: Counter = field(default_factory=Counter)  # the expert's phase after labelling each step
+    at_grasp: int = 0  # steps with the hand within AT_GRASP of the grasp point
+    near_grasp: int = 0  # ... within twice that
+    misturn_at_grasp: list[float] = field(default_factory=list)  # radians from the grip axis, at those steps
+
+
+@dataclass
+class LabelAudit:
+    iteration: int
+    explorer: str  # the SQL LIKE pattern the episodes' explorer matched
+    tasks: list[TaskLabels]
+    skipped: Counter  # labelled episodes of families a replay cannot label, per family
+
+
+def labelled_episodes(catalog: Catalog, iteration: int, explorer: str) -> list[tuple[str, str, str]]:
+    """(episode_id, task_id, family) of the iteration's episodes by `explorer` whose steps carry expert labels."""
+    return catalog.query(
+        "SELECT e.episode_id, e.task_id, t.family FROM episodes e JOIN tasks t "
+        "ON t.campaign = e.campaign AND t.task_id = e.task_id "
+        "WHERE e.iteration = ? AND e.explorer LIKE ? AND e.episode_id IN "
+        "(SELECT DISTINCT episode_id FROM steps WHERE expert_action IS NOT NULL) ORDER BY e.task_id, e.episode_id",
+        [iteration, explorer])
+
+
+def audit_labels(catalog: Catalog, iteration: int, explorer: str = "policy%",
+                 progress: Callable[[int, int], None] = lambda done, total: None) -> LabelAudit:
+    """Replay the labelled episodes of `iteration` by `explorer` (steps in the module docstring).
+
+    Args:
+        catalog: the workspace's catalog (read only).
+        iteration: the campaign iteration whose episodes are replayed.
+        explorer: SQL LIKE pattern on `episodes.explorer` ("policy%": the champion's; "expert").
+        progress: called with (episodes done, episodes in all) after each episode.
+
+    Returns:
+        A LabelAudit, one TaskLabels per task, in task order.
+
+    Raises:
+        LabelAuditError: no labelled episode of a replayable family matches.
+    """
+    from envs.registry import make_expert
+    from envs.replay import load_episode
+    from envs.rollout import worker_env
+
+    found = labelled_episodes(catalog, iteration, explorer)
+    skipped = Counter(family for _, _, family in found if family not in REPLAYABLE_FAMILIES)
+    episodes = [(episode_id, task_id) for episode_id, task_id, family in found if family in REPLAYABLE_FAMILIES]
+    if not episodes:
+        elsewhere = f" ({sum(skipped.values())} of {', '.join(skipped)}, which a replay cannot label)" if skipped else ""
+        raise LabelAuditError(
+            f"labels: expected labelled {'/'.join(REPLAYABLE_FAMILIES)} episodes of iteration {iteration} by an explorer "
+            f"like {explorer!r}, got none{elsewhere}; `sim2act sql \"SELECT iteration, explorer, count(*) FROM "
+            f"episodes GROUP BY ALL ORDER BY ALL\"` lists what there is")
+    tasks: dict[str, TaskLabels] = {}
+    for done, (episode_id, task_id) in enumerate(episodes, 1):
+        episode = load_episode(catalog, episode_id)
+        stored = [label for (label,) in catalog.query(
+            "SELECT expert_action FROM steps WHERE episode_id = ? ORDER BY step", [episode_id])]
+        env = worker_env(episode.task, None)
+        env.reset(episode.task, episode.seed, episode.randomisation)
+        act = make_expert(episode.task, 0.0, np.random.default_rng(0))  # noiseless: its rng is never drawn
+        expert = getattr(act, "__self__", None)
+        row = tasks.setdefault(task_id, TaskLabels(task_id))
+        row.episodes += 1
+        for step, (state, label) in enumerate(zip(episode.states, stored)):
+            obs = env.observe_state(state, after_step=step > 0)
+            replayed = np.asarray(act(obs), dtype=np.float32)
+            row.steps += 1
+            row.closed += int(replayed[-1] > 0)
+            row.mismatched += int(label is None or not np.array_equal(replayed, np.asarray(label, dtype=np.float32)))
+            phase = getattr(expert, "phase", None)
+            row.phases[phase.name.lower() if phase is not None else "-"] += 1
+            seen = obs.privileged
+            if "grasp" in seen:
+                distance = float(np.linalg.norm(seen["grasp"] + np.array([0.0, 0.0, -0.005]) - seen["gripper"]))
+                row.near_grasp += int(distance < 2 * AT_GRASP)
+                if distance < AT_GRASP:
+                    row.at_grasp += 1
+                    axis, wanted = seen["finger_axis"], seen["grip_axis"]
+                    row.misturn_at_grasp.append(
+                        abs(grip_turn(wanted, float(np.arctan2(axis[1], axis[0])))) if wanted[:2].any() else 0.0)
+        progress(done, len(episodes))
+    return LabelAudit(iteration=iteration, explorer=explorer, tasks=list(tasks.values()), skipped=skipped)
+
+
+def markdown(audit: LabelAudit) -> str:
+    """The audit as a table, a row per task and a total."""
+    phases = sorted({phase for row in audit.tasks for phase in row.phases})
+    lines = [
+        f"Iteration {audit.iteration}, episodes by an explorer like `{audit.explorer}`, replayed through the "
+        "noiseless expert:", "",
+        "| task | episodes | steps | labels closing | replayed ≠ stored | at grasp point | within 2× | "
+        "fingers off the grip axis there (median rad) | " + " | ".join(f"phase {p}" for p in phases) + " |",
+        "|---|" + "---|" * (7 + len(phases)),
+    ]
+    total = TaskLabels("all")
+    for row in [*audit.tasks, total]:
+        if row is total:
+            for each in audit.tasks:
+                for name in ("episodes", "steps", "closed", "mismatched", "at_grasp", "near_grasp"):
+                    setattr(total, name, getattr(total, name) + getattr(each, name))
+                total.phases.update(each.phases)
+                total.misturn_at_grasp += each.misturn_at_grasp
+        misturn = f"{np.median(row.misturn_at_grasp):.2f}" if row.misturn_at_grasp else "-"
+        name = f"**{row.task_id}**" if row is total else row.task_id
+        lines.append(f"| {name} | {row.episodes} | {row.steps:,} | {row.closed:,} | {row.mismatched:,} | "
+                     f"{row.at_grasp:,} | {row.near_grasp:,} | {misturn} | "
+                     + " | ".join(f"{row.phases.get(p, 0):,}" for p in phases) + " |")
+    if audit.skipped:
+        lines += ["", "Not replayed (a replay cannot label them): "
+                  + ", ".join(f"{n} {family} episode(s)" for family, n in sorted(audit.skipped.items())) + "."]
+    return "\n".join(lines)
