@@ -225,10 +225,14 @@ def _kill(run: subprocess.Popen, kind: str, number: int, run_started: float) -> 
     except subprocess.TimeoutExpired:
         return kill
     _, alive = psutil.wait_procs([p for p in tree if p.pid != run.pid], timeout=GONE_WAIT_S)
+    alive = [p for p in alive if _running(p)]  # a zombie is dead, only not yet reaped by its new parent
     kill.outlived = len(alive)  # its watchdog (flows/lifetime.py) should have left none
     for process in alive:
         try:
-            kill.outlived_what.append(" ".join(process.cmdline())[:200])
+            kill.outlived_what.append(" ".join(process.cmdline())[:200] or process.name())
+        except psutil.Error:
+            kill.outlived_what.append(f"pid {process.pid}")
+        try:
             process.kill()
         except psutil.Error:
             pass
@@ -236,6 +240,13 @@ def _kill(run: subprocess.Popen, kind: str, number: int, run_started: float) -> 
         log.error("soak: kill %d: %d process(es) outlived the campaign by %.0f s: %s", number, len(alive),
                   GONE_WAIT_S, kill.outlived_what)
     return kill
+
+
+def _running(process: psutil.Process) -> bool:
+    try:
+        return process.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 def _end(run: subprocess.Popen) -> None:

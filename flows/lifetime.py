@@ -38,7 +38,8 @@ from contextlib import contextmanager
 import psutil
 
 POLL_S = 0.25
-LINEAGE_ENV = "SIM2ACT_LINEAGE"  # ":"-joined tokens, one per watched ancestor (a run inside a soak: two)
+LINEAGE_ENV = "SIM2ACT_LINEAGE"  # ":"-joined tokens, one per watched ancestor (a watched command that starts another: two)
+SWEEPS = 5  # scans for carriers after the command died: one started during a scan is found by the next
 
 
 def watch() -> subprocess.Popen:
@@ -87,7 +88,8 @@ def _alive(process: psutil.Process) -> bool:
 
 
 def _carrying(token: str) -> dict[int, float]:
-    """Every process (of this user: others' environments are unreadable) whose environment lists `token`."""
+    """Every process whose environment this one can read (not another user's unless root, nor a
+    non-dumpable one) and lists `token`."""
     found = {}
     for process in psutil.process_iter():
         try:
@@ -111,13 +113,22 @@ def guard(pid: int, token: str | None = None) -> list[int]:
     while command is not None and _alive(command):
         seen.update(_descendants(command))
         time.sleep(POLL_S)
-    if token:
-        seen.update(_carrying(token))
+    killed = _kill(seen)  # the recorded tree first: no scan stands between its death and theirs
+    for _ in range(SWEEPS if token else 0):  # then the carriers, until a scan finds none alive
+        found = {pid: started for pid, started in _carrying(token).items() if pid not in killed}
+        if not found:
+            break
+        killed += _kill(found)
+    return killed
+
+
+def _kill(processes: dict[int, float]) -> list[int]:
+    """SIGKILL each (pid, start time) still running as that same process (not a reused pid). -> the pids killed."""
     killed = []
-    for child, started in seen.items():
+    for child, started in processes.items():
         try:
             process = psutil.Process(child)
-            if process.create_time() == started:  # the same process, not a reused pid
+            if process.create_time() == started:
                 process.send_signal(signal.SIGKILL)
                 killed.append(child)
         except psutil.Error:

@@ -78,11 +78,12 @@ def cmd_labels(args: argparse.Namespace) -> int:
     bar: list[Progress] = []
 
     def report(done: int, total: int) -> None:  # the bar on a terminal; a log line per episode (rate, ETA)
-        if not bar:
+        if done == 0:  # before the first episode: the bar starts its clock
             bar.append(Progress(logging.getLogger("sim2act.labels"), "labels", total, "episodes", "episodes"))
-        bar[0].advance(1, 1)
+        else:
+            bar[0].advance(1, 1)
 
-    table = markdown(audit_labels(catalog, args.iteration, args.explorer, progress=report))
+    table = markdown(audit_labels(catalog, args.iteration, args.explorer, args.campaign, progress=report))
     if bar:
         bar[0].close()
     if args.out:
@@ -165,6 +166,7 @@ def register(commands: Commands) -> None:
     labels.add_argument("--iteration", type=int, required=True, metavar="K")
     labels.add_argument("--explorer", default="policy%",
                         help="SQL LIKE pattern on episodes.explorer (default 'policy%%': the champion's; 'expert')")
+    labels.add_argument("--campaign", help="whose episodes (default: the one campaign of the workspace that has them)")
     labels.add_argument("--out", type=Path, help="also write the table to this Markdown file")
     add_workspace_option(labels).set_defaults(handler=cmd_labels)
 

@@ -37,7 +37,7 @@ def test_the_replayed_labels_are_the_stored_ones_and_their_phases_are_counted(wo
     assert {"approach", "grasp", "lift"} <= set(row.phases) and sum(row.phases.values()) == steps
     assert 0 < row.at_grasp <= row.near_grasp and len(row.misturn_at_grasp) == row.at_grasp
     assert audit.skipped == {"metaworld": 2}  # labelled too, but a replay cannot label them
-    assert progress == [(1, 2), (2, 2)]
+    assert progress == [(0, 2), (1, 2), (2, 2)] and audit.campaign == "labels"
     table = markdown(audit)
     assert "| lift-red | 2 |" in table and "| **all** | 2 |" in table and "2 metaworld episode(s)" in table
 
@@ -63,6 +63,8 @@ def test_no_labelled_episode_is_one_line(workspace):
     message = str(refused.value)
     assert message.startswith("labels: expected labelled robosuite episodes of iteration 0 by an explorer like "
                               "'policy%', got none; ") and "\n" not in message
+    with pytest.raises(LabelAuditError, match="^labels: expected labelled robosuite episodes of campaign 'other' of "):
+        audit_labels(Catalog(workspace.catalog), 0, "expert", campaign="other")
 
 
 def test_the_cli_prints_the_table_and_writes_it(workspace, tmp_path, capsys):
