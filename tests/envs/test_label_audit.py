@@ -75,3 +75,12 @@ def test_the_cli_prints_the_table_and_writes_it(workspace, tmp_path, capsys):
     assert "| lift-red | 2 |" in printed and out.read_text().strip() == printed.strip()
     assert main(["labels", "--workspace", str(workspace.root), "--iteration", "3"]) == 2
     assert capsys.readouterr().err.startswith("sim2act: labels: expected labelled robosuite episodes of iteration 3")
+
+
+def test_several_campaigns_without_one_named_is_one_line(tmp_path, monkeypatch):
+    found = [("alpha", "alpha-e0", "lift-red", "robosuite"), ("beta", "beta-e0", "lift-red", "robosuite")]
+    monkeypatch.setattr("envs.label_audit.labelled_episodes", lambda *args: found)
+    with pytest.raises(LabelAuditError) as refused:
+        audit_labels(Catalog(tmp_path / "catalog.duckdb"), 2)
+    assert str(refused.value) == ("labels: iteration 2 holds labelled episodes of campaigns alpha, beta; expected one "
+                                  "named (--campaign)")
