@@ -20,6 +20,7 @@ TURN_GAIN, ALIGNED = 3.0, 0.1  # wrist yaw: action per radian of error; radians 
 BACK_OFF = 12  # steps spent letting go and rising between placements
 GRASP_STEPS = 10  # fingers take ~0.5 s to close on a thin nut handle
 AT_GRASP, ABOVE_LINE = 0.025, 0.01  # metres: the hand counted at the grasp point; on the line above it
+GRASP_DEPTH = np.array([0.0, 0.0, -0.005])  # where the fingertips close, from the scene's "grasp" point
 
 
 def horizontal(vector: np.ndarray) -> np.ndarray:
@@ -123,7 +124,7 @@ class PickPlaceExpert:
             self.stage = float(seen["stage"][0])
         grasp, eef = seen["grasp"], seen["gripper"]
         above = grasp + np.array([0.0, 0.0, 0.08])
-        grasp_point = grasp + np.array([0.0, 0.0, -0.005])
+        grasp_point = grasp + GRASP_DEPTH
         if self.phase is Phase.APPROACH:
             turn = self._turn_to_grip(obs)
             if abs(turn) < ALIGNED:

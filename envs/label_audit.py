@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envs.experts import AT_GRASP, grip_turn
+from envs.experts import AT_GRASP, GRASP_DEPTH, grip_turn
 from schemas.errors import Sim2ActError
 from warehouse.catalog import Catalog
 
@@ -106,19 +106,22 @@ def audit_labels(catalog: Catalog, iteration: int, explorer: str = "policy%", ca
             f"labels: expected labelled {'/'.join(REPLAYABLE_FAMILIES)} episodes{of} of iteration {iteration} by an "
             f"explorer like {explorer!r}, got none{elsewhere}; on the same workspace, `sim2act sql "
             f"\"SELECT campaign, iteration, explorer, count(*) FROM episodes GROUP BY ALL ORDER BY ALL\"` lists what there is")
+    stored: dict[str, list] = {}  # every episode's labels in step order, read in one pass over the steps
+    for episode_id, label in catalog.query(
+            "SELECT episode_id, expert_action FROM steps WHERE list_contains(?, episode_id) ORDER BY episode_id, step",
+            [[episode_id for episode_id, _ in episodes]]):
+        stored.setdefault(episode_id, []).append(label)
     tasks: dict[str, TaskLabels] = {}
     progress(0, len(episodes))
     for done, (episode_id, task_id) in enumerate(episodes, 1):
         episode = load_episode(catalog, episode_id)
-        stored = [label for (label,) in catalog.query(
-            "SELECT expert_action FROM steps WHERE episode_id = ? ORDER BY step", [episode_id])]
         env = worker_env(episode.task, None)
         env.reset(episode.task, episode.seed, episode.randomisation)
         act = make_expert(episode.task, 0.0, np.random.default_rng(0))  # noiseless: its rng is never drawn
         expert = getattr(act, "__self__", None)
         row = tasks.setdefault(task_id, TaskLabels(task_id))
         row.episodes += 1
-        for step, (state, label) in enumerate(zip(episode.states, stored)):
+        for step, (state, label) in enumerate(zip(episode.states, stored[episode_id])):
             obs = env.observe_state(state, after_step=step > 0)
             replayed = np.asarray(act(obs), dtype=np.float32)
             row.steps += 1
@@ -128,7 +131,7 @@ def audit_labels(catalog: Catalog, iteration: int, explorer: str = "policy%", ca
             row.phases[phase.name.lower() if phase is not None else "-"] += 1
             seen = obs.privileged
             if "grasp" in seen:
-                distance = float(np.linalg.norm(seen["grasp"] + np.array([0.0, 0.0, -0.005]) - seen["gripper"]))
+                distance = float(np.linalg.norm(seen["grasp"] + GRASP_DEPTH - seen["gripper"]))
                 row.near_grasp += int(distance < 2 * AT_GRASP)
                 if distance < AT_GRASP:
                     row.at_grasp += 1
@@ -148,6 +151,17 @@ def _wrist_turn(expert, seen: dict[str, np.ndarray]) -> float:
     return abs(grip_turn(wanted, float(np.arctan2(axis[1], axis[0])))) if wanted[:2].any() else 0.0
 
 
+def _total(tasks: list[TaskLabels]) -> TaskLabels:
+    """Every task's counts summed, as the row "all"."""
+    total = TaskLabels("all")
+    for row in tasks:
+        for name in ("episodes", "steps", "closed", "mismatched", "at_grasp", "near_grasp"):
+            setattr(total, name, getattr(total, name) + getattr(row, name))
+        total.phases.update(row.phases)
+        total.misturn_at_grasp += row.misturn_at_grasp
+    return total
+
+
 def markdown(audit: LabelAudit) -> str:
     """The audit as a table, a row per task and a total."""
     phases = sorted({phase for row in audit.tasks for phase in row.phases})
@@ -158,14 +172,8 @@ def markdown(audit: LabelAudit) -> str:
         "wrist turn the expert wants there (median rad) | " + " | ".join(f"phase {p}" for p in phases) + " |",
         "|---|" + "---|" * (7 + len(phases)),
     ]
-    total = TaskLabels("all")
+    total = _total(audit.tasks)
     for row in [*audit.tasks, total]:
-        if row is total:
-            for each in audit.tasks:
-                for name in ("episodes", "steps", "closed", "mismatched", "at_grasp", "near_grasp"):
-                    setattr(total, name, getattr(total, name) + getattr(each, name))
-                total.phases.update(each.phases)
-                total.misturn_at_grasp += each.misturn_at_grasp
         misturn = f"{np.median(row.misturn_at_grasp):.2f}" if row.misturn_at_grasp else "-"
         name = f"**{row.task_id}**" if row is total else row.task_id
         lines.append(f"| {name} | {row.episodes} | {row.steps:,} | {row.closed:,} | {row.mismatched:,} | "

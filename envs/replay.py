@@ -11,7 +11,6 @@ final `next_image` is not among them.
 from __future__ import annotations
 
 import json
-
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
