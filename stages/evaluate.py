@@ -16,9 +16,10 @@ from typing import Any, Literal, get_args
 import numpy as np
 from pydantic import BaseModel
 
-from envs.observation import Observation
+from envs.observation import DISCRETE_FAMILIES, Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import rollout, worker_env
+from envs.shadow import CaseShadow, shadow_episode
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, Split, TaskRecord
@@ -223,7 +224,7 @@ def _write_video(frames: list[np.ndarray], path: Path) -> None:
 Decide = Callable[[Observation], tuple[np.ndarray, float]]  # -> (action, uncertainty)
 
 
-def _episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
+def episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
     """episode seed -> how the unit's agent acts in that episode."""
     embedding = np.asarray(unit.embedding, dtype=np.float32)
     if unit.agent.kind == "sim2act":
@@ -269,7 +270,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     its uncertainty at every step; an MP4 of the first success and of the first failure."""
     from envs.randomisation import sample_randomisation
 
-    actor = _episode_actor(unit)
+    actor = episode_actor(unit)
     env = worker_env(unit.task, unit.render)
     returns, lengths, outcomes, uncertainties, achieved = [], [], [], [], []
     videos: dict[bool, str] = {}
@@ -303,6 +304,23 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
         uncertainty=float(np.mean(uncertainties)), success_video=videos.get(True), failure_video=videos.get(False),
         episode_achieved=achieved,
     )
+
+
+def shadow_unit(unit: EvalUnit) -> CaseShadow:
+    """Worker: the unit's episodes as evaluate_unit plays them (same agent, seeds, randomisation), the
+    noiseless expert asked at every state the agent reaches (envs.shadow; no videos, nothing registered)."""
+    from envs.randomisation import sample_randomisation
+    from envs.registry import make_expert
+
+    actor = episode_actor(unit)
+    env = worker_env(unit.task, unit.render)
+    case = CaseShadow(unit.task.task_id, unit.split, unit.task.family in DISCRETE_FAMILIES)
+    for seed in unit.seeds:
+        decide = actor(seed)
+        case.add(shadow_episode(env, unit.task, seed, lambda obs: decide(obs)[0],
+                                make_expert(unit.task, 0.0, np.random.default_rng(seed)),
+                                sample_randomisation(unit.randomise, seed, env.RANDOMISES)))
+    return case
 
 
 def evaluated_key(model_key: str, weights: str) -> str:
@@ -369,21 +387,11 @@ def others_of(task: TaskRecord, cases: list[tuple[TaskRecord, str, str]]) -> lis
     return list(others.values())
 
 
-def evaluate_model(
-    workspace: Workspace,
-    config: CampaignConfig,
-    iteration: int,
-    model_key: str,
-    agent: Agent,
-    cases: list[tuple[TaskRecord, str, str]],
-    embeddings: dict[str, np.ndarray],
-    suite: str = CAMPAIGN_SUITE,
-) -> tuple[list[TaskEvaluation], int]:
-    """Roll the agent out on each (task, split, instruction) case with the campaign's render,
-    randomisation and evaluate settings; each case is a unit registered in the catalog's
-    `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
-    Seeds derive from (campaign, task, episode): every model meets the same episodes."""
-    catalog = Catalog(workspace.catalog)
+def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: str, agent: Agent,
+                     cases: list[tuple[TaskRecord, str, str]], embeddings: dict[str, np.ndarray],
+                     suite: str = CAMPAIGN_SUITE) -> list[EvalUnit]:
+    """One unit per (task, split, instruction) case, keyed by what it reads (evaluate_model); its seeds derive
+    from (campaign, task, episode), so every agent given the same cases meets the same episodes."""
     units = []
     missing = sorted({instruction for _, _, instruction in cases} - set(embeddings))
     if missing:  # wordings the generator never made (held_out_wording): encoded now by the frozen encoder
@@ -406,6 +414,25 @@ def evaluate_model(
                               randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(), others=others_of(task, cases),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None))
+    return units
+
+
+def evaluate_model(
+    workspace: Workspace,
+    config: CampaignConfig,
+    iteration: int,
+    model_key: str,
+    agent: Agent,
+    cases: list[tuple[TaskRecord, str, str]],
+    embeddings: dict[str, np.ndarray],
+    suite: str = CAMPAIGN_SUITE,
+) -> tuple[list[TaskEvaluation], int]:
+    """Roll the agent out on each (task, split, instruction) case with the campaign's render,
+    randomisation and evaluate settings; each case is a unit registered in the catalog's
+    `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
+    Seeds derive from (campaign, task, episode): every model meets the same episodes."""
+    catalog = Catalog(workspace.catalog)
+    units = evaluation_units(workspace, config, model_key, agent, cases, embeddings, suite)
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = [u for u in units if u.unit_key in pending]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
@@ -158,6 +159,50 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_shadow(args: argparse.Namespace) -> int:
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes: at least 1, got {args.episodes}")
+    # --episodes N: N per case, drawn as the evaluation draws them (so its first N, and more the same way)
+    config = campaign_config(args, {} if args.episodes is None else
+                             {"evaluate": {"episodes_per_task": args.episodes, "episodes_per_split": None}})
+    workspace, _ = open_catalog(args)
+    configure_environment(workspace)
+    from envs.pool import Progress, run_in_pool
+    from envs.registry import check_render
+    from envs.shadow import markdown
+    from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+    from stages.evaluate import Agent, evaluation_units, shadow_unit
+
+    suite, cases = eval_cases(workspace, config, None, args.split)  # bad input refused here, before any work
+    known = {task.task_id for task, _, _ in cases}
+    unknown = sorted(set(args.task or ()) - known)
+    if unknown:
+        raise ConfigError(f"--task: expected task ids of the campaign's {args.split or 'evaluation'} cases "
+                          f"({', '.join(sorted(known))}), got {', '.join(unknown)}")
+    check_render(config.render, [task for task, _, _ in cases])
+    model = resolve_model(workspace, config, args.model)
+    check_model_fits(config, model)
+    # the units of all the split's cases, then the asked tasks': each case keeps the episodes `sim2act eval` plays
+    units = [unit for unit in evaluation_units(workspace, config, model.model_key,
+                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
+                                               cases, instruction_embeddings(workspace, config, cases), suite)
+             if not args.task or unit.task.task_id in args.task]
+    log_stages_to_stderr()
+    watch()  # the rollout workers end with this command, however it ends
+    print(f"sim2act: shadowing {model.label} ({model.model_key}) on {len(units)} case(s), "
+          f"{'/'.join(str(n) for n in sorted({len(u.seeds) for u in units}))} episodes each", flush=True)
+    shadows = {}
+    progress = Progress(logging.getLogger("sim2act.shadow"), "shadow", len(units), "cases", "episodes")
+    try:
+        for unit, shadow, _ in run_in_pool(shadow_unit, units, config.evaluate.workers, lambda u: u.task.task_id):
+            shadows[unit.unit_key] = shadow
+            progress.advance(1, shadow.episodes)
+    finally:
+        progress.close()
+    print(markdown([shadows[u.unit_key] for u in units], f"{model.label} ({args.weights} weights)"))
+    return 0
+
+
 def weights_of_checkpoint(path: str, weights: str) -> str:
     import torch
 
@@ -234,6 +279,19 @@ def register(commands: Commands) -> None:
     which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
                        help="only this split's cases (held_out_wording: seen tasks in words the generator never uses)")
     evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
+
+    shadow = campaign_command("shadow", "a model's evaluation episodes with the noiseless expert asked at every "
+                              "state: where they part (a grasp tried short, a slow hand, a drop)", cmd_shadow)
+    shadow.add_argument("--model", required=True, metavar="REF",
+                        help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...")
+    shadow.add_argument("--weights", choices=("registered", "final"), default="registered",
+                        help="registered: the weights the training registers (its moving average); final: its last")
+    shadow.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
+                        help="only this split's cases")
+    shadow.add_argument("--task", action="append", metavar="ID", help="only this task's cases (repeatable)")
+    shadow.add_argument("--episodes", type=int,
+                        help="episodes per case, drawn as sim2act eval draws them: its first N (default: as "
+                             "many as the evaluation plays)")
 
     campaign_command("report", "the results table: success per iteration beside the baselines, dataset, compute",
                      cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")

@@ -254,15 +254,22 @@ specs:
 """
 
 
-def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_campaign, tmp_path, prefect_api):
-    workspace = tmp_path / "workspace"  # a copy: the other tests compare the campaign's rows
+def _on_a_copy(finished_campaign, tmp_path, prefect_api, command: str):
+    """(workspace, its catalog, `sim2act <command> --preset smoke` on it) for a copy of the finished campaign's
+    workspace: the other tests compare the campaign's rows."""
+    workspace = tmp_path / "workspace"
     shutil.copytree(finished_campaign[0], workspace)
-    catalog = Catalog(Workspace.at(workspace).catalog)
-    before = catalog.query("SELECT count(*) FROM evaluations")
 
-    def evaluate(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([SIM2ACT, "eval", "--preset", "smoke", "--workspace", str(workspace), *args],
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([SIM2ACT, command, "--preset", "smoke", "--workspace", str(workspace), *args],
                               env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+
+    return workspace, Catalog(Workspace.at(workspace).catalog), run
+
+
+def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_campaign, tmp_path, prefect_api):
+    workspace, catalog, evaluate = _on_a_copy(finished_campaign, tmp_path, prefect_api, "eval")
+    before = catalog.query("SELECT count(*) FROM evaluations")
 
     # the flow already evaluated version 1 on these cases: the same units, nothing rolled out again
     seen = evaluate("--model", "1", "--split", "seen")
@@ -295,6 +302,24 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
         refused = evaluate(*args)
         assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.splitlines()) == 1, refused.stderr
     assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before
+
+
+def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(finished_campaign, tmp_path, prefect_api):
+    _, catalog, shadow = _on_a_copy(finished_campaign, tmp_path, prefect_api, "shadow")
+    before = catalog.query("SELECT count(*) FROM evaluations")
+
+    done = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "2")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "on 1 case(s), 2 episodes each" in done.stdout
+    [row] = [line for line in done.stdout.splitlines() if line.startswith("| lift-red | seen |")]
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert re.fullmatch(r"[0-2]/2", cells[2]) and int(cells[3].replace(",", "")) > 0  # success, steps
+    assert re.fullmatch(r"cos -?[01]\.\d\d|-", cells[4]) and re.fullmatch(r"\d+\.\d\d", cells[5])
+    assert catalog.query("SELECT count(*) FROM evaluations") == before  # a diagnosis, not an evaluation
+
+    refused = shadow("--model", "champion", "--task", "no-such-task")
+    assert refused.returncode == 2 and "--task" in refused.stderr and "lift-red" in refused.stderr
+    assert len(refused.stderr.splitlines()) == 1, refused.stderr
 
 
 RL_BUDGET = 128  # env steps per RL baseline: one PPO rollout, 116 SAC updates (SAC took 55 s at 300 here)
