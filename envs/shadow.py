@@ -8,8 +8,8 @@ turning away. A success rate says that a task fails; this says how (issue 9 item
    evaluation's own agent, seeds, render and randomisation, so the episodes are `sim2act eval`'s);
 2. per step: the policy's action and the expert's on the same observation, the expert's phase
    after answering (how far the policy's states got, in the expert's eyes), and where the hand is;
-3. per task (`CaseShadow.add`): agreement (cosine of the translations; the same action on discrete
-   families), the policy's speed against the expert's, the gripper decisions the expert would not
+3. per task (`CaseShadow.add`): agreement (cosine of the translations, over the episode and before the
+   policy first closes its gripper; the same action on discrete families), the policy's speed against the expert's, the gripper decisions the expert would not
    take (closing where it opens: a grasp tried short; opening where it holds: a drop), the hand's
    distance to the grasp point when the policy first closes, and the furthest expert phase reached.
 """
@@ -37,6 +37,7 @@ class EpisodeShadow:
     success: bool
     steps: int
     cosines: list[float]  # per step where both move: cos(policy translation, expert translation)
+    cosines_before_close: list[float]  # ... those before the policy first closes the gripper (its approach)
     same_action: int  # discrete families: steps where the policy took the expert's action
     policy_speed: float  # summed |translation| of the policy's actions
     expert_speed: float  # ... and of the expert's on the same states
@@ -73,22 +74,24 @@ def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, rand
     taken = np.asarray([r["action"] for r in rows], dtype=np.float64)
     wanted = np.asarray([r["expert_action"] for r in rows], dtype=np.float64)
     discrete = task.family in DISCRETE_FAMILIES
-    cosines, closes_short, opens_early, first_close = [], 0, 0, None
+    cosines, before, closes_short, opens_early, first_close = [], [], 0, 0, None
     policy_speed = expert_speed = 0.0
     if not discrete:
         moved, asked = taken[:, :3], wanted[:, :3]
         norms, asked_norms = np.linalg.norm(moved, axis=1), np.linalg.norm(asked, axis=1)
         policy_speed, expert_speed = float(norms.sum()), float(asked_norms.sum())
         both = (norms > MOVING) & (asked_norms > MOVING)
-        cosines = ((moved[both] * asked[both]).sum(1) / (norms[both] * asked_norms[both])).tolist()
+        cosine = (moved * asked).sum(1) / np.maximum(norms * asked_norms, 1e-12)
         closes, holds = taken[:, GRIP] > 0, wanted[:, GRIP] > 0
         closes_short, opens_early = int((closes & ~holds).sum()), int((~closes & holds).sum())
         first = int(np.argmax(closes)) if closes.any() else None
+        cosines = cosine[both].tolist()
+        before = cosine[both & (np.arange(len(rows)) < (len(rows) if first is None else first))].tolist()
         if first is not None and distances[first] is not None:
             first_close = 100.0 * distances[first]
     furthest = max(phases)[1] if phases else "-"
     return EpisodeShadow(
-        success=bool(success), steps=len(rows), cosines=cosines,
+        success=bool(success), steps=len(rows), cosines=cosines, cosines_before_close=before,
         same_action=int((taken[:, 0] == wanted[:, 0]).sum()) if discrete else 0,
         policy_speed=policy_speed, expert_speed=expert_speed, closes_short=closes_short, opens_early=opens_early,
         first_close_cm=first_close, furthest_phase=furthest,
@@ -106,6 +109,7 @@ class CaseShadow:
     successes: int = 0
     steps: int = 0
     cosines: list[float] = field(default_factory=list)
+    cosines_before_close: list[float] = field(default_factory=list)
     same_action: int = 0
     policy_speed: float = 0.0
     expert_speed: float = 0.0
@@ -119,6 +123,7 @@ class CaseShadow:
         self.successes += int(episode.success)
         self.steps += episode.steps
         self.cosines += episode.cosines
+        self.cosines_before_close += episode.cosines_before_close
         self.same_action += episode.same_action
         self.policy_speed += episode.policy_speed
         self.expert_speed += episode.expert_speed
@@ -134,21 +139,22 @@ def markdown(cases: list[CaseShadow], label: str) -> str:
     """A row per evaluation case: where the policy and the shadowing expert part."""
     lines = [
         f"{label}, its evaluation episodes shadowed by the noiseless expert (asked at every state, never acting):", "",
-        "| task | split | success | steps | agrees with the expert | speed, policy / expert | closes where the "
-        "expert opens | opens where it holds | hand to grasp point at first close (median cm) | furthest expert "
-        "phase (episodes) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| task | split | success | steps | agrees with the expert | ... before its first close | speed, policy / "
+        "expert | closes where the expert opens | opens where it holds | hand to grasp point at first close (median "
+        "cm) | furthest expert phase (episodes) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case in cases:
         if case.discrete:
             agrees, speed = f"{case.same_action / max(case.steps, 1):.0%} same action", "-"
-            closes = opens = first = "-"
+            approach = closes = opens = first = "-"
         else:
             agrees = f"cos {np.mean(case.cosines):.2f}" if case.cosines else "-"
+            approach = f"cos {np.mean(case.cosines_before_close):.2f}" if case.cosines_before_close else "-"
             speed = f"{case.policy_speed / case.expert_speed:.2f}" if case.expert_speed else "-"
             closes, opens = f"{case.closes_short:,}", f"{case.opens_early:,}"
             first = f"{np.median(case.first_close_cm):.1f}" if case.first_close_cm else "-"
         phases = ", ".join(f"{name} {n}" for name, n in case.furthest.most_common())
         lines.append(f"| {case.task_id} | {case.split} | {case.successes}/{case.episodes} | {case.steps:,} | {agrees} | "
-                     f"{speed} | {closes} | {opens} | {first} | {phases} |")
+                     f"{approach} | {speed} | {closes} | {opens} | {first} | {phases} |")
     return "\n".join(lines)

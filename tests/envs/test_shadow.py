@@ -32,6 +32,7 @@ def test_the_expert_shadowing_itself_agrees_at_every_step(lift):
     assert episode.success and 0 < episode.steps < task.horizon
     assert episode.closes_short == episode.opens_early == 0
     assert episode.cosines and np.allclose(episode.cosines, 1.0)
+    assert 0 < len(episode.cosines_before_close) < len(episode.cosines)  # it closed part-way, then lifted
     assert episode.policy_speed == pytest.approx(episode.expert_speed) and episode.expert_speed > 0
     assert episode.first_close_cm is not None and episode.first_close_cm < 2.0  # it closes at the grasp point
     assert episode.furthest_phase == "lift"
@@ -69,5 +70,5 @@ def test_a_hand_that_closes_where_it_starts_is_a_grasp_tried_short(lift):
     case = CaseShadow(task.task_id, "seen", False).add(episode).add(episode)
     table = markdown([case], "a test policy")
     # a hand that never moves has no direction to compare: no cosine, speed 0
-    assert (f"| lift-red | seen | 0/2 | {2 * task.horizon} | - | 0.00 | {2 * task.horizon} | 0 | {distance_cm:.1f} "
+    assert (f"| lift-red | seen | 0/2 | {2 * task.horizon} | - | - | 0.00 | {2 * task.horizon} | 0 | {distance_cm:.1f} "
             "| approach 2 |") in table
