@@ -199,7 +199,8 @@ def cmd_shadow(args: argparse.Namespace) -> int:
             progress.advance(1, shadow.episodes)
     finally:
         progress.close()
-    print(markdown([shadows[u.unit_key] for u in units], f"{model.label} ({args.weights} weights)"))
+    print(markdown([shadows[u.unit_key] for u in units],
+                   f"{model.label} ({weights_of_checkpoint(model.checkpoint, args.weights)} weights)"))
     return 0
 
 
