@@ -23,6 +23,20 @@ AT_GRASP, ABOVE_LINE = 0.025, 0.01  # metres: the hand counted at the grasp poin
 GRASP_DEPTH = np.array([0.0, 0.0, -0.005])  # where the fingertips close, from the scene's "grasp" point
 
 
+def expert_phase(expert) -> tuple[int, str]:
+    """(order, name) of a stateful expert's current phase; (0, "-") for one without phases."""
+    phase = getattr(expert, "phase", None)
+    return (0, "-") if phase is None else (phase.value, phase.name.lower())
+
+
+def hand_to_grasp(seen: dict[str, np.ndarray]) -> float | None:
+    """Metres from the hand to where its fingertips would close on the object (a scene's privileged
+    "grasp" point, GRASP_DEPTH below it); None for a scene without one (a door, MetaWorld, navigation)."""
+    if "grasp" not in seen or "gripper" not in seen:
+        return None
+    return float(np.linalg.norm(seen["grasp"] + GRASP_DEPTH - seen["gripper"]))
+
+
 def horizontal(vector: np.ndarray) -> np.ndarray:
     """`vector` flattened onto the floor, as a unit vector."""
     flat = np.array([vector[0], vector[1], 0.0])

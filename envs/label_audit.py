@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envs.experts import AT_GRASP, GRASP_DEPTH, grip_turn
+from envs.experts import AT_GRASP, expert_phase, grip_turn, hand_to_grasp
 from schemas.errors import Sim2ActError
 from warehouse.catalog import Catalog
 
@@ -133,11 +133,10 @@ def audit_labels(catalog: Catalog, iteration: int, explorer: str = "policy%", ca
             row.closed += int(replayed[-1] > 0)
             row.mismatched += int(label is None or not np.allclose(replayed, np.asarray(label, dtype=np.float32),
                                                                    rtol=0, atol=SAME_LABEL))
-            phase = getattr(expert, "phase", None)
-            row.phases[phase.name.lower() if phase is not None else "-"] += 1
+            row.phases[expert_phase(expert)[1]] += 1
             seen = obs.privileged
-            if "grasp" in seen:
-                distance = float(np.linalg.norm(seen["grasp"] + GRASP_DEPTH - seen["gripper"]))
+            distance = hand_to_grasp(seen)
+            if distance is not None:
                 row.near_grasp += int(distance < 2 * AT_GRASP)
                 if distance < AT_GRASP:
                     row.at_grasp += 1

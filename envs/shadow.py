@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from envs.experts import GRASP_DEPTH
+from envs.experts import expert_phase, hand_to_grasp
 from envs.observation import DISCRETE_FAMILIES, Observation
 from envs.rollout import rollout
 from schemas.tasks import TaskRecord
@@ -47,11 +47,6 @@ class EpisodeShadow:
     furthest_phase: str  # the expert's furthest phase over the episode ("-": an expert without phases)
 
 
-def _phase(expert) -> tuple[int, str]:
-    phase = getattr(expert, "phase", None)
-    return (0, "-") if phase is None else (phase.value, phase.name.lower())
-
-
 def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, randomisation=None) -> EpisodeShadow:
     """One episode of `act` with `expert` (a fresh noiseless expert, or its bound `act`) asked at every state."""
     distances: list[float | None] = []
@@ -59,15 +54,12 @@ def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, rand
     owner = getattr(expert, "__self__", expert)
 
     def policy(obs: Observation) -> np.ndarray:
-        seen = obs.privileged
-        grasp = seen.get("grasp")
-        distances.append(None if grasp is None or "gripper" not in seen
-                         else float(np.linalg.norm(grasp + GRASP_DEPTH - seen["gripper"])))
+        distances.append(hand_to_grasp(obs.privileged))
         return act(obs)
 
     def shadowing(obs: Observation) -> np.ndarray:
         action = expert(obs)
-        phases.append(_phase(owner))
+        phases.append(expert_phase(owner))
         return action
 
     rows, _, success = rollout(env, task, seed, policy, randomisation, label=shadowing)

@@ -14,6 +14,9 @@ from schemas.config import ConfigError
 from schemas.experts import TARGET
 from schemas.workspace import write_text_atomically
 
+MODEL_REF = "champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-..."  # --model
+SPLIT_CHOICES = ("seen", "unseen", "unseen_paraphrase", "held_out_wording")  # --split: the evaluation's splits
+
 
 def cmd_run(args: argparse.Namespace) -> int:
     config = campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
@@ -269,26 +272,23 @@ def register(commands: Commands) -> None:
     evaluate = campaign_command("eval", "evaluate any model on the campaign's tasks, one split, or a task file",
                                 cmd_eval)
     evaluate.add_argument("--model", required=True, action="append", metavar="REF",
-                          help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...; "
-                               "repeat it for several trainings (seeds): each is evaluated, then the results "
-                               "protocol's mean, spread and pooled interval over them")
+                          help=MODEL_REF + "; repeat it for several trainings (seeds): each is evaluated, then the "
+                               "results protocol's mean, spread and pooled interval over them")
     evaluate.add_argument("--weights", choices=("registered", "final"), default="registered",
                           help="registered: the weights the training registers (its moving average, train.ema); "
                                "final: its last weights")
     which = evaluate.add_mutually_exclusive_group()
     which.add_argument("--tasks", type=Path, metavar="FILE", help="a task spec YAML file: its tasks, all colours")
-    which.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
+    which.add_argument("--split", choices=SPLIT_CHOICES,
                        help="only this split's cases (held_out_wording: seen tasks in words the generator never uses)")
     evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
 
     shadow = campaign_command("shadow", "a model's evaluation episodes with the noiseless expert asked at every "
                               "state: where they part (a grasp tried short, a slow hand, a drop)", cmd_shadow)
-    shadow.add_argument("--model", required=True, metavar="REF",
-                        help="champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-...")
+    shadow.add_argument("--model", required=True, metavar="REF", help=MODEL_REF)
     shadow.add_argument("--weights", choices=("registered", "final"), default="registered",
                         help="registered: the weights the training registers (its moving average); final: its last")
-    shadow.add_argument("--split", choices=("seen", "unseen", "unseen_paraphrase", "held_out_wording"),
-                        help="only this split's cases")
+    shadow.add_argument("--split", choices=SPLIT_CHOICES, help="only this split's cases")
     shadow.add_argument("--task", action="append", metavar="ID", help="only this task's cases (repeatable)")
     shadow.add_argument("--episodes", type=int,
                         help="episodes per case, drawn as sim2act eval draws them: its first N (default: as "
