@@ -156,6 +156,7 @@ class RandomiseConfig(_Strict):
 
 
 NoiseLevel = Annotated[float, Field(ge=0.0, le=1.0)]
+Share = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class ExploreConfig(_Strict):
@@ -182,11 +183,13 @@ class ExploreConfig(_Strict):
     expert_labels: bool = Field(
         default=True, description="record the noiseless expert action at every state (DAgger labels)"
     )
-    expert_takeover: float = Field(
-        default=0.0, ge=0.0, le=1.0, description="DAgger's beta: in the policy's episodes, the share of steps on which "
+    expert_takeover: Share | list[Share] = Field(
+        default=0.0, description="DAgger's beta: in the policy's episodes, the share of steps on which "
         "the noiseless expert's action is executed instead of the policy's (drawn per step from the episode's seed; "
         "its labels recorded at every step as always), so the labelled states reach the phases a weak policy never "
-        "gets to alone (a grasp, a carry); explorer_stats counts the steps it drove"
+        "gets to alone (a grasp, a carry); explorer_stats counts the steps it drove. A list is a schedule over "
+        "iterations 1, 2, ... (the last level repeats), e.g. [0.5, 0.25, 0.125]: DAgger's beta_i falling as the "
+        "policy's own states become the ones it must learn to recover from"
     )
     curriculum: bool = Field(
         default=False, description="long-horizon tasks (specs with subtasks) are learnt from their sub-tasks: no "
@@ -209,10 +212,20 @@ class ExploreConfig(_Strict):
     def _schedule_not_empty(self) -> ExploreConfig:
         if self.expert_noise == []:
             raise ValueError("expert_noise: the schedule is empty; give one level or several")
-        if self.expert_takeover > 0 and not self.expert_labels:
+        if self.expert_takeover == []:
+            raise ValueError("expert_takeover: the schedule is empty; give one share or one per iteration")
+        levels = self.expert_takeover if isinstance(self.expert_takeover, list) else [self.expert_takeover]
+        if max(levels) > 0 and not self.expert_labels:
             raise ValueError(f"expert_takeover: expected expert_labels true (the expert that takes over is the one "
                              f"that labels), got expert_takeover {self.expert_takeover} with expert_labels false")
         return self
+
+    def takeover_of(self, iteration: int) -> float:
+        """The expert's share of the policy's steps at `iteration`: a schedule's level for it (the
+        last one repeating). Iteration 0 has no policy to take over from; it reads the first level, as
+        a single share reads the same at every iteration, so its explore key changes only with that."""
+        levels = self.expert_takeover if isinstance(self.expert_takeover, list) else [self.expert_takeover]
+        return levels[min(max(iteration, 1), len(levels)) - 1]
 
     def noise_of(self, expert_episode: int) -> float:
         """The noise level of a task's `expert_episode`-th expert episode."""

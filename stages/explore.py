@@ -135,7 +135,11 @@ def plan_explore(
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration,
         "render": render_key_fields(config.render),
-        "randomise": config.randomise, "explore": key_fields(explore, {"workers", "dask_address"}, LEGACY_VALUES),
+        "randomise": config.randomise,
+        # the takeover share in effect at this iteration, not the schedule: changing a later level
+        # of the schedule redoes only the iterations from that one on
+        "explore": key_fields(explore.model_copy(update={"expert_takeover": explore.takeover_of(iteration)}),
+                              {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }
     units = []
@@ -169,7 +173,7 @@ def plan_explore(
                     # seen tasks only: a held-out task is never trained on, relabelled or not
                     relabel_to=[t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
                                 and t.task_id != task.task_id],
-                    expert_takeover=explore.expert_takeover,
+                    expert_takeover=explore.takeover_of(iteration),
                 )
             )
     return units

@@ -117,6 +117,31 @@ def test_expert_takeover_needs_the_labelling_expert():
         ExploreConfig(expert_takeover=1.5)
 
 
+def test_a_takeover_schedule_gives_each_iteration_its_share_and_shares_keys_with_a_single_share(tmp_path):
+    falling = ExploreConfig(expert_takeover=[0.5, 0.25, 0.125])
+    assert [falling.takeover_of(i) for i in range(6)] == [0.5, 0.5, 0.25, 0.125, 0.125, 0.125]
+    assert [ExploreConfig(expert_takeover=0.3).takeover_of(i) for i in (0, 1, 4)] == [0.3, 0.3, 0.3]
+    with pytest.raises(ValueError, match="expert_takeover: the schedule is empty"):
+        ExploreConfig(expert_takeover=[])
+    with pytest.raises(ValueError, match="expert_takeover: expected expert_labels true"):
+        ExploreConfig(expert_takeover=[0.0, 0.5], expert_labels=False)
+
+    config, tasks, _ = _curriculum(tmp_path, curriculum=False)
+    policy = PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint="policy.pt")
+    embeddings = {text: np.zeros(384, dtype=np.float32) for t in tasks for text in t.instructions}
+
+    def plan(takeover, iteration):
+        campaign = config.model_copy(update={"explore": config.explore.model_copy(update={"expert_takeover": takeover})})
+        units = plan_explore(campaign, iteration, tasks, policy if iteration else None, embeddings,
+                             Workspace.at(tmp_path).create())
+        return [u.unit_key for u in units], {u.expert_takeover for u in units}
+
+    for iteration in (0, 1):  # the schedule's first level is the single share's: the same work
+        assert plan([0.5, 0.25], iteration)[0] == plan(0.5, iteration)[0]
+    keys, shares = plan([0.5, 0.25], 2)
+    assert shares == {0.25} and keys != plan(0.5, 2)[0] and keys == plan(0.25, 2)[0]
+
+
 def test_without_labels_the_column_stays_empty(tmp_path):
     _, steps = _shards(_plan(_config(expert_labels=False), tmp_path)[0])
     assert steps and all(s["expert_action"] is None for s in steps)
