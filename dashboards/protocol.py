@@ -68,6 +68,7 @@ NOT_RECIPE = {"seed", "final_loss", "resumed_at_step"}
 class SeedGroup(BaseModel):
     """Trainings of one dataset with one recipe, differing only in train.seed, evaluated alike."""
 
+    iteration: int  # the campaign iteration whose dataset they trained on
     recipe: dict  # the training summary's recipe fields (chunk, weights, steps, ...)
     weights: str  # which weights were evaluated: registered (the training's own choice) or final
     model_keys: list[str]  # one per seed, in seed order
@@ -89,13 +90,15 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
 
     trainings: dict[str, list[tuple[int, str]]] = {}
     recipes: dict[str, dict] = {}
-    for model_key, summary, digest in catalog.query(
-            "SELECT s.unit_key, s.summary, m.dataset_digest FROM stage_runs s JOIN models m ON m.model_key = s.unit_key "
+    iterations: dict[str, int] = {}
+    for model_key, summary, digest, iteration in catalog.query(
+            "SELECT s.unit_key, s.summary, m.dataset_digest, m.iteration FROM stage_runs s "
+            "JOIN models m ON m.model_key = s.unit_key "
             "WHERE s.stage = 'train' AND s.campaign = ? ORDER BY s.unit_key", [campaign]):
         fields = json.loads(summary)
         recipe = {k: v for k, v in sorted(fields.items()) if k not in NOT_RECIPE}
         group = json.dumps([digest, recipe], sort_keys=True)
-        recipes[group] = recipe
+        recipes[group], iterations[group] = recipe, iteration
         trainings.setdefault(group, []).append((int(fields.get("seed", 0)), model_key))
     evaluated: dict[str, list] = {}
     for model_key, evaluation in read_evaluations(catalog, "v.model_key", "WHERE v.campaign = ? AND v.suite = ?",
@@ -116,6 +119,6 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
             if not shared:
                 continue
             figures = protocol_success(runs)
-            groups.append(SeedGroup(recipe=recipes[group], weights=weights, model_keys=[k for _, k in members],
+            groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights, model_keys=[k for _, k in members],
                                     seeds=[s for s, _ in members], figures=figures))
     return groups

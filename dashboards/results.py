@@ -146,9 +146,9 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         recipe = ", ".join(f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
                                                                                 "where") and v is not None)
         by_split = {f.group: f for f in group.figures}
-        rows.append([recipe, group.weights, ", ".join(map(str, group.seeds)),
+        rows.append([str(group.iteration), recipe, group.weights, ", ".join(map(str, group.seeds)),
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
-    return lines + _table(["recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
+    return lines + _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
 
 
 def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
