@@ -218,7 +218,10 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
         "SELECT explore_units, filter_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
         [campaign])
     if not by_iteration and not latest:
-        raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse")
+        held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
+        raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse ("
+                         + (f"it holds {', '.join(map(repr, held))}: name it with --preset, --config or --set name=...)"
+                            if held else "it holds no campaign yet)"))
     [(explore_units, filter_units)] = latest or [([], [])]
     explored = catalog.query(
         "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "

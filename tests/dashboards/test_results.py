@@ -134,13 +134,15 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
 def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     """The generalist's million before its training: no evaluation yet, the dataset and compute sections alone."""
     catalog = _catalog_with_tasks(tmp_path)
-    with pytest.raises(ValueError, match="has no evaluated iteration"):  # nothing indexed yet
+    with pytest.raises(ValueError, match=r"has no evaluated iteration in this warehouse \(it holds no campaign yet\)"):
         results_markdown(catalog, CAMPAIGN, "sim2act report")
     catalog.register_unit(unit_key="index-0", stage="index", campaign=CAMPAIGN, iteration=0, summary={}, wall_s=2.0,
                           rows={"iterations": [{
                               "unit_key": "index-0", "campaign": CAMPAIGN, "iteration": 0, "dataset_digest": "d",
                               "explore_units": [], "filter_units": [], "episodes": 0, "kept_episodes": 0,
                               "triplets": 0}]})
+    with pytest.raises(ValueError, match=rf"campaign 'other' has no .* \(it holds '{CAMPAIGN}': name it with --preset"):
+        results_markdown(catalog, "other", "sim2act report")  # the campaigns it does hold, named
     text = results_markdown(catalog, CAMPAIGN, "sim2act report")
     assert "No iteration of this campaign is evaluated yet" in text
     rows = [line for line in text.splitlines() if line.startswith("| navigation |") or line.startswith("| all |")]

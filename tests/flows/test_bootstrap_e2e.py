@@ -395,7 +395,10 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
 
     other = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--set", "name=other", "--workspace", str(workspace)],
                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
-    assert other.returncode == 2 and other.stderr.strip().endswith("campaign 'other' has no evaluated iteration in this warehouse")
+    held = ", ".join(repr(name) for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1"))
+    assert other.returncode == 2 and other.stderr.strip().endswith(
+        f"campaign 'other' has no evaluated iteration in this warehouse (it holds {held}: name it with --preset, "
+        f"--config or --set name=...)"), other.stderr
 
 
 def test_training_seeds_measure_each_iteration_beside_its_own_model(finished_campaign, tmp_path, prefect_api):
