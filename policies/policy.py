@@ -12,7 +12,7 @@ import torch
 
 from envs.observation import DISCRETE_FAMILIES, Observation
 from policies.model import ModelDims, VLAModel, pixels, uncertainty
-from schemas.config import MODEL_LEGACY_VALUES, ModelConfig
+from schemas.config import MODEL_LEGACY_VALUES, Acting, ModelConfig
 
 if TYPE_CHECKING:
     from policies.chunking import EpisodeActor
@@ -74,6 +74,11 @@ def checkpoint_members(state: dict, weights: str = "registered") -> list[dict]:
     return state["members"] if "members" in state else [state["state_dict"]]
 
 
+def model_config_of(state: dict) -> ModelConfig:
+    """A checkpoint's model config; one from before a model field existed was trained as that field's legacy value."""
+    return ModelConfig(**{**MODEL_LEGACY_VALUES, **state["model_config"]})
+
+
 def weights_of(state: dict, weights: str = "registered") -> str:
     """What `checkpoint_members(state, weights)` are, in words: `ema 0.999` or `final`."""
     return "final" if weights == "final" else state.get("weights", "final")
@@ -108,6 +113,7 @@ class Policy:
         }
         self._fine_tuned: dict[tuple[int, str], torch.Tensor] = {}  # (member, instruction): its own encoder's
         self.weights = "final"  # which weights act, in words (Policy.load: "ema 0.999" where averaged)
+        self._acting: ModelConfig | None = None  # the members' config acting otherwise (acting_as)
 
     @classmethod
     def load(cls, path: Path, embeddings: dict[str, np.ndarray] | None = None, weights: str = "registered") -> Policy:
@@ -115,8 +121,7 @@ class Policy:
         instruction without one is encoded on first use. `weights`: `registered` (the moving average
         where training kept one) or `final` (checkpoint_members)."""
         state = torch.load(path, map_location="cpu", weights_only=False)
-        # a checkpoint from before a model field existed was trained as that field's legacy value
-        config = ModelConfig(**{**MODEL_LEGACY_VALUES, **state["model_config"]})
+        config = model_config_of(state)
         dims = ModelDims(**state["dims"])
         members = []
         for member in checkpoint_members(state, weights):
@@ -129,7 +134,14 @@ class Policy:
 
     @property
     def config(self) -> ModelConfig:
-        return self.members[0].config
+        return self._acting or self.members[0].config
+
+    def acting_as(self, acting: Acting) -> Policy:
+        """This policy turning its chunks into actions as `acting` says (execution, execute_steps,
+        ensemble_decay) instead of as it was trained to; the weights are the same.
+        Raises ValueError where `acting` does not fit the model (execute_steps above its chunk)."""
+        self._acting = acting.applied_to(self.members[0].config)
+        return self
 
     @property
     def dims(self) -> ModelDims:

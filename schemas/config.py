@@ -298,6 +298,23 @@ class ModelConfig(_Strict):
         return self.execute_steps or max(1, self.chunk // 2)
 
 
+class Acting(_Strict):
+    """How a chunked policy turns its predictions into actions, chosen when it acts rather than when
+    it trained (`sim2act shadow --execution`): the model predicts the same chunks either way, so one
+    checkpoint can be measured under each; a field left None keeps the checkpoint's own."""
+
+    execution: Literal["temporal_ensemble", "receding"] | None = None  # ModelConfig.execution
+    execute_steps: int | None = Field(default=None, ge=1, le=64)  # receding: actions executed per prediction
+    ensemble_decay: float | None = Field(default=None, ge=0.0)  # temporal_ensemble: m in exp(-m i)
+
+    def applied_to(self, model: ModelConfig) -> ModelConfig:
+        """`model` acting this way. Raises ValueError where the two do not fit (execute_steps > chunk)."""
+        return ModelConfig(**{**model.model_dump(), **self.model_dump(exclude_none=True)})
+
+    def describe(self) -> str:
+        return ", ".join(f"{name} {value}" for name, value in self.model_dump(exclude_none=True).items())
+
+
 class TrainConfig(_Strict):
     seed: int = Field(
         default=0, ge=0, description="training seed (weights, data order, augmentation) on the same dataset: "

@@ -20,7 +20,7 @@ from envs.observation import DISCRETE_FAMILIES, Observation
 from envs.pool import Progress, run_in_pool
 from envs.rollout import rollout, worker_env
 from envs.shadow import CaseShadow, shadow_episode
-from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
+from schemas.config import Acting, CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import derive_seed, unit_key
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, Split, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
@@ -40,6 +40,7 @@ class Agent(BaseModel):
     kind: Literal["sim2act", "expert", "ppo", "sac"]
     path: str | None = None  # the checkpoint or the saved agent; none for the expert
     weights: Literal["registered", "final"] = "registered"  # sim2act: the averaged weights, or the last (Policy.load)
+    acting: Acting | None = None  # sim2act: acting otherwise than it trained to (sim2act shadow --execution)
 
 
 class EvalUnit(BaseModel):
@@ -231,6 +232,8 @@ def episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
         from policies.policy import Policy
 
         policy = Policy.load(Path(unit.agent.path), {unit.instruction: embedding}, unit.agent.weights)
+        if unit.agent.acting is not None:
+            policy.acting_as(unit.agent.acting)
 
         def episode(seed: int) -> Decide:
             actor = policy.episode(unit.task.family)  # a chunked policy keeps its chunks per episode

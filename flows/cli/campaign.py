@@ -10,7 +10,7 @@ from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
                               configure_environment, open_catalog, same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
-from schemas.config import ConfigError
+from schemas.config import Acting, ConfigError
 from schemas.experts import TARGET
 from schemas.workspace import write_text_atomically
 
@@ -185,9 +185,12 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     check_render(config.render, [task for task, _, _ in cases])
     model = resolve_model(workspace, config, args.model)
     check_model_fits(config, model)
+    state = checkpoint_state(model.checkpoint)
+    acting = acting_of(args, state)
     # the units of all the split's cases, then the asked tasks': each case keeps the episodes `sim2act eval` plays
     units = [unit for unit in evaluation_units(workspace, config, model.model_key,
-                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
+                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights,
+                                                     acting=acting),
                                                cases, instruction_embeddings(workspace, config, cases), suite)
              if not args.task or unit.task.task_id in args.task]
     log_stages_to_stderr()
@@ -202,17 +205,56 @@ def cmd_shadow(args: argparse.Namespace) -> int:
             progress.advance(1, shadow.episodes)
     finally:
         progress.close()
-    print(markdown([shadows[u.unit_key] for u in units],
-                   f"{model.label} ({weights_of_checkpoint(model.checkpoint, args.weights)} weights)"))
+    from policies.policy import weights_of
+
+    how = f"{weights_of(state, args.weights)} weights" + (f", acting: {acting.describe()}" if acting else "")
+    print(markdown([shadows[u.unit_key] for u in units], f"{model.label} ({how})"))
     return 0
 
 
-def weights_of_checkpoint(path: str, weights: str) -> str:
+def checkpoint_state(path: str) -> dict:
     import torch
 
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def weights_of_checkpoint(path: str, weights: str) -> str:
     from policies.policy import weights_of
 
-    return weights_of(torch.load(path, map_location="cpu", weights_only=False), weights)
+    return weights_of(checkpoint_state(path), weights)
+
+
+def acting_of(args: argparse.Namespace, state: dict) -> Acting | None:
+    """--execution, --execute-steps, --ensemble-decay: how the checkpoint turns its chunks into actions
+    here (schemas.config.Acting), checked against its model before any work; None: as it trained.
+
+    Raises:
+        ConfigError: a value out of range, or one that does not apply to this model."""
+    from pydantic import ValidationError
+
+    from policies.policy import model_config_of
+
+    given = {"execution": args.execution, "execute_steps": args.execute_steps, "ensemble_decay": args.ensemble_decay}
+    if all(value is None for value in given.values()):
+        return None
+    try:
+        acting = Acting(**given)
+    except ValidationError as error:
+        first = error.errors()[0]
+        raise ConfigError(f"--{str(first['loc'][0]).replace('_', '-')}: {first['msg'].lower()}, "
+                          f"got {first['input']}") from None
+    model = model_config_of(state)
+    if model.chunk == 1:
+        raise ConfigError("--execution: the model predicts one action per observation (chunk 1): it acts one way")
+    execution = acting.execution or model.execution
+    if acting.execute_steps is not None and execution != "receding":
+        raise ConfigError(f"--execute-steps: applies to --execution receding, got execution {execution}")
+    if acting.ensemble_decay is not None and execution != "temporal_ensemble":
+        raise ConfigError(f"--ensemble-decay: applies to --execution temporal_ensemble, got execution {execution}")
+    if acting.execute_steps is not None and acting.execute_steps > model.chunk:
+        raise ConfigError(f"--execute-steps: expected at most the model's chunk ({model.chunk}), "
+                          f"got {acting.execute_steps}")
+    return acting
 
 
 def _print_evaluations(evaluations, spec_of: dict[str, str]) -> None:
@@ -293,6 +335,12 @@ def register(commands: Commands) -> None:
     shadow.add_argument("--episodes", type=int,
                         help="episodes per case, drawn as sim2act eval draws them: its first N (default: as "
                              "many as the evaluation plays)")
+    shadow.add_argument("--execution", choices=("temporal_ensemble", "receding"),
+                        help="a chunked model acting otherwise than it trained to (default: its own): "
+                             "temporal_ensemble averages every chunk's prediction for a step, receding executes the "
+                             "first --execute-steps of each")
+    shadow.add_argument("--execute-steps", type=int, metavar="N", help="receding: actions executed per prediction")
+    shadow.add_argument("--ensemble-decay", type=float, metavar="M", help="temporal_ensemble: weights exp(-M i)")
 
     campaign_command("report", "the results table: success per iteration beside the baselines, dataset, compute",
                      cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")

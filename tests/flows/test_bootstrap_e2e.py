@@ -318,9 +318,17 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
     assert re.fullmatch(r"\d+\.\d\d", cells[6])  # speed against the expert's
     assert catalog.query("SELECT count(*) FROM evaluations") == before  # a diagnosis, not an evaluation
 
-    refused = shadow("--model", "champion", "--task", "no-such-task")
-    assert refused.returncode == 2 and "--task" in refused.stderr and "lift-red" in refused.stderr
-    assert len(refused.stderr.splitlines()) == 1, refused.stderr
+    # the same episodes, the chunks executed receding one step at a time instead of ensembled
+    receding = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "2",
+                      "--execution", "receding", "--execute-steps", "1")
+    assert receding.returncode == 0, receding.stderr[-3000:]
+    assert " weights, acting: execution receding, execute_steps 1)" in receding.stdout, receding.stdout
+
+    for flags, says in ((["--task", "no-such-task"], "lift-red"),
+                        (["--execution", "receding", "--execute-steps", "99"], "--execute-steps: expected at most")):
+        refused = shadow("--model", "champion", *flags)
+        assert refused.returncode == 2 and says in refused.stderr, refused.stderr
+        assert len(refused.stderr.splitlines()) == 1, refused.stderr
 
 
 RL_BUDGET = 128  # env steps per RL baseline: one PPO rollout, 116 SAC updates (SAC took 55 s at 300 here)

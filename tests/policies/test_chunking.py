@@ -12,7 +12,7 @@ from policies.chunking import EpisodeActor, temporal_ensemble
 from policies.ema import WeightAverage, decay_at
 from policies.model import ModelDims, VLAModel, vla_loss
 from policies.policy import Normaliser, Policy, policy_state, save_atomically
-from schemas.config import ModelConfig
+from schemas.config import Acting, ModelConfig
 
 OBS = Observation(np.zeros((84, 84, 3), np.uint8), np.zeros(9, np.float32), {})
 IDENTITY = Normaliser(np.zeros(7, np.float32), np.ones(7, np.float32))
@@ -86,6 +86,29 @@ def test_a_chunked_model_acts_through_its_episode_and_its_checkpoint_round_trips
     assert policy.act(OBS, "go", "robosuite").action.shape == (7,)
     probabilities, _ = policy.predict(OBS, "go", "navigation")
     assert probabilities.shape == (4, 4) and np.allclose(probabilities.sum(-1), 1.0, atol=1e-5)
+
+
+def test_a_checkpoint_acts_otherwise_than_it_trained_when_told(tmp_path: Path):
+    """Policy.acting_as (sim2act shadow --execution): the same weights and chunks, turned into actions
+    another way; temporal ensembling mixes the chunk predicted a step ago into step 1, receding 1 does not."""
+    torch.manual_seed(0)
+    model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=4), DIMS)
+    path = tmp_path / "policy.pt"
+    save_atomically(path, policy_state([model], IDENTITY, Normaliser(np.zeros(9, np.float32), np.ones(9, np.float32))))
+    ensembled = Policy.load(path, {"go": np.ones(384, np.float32)})
+    chunk, _ = ensembled.predict(OBS, "go", "robosuite")  # the same observation every step: the same chunk
+    actor = ensembled.episode("robosuite")
+    steps = [actor(OBS, "go").action for _ in range(2)]
+    np.testing.assert_allclose(steps[1], np.clip(temporal_ensemble([chunk[1], chunk[0]], 0.01), -1, 1), atol=1e-5)
+
+    receding = Policy.load(path, {"go": np.ones(384, np.float32)}).acting_as(Acting(execution="receding", execute_steps=1))
+    assert receding.config.execution == "receding" and receding.members[0].config.execution == "temporal_ensemble"
+    actor = receding.episode("robosuite")
+    for _ in range(3):  # every step: the chunk predicted now, its first action
+        np.testing.assert_allclose(actor(OBS, "go").action, np.clip(chunk[0], -1, 1), atol=1e-5)
+    assert Acting(execution="receding", execute_steps=1).describe() == "execution receding, execute_steps 1"
+    with pytest.raises(ValueError, match="execute_steps: expected at most chunk"):
+        Policy.load(path).acting_as(Acting(execution="receding", execute_steps=5))
 
 
 def test_masked_chunk_positions_do_not_move_the_loss():
