@@ -119,6 +119,7 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
             if not shared:
                 continue
             figures = protocol_success(runs)
-            groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights, model_keys=[k for _, k in members],
-                                    seeds=[s for s, _ in members], figures=figures))
-    return groups
+            groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights,
+                                    model_keys=[k for _, k in members], seeds=[s for s, _ in members], figures=figures))
+    # by iteration, then recipe: a loop's iteration 0 reads above its iteration 3
+    return sorted(groups, key=lambda g: (g.iteration, json.dumps(g.recipe, sort_keys=True), g.weights != "registered"))

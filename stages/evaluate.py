@@ -434,6 +434,8 @@ def evaluate_model(
     randomisation and evaluate settings; each case is a unit registered in the catalog's
     `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
     Seeds derive from (campaign, task, episode): every model meets the same episodes."""
+    if agent.acting is not None:  # its evaluations would be registered as the model's own, under the same keys
+        raise ValueError(f"evaluate_model: expected the agent acting as it trained to, got acting {agent.acting.describe()}")
     catalog = Catalog(workspace.catalog)
     units = evaluation_units(workspace, config, model_key, agent, cases, embeddings, suite)
     ledger = StageUnits(catalog, STAGE, config.name, iteration)

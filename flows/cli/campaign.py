@@ -185,8 +185,11 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     check_render(config.render, [task for task, _, _ in cases])
     model = resolve_model(workspace, config, args.model)
     check_model_fits(config, model)
+    from policies.policy import weights_of
+
     state = checkpoint_state(model.checkpoint)
-    acting = acting_of(args, state)
+    acting, weights = acting_of(args, state), weights_of(state, args.weights)
+    del state  # the weights load in the workers; the CLI needed the config and the weights' name
     # the units of all the split's cases, then the asked tasks': each case keeps the episodes `sim2act eval` plays
     units = [unit for unit in evaluation_units(workspace, config, model.model_key,
                                                Agent(kind="sim2act", path=model.checkpoint, weights=args.weights,
@@ -205,9 +208,7 @@ def cmd_shadow(args: argparse.Namespace) -> int:
             progress.advance(1, shadow.episodes)
     finally:
         progress.close()
-    from policies.policy import weights_of
-
-    how = f"{weights_of(state, args.weights)} weights" + (f", acting: {acting.describe()}" if acting else "")
+    how = f"{weights} weights" + (f", acting: {acting.describe()}" if acting else "")
     print(markdown([shadows[u.unit_key] for u in units], f"{model.label} ({how})"))
     return 0
 
@@ -245,7 +246,8 @@ def acting_of(args: argparse.Namespace, state: dict) -> Acting | None:
                           f"got {first['input']}") from None
     model = model_config_of(state)
     if model.chunk == 1:
-        raise ConfigError("--execution: the model predicts one action per observation (chunk 1): it acts one way")
+        first = next(name for name, value in given.items() if value is not None).replace("_", "-")
+        raise ConfigError(f"--{first}: the model predicts one action per observation (chunk 1): it acts one way")
     execution = acting.execution or model.execution
     if acting.execute_steps is not None and execution != "receding":
         raise ConfigError(f"--execute-steps: applies to --execution receding, got execution {execution}")
@@ -254,6 +256,12 @@ def acting_of(args: argparse.Namespace, state: dict) -> Acting | None:
     if acting.execute_steps is not None and acting.execute_steps > model.chunk:
         raise ConfigError(f"--execute-steps: expected at most the model's chunk ({model.chunk}), "
                           f"got {acting.execute_steps}")
+    try:  # whatever else the model's own validation asks, before a worker meets it
+        applied = acting.applied_to(model)
+    except ValueError as error:
+        raise ConfigError(f"--execution: {error}") from None
+    if applied.execution == "receding" and acting.execute_steps is None:  # said in the caption: the steps it takes
+        acting = acting.model_copy(update={"execute_steps": applied.steps_per_prediction})
     return acting
 
 

@@ -325,7 +325,7 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
     assert " weights, acting: execution receding, execute_steps 1)" in receding.stdout, receding.stdout
 
     for flags, says in ((["--task", "no-such-task"], "lift-red"),
-                        (["--execution", "receding", "--execute-steps", "99"], "--execute-steps: expected at most")):
+                        (["--execution", "receding", "--execute-steps", "9"], "--execute-steps: expected at most the model's chunk (8)")):
         refused = shadow("--model", "champion", *flags)
         assert refused.returncode == 2 and says in refused.stderr, refused.stderr
         assert len(refused.stderr.splitlines()) == 1, refused.stderr

@@ -21,6 +21,8 @@ def test_the_flags_make_the_acting_and_none_keeps_the_checkpoints_own():
     acting = _acting("--execution", "receding", "--execute-steps", "1")
     assert (acting.execution, acting.execute_steps, acting.ensemble_decay) == ("receding", 1, None)
     assert _acting("--ensemble-decay", "0.5").ensemble_decay == 0.5  # the model's own execution: temporal_ensemble
+    # receding without a step count takes half the chunk, and says so
+    assert _acting("--execution", "receding").describe() == "execution receding, execute_steps 4"
 
 
 @pytest.mark.parametrize(("flags", "state", "says"), [
@@ -31,8 +33,8 @@ def test_the_flags_make_the_acting_and_none_keeps_the_checkpoints_own():
     (["--execute-steps", "2"], CHUNK_8, "--execute-steps: applies to --execution receding, got execution temporal_ensemble"),
     (["--execution", "receding", "--ensemble-decay", "0.1"], CHUNK_8,
      "--ensemble-decay: applies to --execution temporal_ensemble, got execution receding"),
-    (["--execution", "receding"], {"model_config": ModelConfig(chunk=1).model_dump()},
-     "--execution: the model predicts one action per observation (chunk 1): it acts one way"),
+    (["--ensemble-decay", "0.1"], {"model_config": ModelConfig(chunk=1).model_dump()},
+     "--ensemble-decay: the model predicts one action per observation (chunk 1): it acts one way"),
 ])
 def test_values_that_do_not_apply_are_refused_in_one_line(flags, state, says):
     with pytest.raises(ConfigError) as refused:

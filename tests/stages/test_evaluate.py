@@ -124,3 +124,16 @@ def test_a_case_evaluated_twice_counts_once_where_evaluations_are_summed(tmp_pat
     assert len(every) == 4
     groups = {g.group: g for g in group_success([e for _, e in current])}
     assert (groups["seen"].successes, groups["seen"].episodes) == (15, 23)
+
+
+def test_an_agent_acting_otherwise_than_it_trained_is_never_registered_as_the_model(tmp_path):
+    """sim2act shadow --execution plays a checkpoint another way; an evaluation would file its episodes
+    under the model's own keys, so evaluate_model refuses it before any work."""
+    from schemas.config import Acting, CampaignConfig
+    from schemas.workspace import Workspace
+    from stages.evaluate import Agent, evaluate_model
+
+    agent = Agent(kind="sim2act", path="policy.pt", acting=Acting(execution="receding", execute_steps=1))
+    with pytest.raises(ValueError, match="expected the agent acting as it trained to, got acting execution receding"):
+        evaluate_model(Workspace.at(tmp_path).create(), CampaignConfig(), 0, "train-m", agent, [], {})
+    assert not (tmp_path / "warehouse").exists() or not any((tmp_path / "warehouse").rglob("*.parquet"))
