@@ -174,6 +174,7 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     from envs.registry import check_render
     from envs.shadow import markdown
     from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+    from policies.policy import weights_of
     from stages.evaluate import Agent, evaluation_units, shadow_unit
 
     suite, cases = eval_cases(workspace, config, None, args.split)  # bad input refused here, before any work
@@ -185,8 +186,6 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     check_render(config.render, [task for task, _, _ in cases])
     model = resolve_model(workspace, config, args.model)
     check_model_fits(config, model)
-    from policies.policy import weights_of
-
     state = checkpoint_state(model.checkpoint)
     acting, weights = acting_of(args, state), weights_of(state, args.weights)
     del state  # the weights load in the workers; the CLI needed the config and the weights' name
