@@ -159,6 +159,11 @@ NoiseLevel = Annotated[float, Field(ge=0.0, le=1.0)]
 Share = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
+def _levels(value: float | list[float]) -> list[float]:
+    """A schedule's levels: a list as it is, one level as a list of one."""
+    return value if isinstance(value, list) else [value]
+
+
 class ExploreConfig(_Strict):
     episodes_per_task: PositiveInt = 8
     episodes_per_shard: PositiveInt = 4
@@ -214,8 +219,7 @@ class ExploreConfig(_Strict):
             raise ValueError("expert_noise: the schedule is empty; give one level or several")
         if self.expert_takeover == []:
             raise ValueError("expert_takeover: the schedule is empty; give one share or one per iteration")
-        levels = self.expert_takeover if isinstance(self.expert_takeover, list) else [self.expert_takeover]
-        if max(levels) > 0 and not self.expert_labels:
+        if max(_levels(self.expert_takeover)) > 0 and not self.expert_labels:
             raise ValueError(f"expert_takeover: expected expert_labels true (the expert that takes over is the one "
                              f"that labels), got expert_takeover {self.expert_takeover} with expert_labels false")
         return self
@@ -224,12 +228,12 @@ class ExploreConfig(_Strict):
         """The expert's share of the policy's steps at `iteration`: a schedule's level for it (the
         last one repeating). Iteration 0 has no policy to take over from; it reads the first level, as
         a single share reads the same at every iteration, so its explore key changes only with that."""
-        levels = self.expert_takeover if isinstance(self.expert_takeover, list) else [self.expert_takeover]
+        levels = _levels(self.expert_takeover)
         return levels[min(max(iteration, 1), len(levels)) - 1]
 
     def noise_of(self, expert_episode: int) -> float:
         """The noise level of a task's `expert_episode`-th expert episode."""
-        levels = self.expert_noise if isinstance(self.expert_noise, list) else [self.expert_noise]
+        levels = _levels(self.expert_noise)
         return levels[expert_episode % len(levels)]
 
 

@@ -132,13 +132,14 @@ def plan_explore(
     explore.curriculum a task with sub-tasks (`subgoals_of[task_id]`: their instructions) is
     explored only by the policy chaining them, so not at all before there is one."""
     explore = config.explore
+    takeover = explore.takeover_of(iteration)
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration,
         "render": render_key_fields(config.render),
         "randomise": config.randomise,
         # the takeover share in effect at this iteration, not the schedule: changing a later level
         # of the schedule redoes only the iterations from that one on
-        "explore": key_fields(explore.model_copy(update={"expert_takeover": explore.takeover_of(iteration)}),
+        "explore": key_fields(explore.model_copy(update={"expert_takeover": takeover}),
                               {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }
@@ -173,7 +174,7 @@ def plan_explore(
                     # seen tasks only: a held-out task is never trained on, relabelled or not
                     relabel_to=[t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
                                 and t.task_id != task.task_id],
-                    expert_takeover=explore.takeover_of(iteration),
+                    expert_takeover=takeover,
                 )
             )
     return units
