@@ -11,7 +11,11 @@ turning away. A success rate says that a task fails; this says how (issue 9 item
 3. per task (`CaseShadow.add`): agreement (cosine of the translations, over the episode and before the
    policy first closes its gripper; the same action on discrete families), the policy's speed against the expert's, the gripper decisions the expert would not
    take (closing where it opens: a grasp tried short; opening where it holds: a drop), the hand's
-   distance to the grasp point when the policy first closes, and the furthest expert phase reached.
+   distance to the grasp point when the policy first closes, and the furthest expert phase reached;
+4. per spec (`placement_markdown`): whether the policy's first move follows where the object is. Each
+   episode starts from a placement the model never trained on, and the expert's first move points at
+   the object; across a spec's episodes, a policy that localises moves as the expert varies (correlation
+   near 1), one that memorised its training placements moves the same way wherever the object is.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ class EpisodeShadow:
     opens_early: int  # steps the policy opens it where the expert keeps it closed
     first_close_cm: float | None  # the hand's distance to the grasp point at the policy's first close
     furthest_phase: str  # the expert's furthest phase over the episode ("-": an expert without phases)
+    first_moves: tuple[list[float], list[float]] | None = None  # the policy's and the expert's first translation
 
 
 def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, randomisation=None) -> EpisodeShadow:
@@ -87,6 +92,7 @@ def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, rand
         same_action=int((taken[:, 0] == wanted[:, 0]).sum()) if discrete else 0,
         policy_speed=policy_speed, expert_speed=expert_speed, closes_short=closes_short, opens_early=opens_early,
         first_close_cm=first_close, furthest_phase=furthest,
+        first_moves=None if discrete or not rows else (taken[0, :3].tolist(), wanted[0, :3].tolist()),
     )
 
 
@@ -109,6 +115,8 @@ class CaseShadow:
     opens_early: int = 0
     first_close_cm: list[float] = field(default_factory=list)
     furthest: Counter = field(default_factory=Counter)  # the expert's furthest phase -> episodes
+    spec: str = ""  # the task's spec: the placement table pools a spec's colours ("": the task alone)
+    first_moves: list[tuple[list[float], list[float]]] = field(default_factory=list)  # per episode
 
     def add(self, episode: EpisodeShadow) -> CaseShadow:
         self.episodes += 1
@@ -124,6 +132,8 @@ class CaseShadow:
         if episode.first_close_cm is not None:
             self.first_close_cm.append(episode.first_close_cm)
         self.furthest[episode.furthest_phase] += 1
+        if episode.first_moves is not None:
+            self.first_moves.append(episode.first_moves)
         return self
 
 
@@ -150,3 +160,35 @@ def markdown(cases: list[CaseShadow], label: str) -> str:
         lines.append(f"| {case.task_id} | {case.split} | {case.successes}/{case.episodes} | {case.steps:,} | {agrees} | "
                      f"{approach} | {speed} | {closes} | {opens} | {first} | {phases} |")
     return "\n".join(lines)
+
+
+STILL = 0.02  # an expert first move varying less than this across placements (sd, unit action) has nothing to follow
+AXES = "xyz"
+
+
+def placement_markdown(cases: list[CaseShadow], least: int = 3) -> str:
+    """A row per spec (its colours and splits pooled) with at least `least` episodes: across their first
+    states, the correlation of the policy's first hand motion with the expert's per axis, and each one's
+    spread. "" when no spec has enough episodes of a continuous family."""
+    pooled: dict[str, list[tuple[list[float], list[float]]]] = {}
+    for case in cases:
+        pooled.setdefault(case.spec or case.task_id, []).extend(case.first_moves)
+    rows = []
+    for spec, moves in pooled.items():
+        if len(moves) < least:
+            continue
+        policy, expert = (np.asarray([m[i] for m in moves], dtype=np.float64) for i in (0, 1))
+        spread_p, spread_e = policy.std(0), expert.std(0)
+        r = ["-" if spread_e[a] < STILL else "policy constant" if spread_p[a] < 1e-9
+             else f"{np.corrcoef(policy[:, a], expert[:, a])[0, 1]:+.2f}" for a in range(3)]
+        rows.append(f"| {spec} | {len(moves)} | " + " | ".join(r) + " | "
+                    + ", ".join(f"{spread_p[a]:.2f} / {spread_e[a]:.2f}" for a in range(3)) + " |")
+    if not rows:
+        return ""
+    return "\n".join([
+        "Does the first move follow the placement? Each episode starts from an object placement the model never "
+        "trained on; across a spec's episodes, the correlation of the policy's first hand motion with the "
+        f"expert's per axis (-: the expert's varies by less than {STILL}), and their spreads. Near 1 the policy "
+        "localises the object; near 0, or a policy that hardly varies, it moves as it learned to wherever the object is:", "",
+        "| spec | episodes | r, x | r, y | r, z | sd of the first move, policy / expert (x, y, z) |",
+        "|---|---|---|---|---|---|", *rows])

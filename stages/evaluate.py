@@ -317,7 +317,7 @@ def shadow_unit(unit: EvalUnit) -> CaseShadow:
 
     actor = episode_actor(unit)
     env = worker_env(unit.task, unit.render)
-    case = CaseShadow(unit.task.task_id, unit.split, unit.task.family in DISCRETE_FAMILIES)
+    case = CaseShadow(unit.task.task_id, unit.split, unit.task.family in DISCRETE_FAMILIES, spec=unit.task.spec)
     for seed in unit.seeds:
         decide = actor(seed)
         case.add(shadow_episode(env, unit.task, seed, lambda obs: decide(obs)[0],

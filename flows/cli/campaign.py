@@ -172,7 +172,7 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     configure_environment(workspace)
     from envs.pool import Progress, run_in_pool
     from envs.registry import check_render
-    from envs.shadow import markdown
+    from envs.shadow import markdown, placement_markdown
     from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
     from policies.policy import weights_of
     from stages.evaluate import Agent, evaluation_units, shadow_unit
@@ -208,7 +208,10 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     how = f"{weights} weights" + (f", acting: {acting.describe()}" if acting else "")
-    print(markdown([shadows[u.unit_key] for u in units], f"{model.label} ({how})"))
+    cases_shadowed = [shadows[u.unit_key] for u in units]
+    print(markdown(cases_shadowed, f"{model.label} ({how})"))
+    if placements := placement_markdown(cases_shadowed):
+        print(f"\n{placements}")
     return 0
 
 

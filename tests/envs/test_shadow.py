@@ -8,7 +8,7 @@ import pytest
 
 from envs.registry import make_expert
 from envs.rollout import worker_env
-from envs.shadow import CaseShadow, markdown, shadow_episode
+from envs.shadow import CaseShadow, markdown, placement_markdown, shadow_episode
 from schemas.config import TasksConfig
 from envs.suite import generate_tasks
 
@@ -72,3 +72,22 @@ def test_a_hand_that_closes_where_it_starts_is_a_grasp_tried_short(lift):
     # a hand that never moves has no direction to compare: no cosine, speed 0
     assert (f"| lift-red | seen | 0/2 | {2 * task.horizon} | - | - | 0.00 | {2 * task.horizon} | 0 | {distance_cm:.1f} "
             "| approach 2 |") in table
+
+
+def test_the_placement_table_tells_a_policy_that_follows_the_object_from_one_that_does_not(lift):
+    """The expert's first move points at the cube, which each seed places elsewhere: the expert shadowing itself
+    correlates perfectly across placements; a policy that always makes the same first move has nothing to correlate."""
+    task, env = lift
+    follows = CaseShadow(task.task_id, "seen", False, spec=task.spec)
+    ignores = CaseShadow("lift-blind", "seen", False, spec="lift-blind")
+    for seed in range(4):
+        follows.add(shadow_episode(env, task, seed, make_expert(task, 0.0, np.random.default_rng(seed)),
+                                   make_expert(task, 0.0, np.random.default_rng(seed))))
+        ignores.add(shadow_episode(env, task, seed, lambda obs: np.array([0.5, 0.0, -0.5, 0, 0, 0, -1.0]),
+                                   make_expert(task, 0.0, np.random.default_rng(seed))))
+    rows = {line.split(" | ")[0].strip("| "): [cell.strip() for cell in line.strip("|").split(" | ")]
+            for line in placement_markdown([follows, ignores]).splitlines() if line.startswith("| lift")}
+    assert rows[task.spec][1:4] == ["4", "+1.00", "+1.00"]  # spec, episodes, r x, r y
+    assert rows["lift-blind"][1:4] == ["4", "policy constant", "policy constant"]
+    assert rows["lift-blind"][5].startswith("0.00 / ")  # the policy's spread in x is none, the expert's is not
+    assert placement_markdown([follows], least=5) == ""  # too few episodes to correlate

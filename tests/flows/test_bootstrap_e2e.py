@@ -317,12 +317,16 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
     assert all(re.fullmatch(r"cos -?[01]\.\d\d|-", cell) for cell in cells[4:6])  # agreement: all, before closing
     assert re.fullmatch(r"\d+\.\d\d", cells[6])  # speed against the expert's
     assert catalog.query("SELECT count(*) FROM evaluations") == before  # a diagnosis, not an evaluation
+    assert "Does the first move follow the placement?" not in done.stdout  # 2 placements: nothing to correlate
 
-    # the same episodes, the chunks executed receding one step at a time instead of ensembled
-    receding = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "2",
+    # the chunks executed receding one step at a time instead of ensembled, over 3 placements
+    receding = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "3",
                       "--execution", "receding", "--execute-steps", "1")
     assert receding.returncode == 0, receding.stderr[-3000:]
     assert " weights, acting: execution receding, execute_steps 1)" in receding.stdout, receding.stdout
+    [placements] = [line for line in receding.stdout.splitlines() if line.startswith("| lift | 3 |")]
+    assert all(re.fullmatch(r"[+-][01]\.\d\d|-|policy constant", cell.strip())
+               for cell in placements.strip("|").split("|")[2:5]), placements  # r per axis
 
     for flags, says in ((["--task", "no-such-task"], "lift-red"),
                         (["--execution", "receding", "--execute-steps", "9"], "--execute-steps: expected at most the model's chunk (8)")):
