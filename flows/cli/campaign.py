@@ -165,6 +165,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_shadow(args: argparse.Namespace) -> int:
     if args.episodes is not None and args.episodes < 1:
         raise ConfigError(f"--episodes: at least 1, got {args.episodes}")
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError(f"--steps: at least 1, got {args.steps}")
     # --episodes N: N per case, drawn as the evaluation draws them (so its first N, and more the same way)
     config = campaign_config(args, {} if args.episodes is None else
                              {"evaluate": {"episodes_per_task": args.episodes, "episodes_per_split": None}})
@@ -195,6 +197,9 @@ def cmd_shadow(args: argparse.Namespace) -> int:
                                                      acting=acting),
                                                cases, instruction_embeddings(workspace, config, cases), suite)
              if not args.task or unit.task.task_id in args.task]
+    if args.steps is not None:  # the same episodes cut short: a horizon of N steps
+        units = [unit.model_copy(update={"task": unit.task.model_copy(update={"horizon": min(args.steps, unit.task.horizon)})})
+                 for unit in units]
     log_stages_to_stderr()
     watch()  # the rollout workers end with this command, however it ends
     print(f"sim2act: shadowing {model.label} ({model.model_key}) on {len(units)} case(s), "
@@ -207,7 +212,8 @@ def cmd_shadow(args: argparse.Namespace) -> int:
             progress.advance(1, shadow.episodes)
     finally:
         progress.close()
-    how = f"{weights} weights" + (f", acting: {acting.describe()}" if acting else "")
+    how = (f"{weights} weights" + (f", acting: {acting.describe()}" if acting else "")
+           + (f", the first {args.steps} step{'s' * (args.steps > 1)} of each episode" if args.steps else ""))
     cases_shadowed = [shadows[u.unit_key] for u in units]
     print(markdown(cases_shadowed, f"{model.label} ({how})"))
     if placements := placement_markdown(cases_shadowed):
@@ -345,6 +351,9 @@ def register(commands: Commands) -> None:
     shadow.add_argument("--episodes", type=int,
                         help="episodes per case, drawn as sim2act eval draws them: its first N (default: as "
                              "many as the evaluation plays)")
+    shadow.add_argument("--steps", type=int, metavar="N",
+                        help="play only the first N steps of each episode (the placement table reads the first: "
+                             "--steps 1 gives it in seconds; success then means within N steps)")
     shadow.add_argument("--execution", choices=("temporal_ensemble", "receding"),
                         help="a chunked model acting otherwise than it trained to (default: its own): "
                              "temporal_ensemble averages every chunk's prediction for a step, receding executes the "

@@ -328,7 +328,15 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
     assert all(re.fullmatch(r"[+-][01]\.\d\d|-|policy constant", cell.strip())
                for cell in placements.strip("|").split("|")[2:5]), placements  # r per axis
 
-    for flags, says in ((["--task", "no-such-task"], "lift-red"),
+    # the first step alone of 3 placements: the placement table in seconds
+    first = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "3", "--steps", "1")
+    assert first.returncode == 0, first.stderr[-3000:]
+    assert "the first 1 step of each episode)" in first.stdout, first.stdout
+    assert [line for line in first.stdout.splitlines() if line.startswith("| lift-red | seen |")][0].split("|")[4].strip() == "3"
+    assert [line.split("|")[3:6] for line in first.stdout.splitlines() if line.startswith("| lift | 3 |")] == [
+        placements.split("|")[3:6]]  # the same first moves as the whole episodes' (receding acts on its first chunk too)
+
+    for flags, says in ((["--task", "no-such-task"], "lift-red"), (["--steps", "0"], "--steps: at least 1, got 0"),
                         (["--execution", "receding", "--execute-steps", "9"], "--execute-steps: expected at most the model's chunk (8)")):
         refused = shadow("--model", "champion", *flags)
         assert refused.returncode == 2 and says in refused.stderr, refused.stderr
