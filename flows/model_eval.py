@@ -21,7 +21,7 @@ from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.settings import tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
-from stages.evaluate import evaluation_cases
+from stages.evaluate import EvalUnit, evaluation_cases
 from stages.generate_tasks import tasks_unit_key
 from stages.redeploy import MODEL_KEY_TAG, champion_explorer
 from stages.train import model_dims
@@ -154,3 +154,29 @@ def instruction_embeddings(workspace: Workspace, config: CampaignConfig,
         [encoder, texts])
     return {text: np.asarray(vector, dtype=np.float32)
             for text, vector in zip(table["instruction"].to_pylist(), table["embedding"].to_pylist())}
+
+
+def trained_seeds(workspace: Workspace, config: CampaignConfig, model: ModelRef, task_ids: list[str]) -> dict[str, list[int]]:
+    """Per task, the seeds of the campaign's episodes kept up to the model's iteration, in the order they were
+    explored: an environment reset with one of them starts where a training episode started (the placement the
+    model was shown, with its expert label), as explore drew it (`sim2act shadow --placements trained`)."""
+    rows = Catalog(workspace.catalog).query(
+        "SELECT task_id, seed FROM episodes WHERE campaign = ? AND iteration <= ? AND error IS NULL "
+        "AND list_contains(?, task_id) "
+        "AND episode_id IN (SELECT episode_id FROM filter_decisions WHERE kept) ORDER BY iteration, episode_id",
+        [config.name, model.iteration, task_ids])
+    seeds: dict[str, list[int]] = {}
+    for task_id, seed in rows:
+        seeds.setdefault(task_id, []).append(int(seed))
+    return seeds
+
+
+def started_as_trained(units: list[EvalUnit], seeds: dict[str, list[int]]) -> list[EvalUnit]:
+    """The units of tasks with trained seeds (`trained_seeds`), each playing as many of them as it asked
+    episodes, in explore's order. Raises ConfigError where no unit's task was trained on."""
+    started = [unit.model_copy(update={"seeds": seeds[unit.task.task_id][:len(unit.seeds)]})
+               for unit in units if seeds.get(unit.task.task_id)]
+    if not started:
+        raise ConfigError(f"--placements trained: expected cases the model trained on, got only "
+                          f"{', '.join(sorted({unit.task.task_id for unit in units}))} (held out: try --split seen)")
+    return started

@@ -175,7 +175,8 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     from envs.pool import Progress, run_in_pool
     from envs.registry import check_render
     from envs.shadow import markdown, placement_markdown
-    from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+    from flows.model_eval import (check_model_fits, eval_cases, instruction_embeddings, resolve_model,
+                                  started_as_trained, trained_seeds)
     from policies.policy import weights_of
     from stages.evaluate import Agent, evaluation_units, shadow_unit
 
@@ -197,6 +198,8 @@ def cmd_shadow(args: argparse.Namespace) -> int:
                                                      acting=acting),
                                                cases, instruction_embeddings(workspace, config, cases), suite)
              if not args.task or unit.task.task_id in args.task]
+    if args.placements == "trained":  # the same cases, started where the model's training episodes started
+        units = started_as_trained(units, trained_seeds(workspace, config, model, [unit.task.task_id for unit in units]))
     if args.steps is not None:  # the same episodes cut short: a horizon of N steps
         units = [unit.model_copy(update={"task": unit.task.model_copy(update={"horizon": min(args.steps, unit.task.horizon)})})
                  for unit in units]
@@ -213,7 +216,8 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     how = (f"{weights} weights" + (f", acting: {acting.describe()}" if acting else "")
-           + (f", the first {args.steps} step{'s' * (args.steps > 1)} of each episode" if args.steps else ""))
+           + (f", the first {args.steps} step{'s' * (args.steps > 1)} of each episode" if args.steps else "")
+           + (", from its training episodes' placements" if args.placements == "trained" else ""))
     cases_shadowed = [shadows[u.unit_key] for u in units]
     print(markdown(cases_shadowed, f"{model.label} ({how})"))
     if placements := placement_markdown(cases_shadowed):
@@ -354,6 +358,10 @@ def register(commands: Commands) -> None:
     shadow.add_argument("--steps", type=int, metavar="N",
                         help="play only the first N steps of each episode (the placement table reads the first: "
                              "--steps 1 gives it in seconds; success then means within N steps)")
+    shadow.add_argument("--placements", choices=("evaluation", "trained"), default="evaluation",
+                        help="where episodes start: the evaluation's placements (held out), or those the model's "
+                             "training episodes started from (explore's seeds, up to its iteration): the two placement "
+                             "tables side by side tell localising from memorising")
     shadow.add_argument("--execution", choices=("temporal_ensemble", "receding"),
                         help="a chunked model acting otherwise than it trained to (default: its own): "
                              "temporal_ensemble averages every chunk's prediction for a step, receding executes the "

@@ -336,6 +336,18 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
     assert [line.split("|")[3:6] for line in first.stdout.splitlines() if line.startswith("| lift | 3 |")] == [
         placements.split("|")[3:6]]  # the same first moves as the whole episodes' (receding acts on its first chunk too)
 
+    # the first step from 3 of the placements the champion's training episodes started from
+    trained = shadow("--model", "champion", "--split", "seen", "--task", "lift-red", "--episodes", "3", "--steps", "1",
+                     "--placements", "trained")
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert "from its training episodes' placements)" in trained.stdout, trained.stdout
+    model_key = re.search(r"\((train-[0-9a-f]+)\)", trained.stdout).group(1)
+    [(kept,)] = catalog.query(  # the kept lift-red episodes up to the champion's iteration: as many placements, at most 3
+        "SELECT count(*) FROM episodes WHERE task_id = 'lift-red' AND iteration <= "
+        "(SELECT iteration FROM models WHERE model_key = ?) AND episode_id IN "
+        "(SELECT episode_id FROM filter_decisions WHERE kept)", [model_key])
+    assert kept > 0 and f"on 1 case(s), {min(kept, 3)} episodes each" in trained.stdout, (kept, trained.stdout)
+
     for flags, says in ((["--task", "no-such-task"], "lift-red"), (["--steps", "0"], "--steps: at least 1, got 0"),
                         (["--execution", "receding", "--execute-steps", "9"], "--execute-steps: expected at most the model's chunk (8)")):
         refused = shadow("--model", "champion", *flags)
