@@ -16,6 +16,11 @@ EXPERT_FAMILY = {"pick_place": "robosuite", "open_door": "robosuite", "metaworld
 # Families whose observations say which of a task's goals is being pursued (privileged["stage"]):
 # only their long-horizon tasks can be explored by chaining sub-task instructions.
 STAGED_FAMILIES = {"navigation"}
+# Scenes whose adapter tells which other task of the scene an episode ended doing (`achieved`, hindsight
+# relabelling), added after explore units keyed without it, and the test's version: a unit that could relabel
+# there keys on it (stages/explore.py), so cached units made before the test, or by another version, redo.
+# Navigation's test is older than the keys: absent here, its units key as they always did.
+ACHIEVED_TESTS = {("robosuite", "Stack"): 1}
 
 
 def _roles_by_env(family: str) -> dict[str, dict[str, object]] | None:

@@ -114,6 +114,18 @@ def _door(env, raw: dict) -> Privileged:
             "handle_turn": np.atleast_1d(raw["handle_qpos"]).astype(np.float64)}
 
 
+def _stack_reversed(env, task: TaskRecord, candidate: TaskRecord) -> bool:
+    """`candidate` is the episode's pair the other way round (its picked cube the episode's base) and the
+    scene ended that way: robosuite's own success test with the cubes' roles swapped (the base cube lifted
+    4 cm above the table, touching the other, not held)."""
+    picked, base = task.object_colours.get("pick"), task.object_colours.get("place")
+    if candidate.object_colours != {"pick": base, "place": picked}:
+        return False
+    on_top = env.sim.data.body_xpos[env.cubeB_body_id][2] > env.table_offset[2] + 0.04
+    return bool(on_top and env.check_contact(env.cubeB, env.cubeA)
+                and not env._check_grasp(gripper=env.robots[0].gripper, object_geoms=env.cubeB))
+
+
 @dataclass(frozen=True)
 class Scene:
     """One robosuite environment as task specs and experts see it."""
@@ -125,13 +137,16 @@ class Scene:
     # Mesh objects keep their size: MuJoCo scales primitive geoms only.
     randomises: frozenset[str] = frozenset(ASPECTS)
     cameras: tuple[str, ...] = ("agentview", "frontview", "birdview", "sideview")  # its arena's, by name
+    # (robosuite env, the episode's task, another task of the scene) -> did the episode end doing that one
+    achieved: Callable[[Any, TaskRecord, TaskRecord], bool] | None = None
 
 
 _MESH_OBJECT = frozenset(ASPECTS) - {"size"}
 _NUT_GEOMS = {nut: tuple(f"{nut}_g{i}_visual" for i in range(count)) for nut, count in (("SquareNut", 5), ("RoundNut", 9))}
 ROBOSUITE_SCENES: dict[str, Scene] = {
     "Lift": Scene({"target": ("cube_g0_vis",)}, "pick_place", _lift),
-    "Stack": Scene({"pick": ("cubeA_g0_vis",), "place": ("cubeB_g0_vis",)}, "pick_place", _stack),
+    "Stack": Scene({"pick": ("cubeA_g0_vis",), "place": ("cubeB_g0_vis",)}, "pick_place", _stack,
+                   achieved=_stack_reversed),
     **{f"PickPlace{obj}": Scene({}, "pick_place", _pick_place(obj), randomises=_MESH_OBJECT,
                                 cameras=("agentview", "frontview", "birdview"))  # the bins arena has no sideview
        for obj in ("Milk", "Bread", "Cereal", "Can")},
@@ -186,6 +201,7 @@ class RobosuiteEnv:
         self.env_name = env_name
         self.render_config = render
         self.scene = ROBOSUITE_SCENES[env_name]
+        self.task: TaskRecord | None = None  # the last reset's (achieved reads its colours)
         self.RANDOMISES = self.scene.randomises
         camera = {} if render is None else {
             "camera_names": [render.camera, WRIST_CAMERA] if render.wrist_camera else render.camera,
@@ -252,6 +268,7 @@ class RobosuiteEnv:
         np.random.seed(seed)
         self.randomiser.apply(randomisation)
         self._apply_colours(task, randomisation)
+        self.task = task
         self._make_context_current()
         raw = self.env.reset()
         if randomisation is not None and randomisation.size is not None:
@@ -259,6 +276,16 @@ class RobosuiteEnv:
             self.randomiser.rest_on_support(self.env.sim.data._data, randomisation)
             raw = self._observe_again()
         return self._observation(raw)
+
+    def achieved(self, tasks: list[TaskRecord]) -> TaskRecord | None:
+        """The first of `tasks` (this scene's others) the episode ended doing instead of its own: hindsight
+        relabelling (explore.relabel) and evaluation's "ended doing". None where the scene has no test
+        (envs.registry.ACHIEVED_TESTS: Stack's reversed pair) or before any reset."""
+        test, task = self.scene.achieved, self.task
+        if test is None or task is None:
+            return None
+        return next((c for c in tasks if c.env_name == self.env_name and c.task_id != task.task_id
+                     and test(self.env, task, c)), None)
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:
         self._make_context_current()

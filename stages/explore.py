@@ -19,6 +19,7 @@ from pydantic import BaseModel
 
 from envs.observation import Observation
 from envs.pool import Progress, run_in_pool
+from envs.registry import ACHIEVED_TESTS
 from envs.rollout import Act, Explorer, rollout, worker_env
 from schemas.config import (RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig,
                             render_key_fields)
@@ -152,8 +153,12 @@ def plan_explore(
         explorer_of = [f"{policy.name} {CHAINED}"] * count if subgoals else _explorers(config, iteration, task, policy, count)
         # the noise schedule runs over the expert's own episodes: each level gets its share
         expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
+        relabel_to = [t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
+                      and t.task_id != task.task_id]
+        test = ACHIEVED_TESTS.get((task.family, task.env_name)) if relabel_to else None
         for shard, first in enumerate(range(0, count, explore.episodes_per_shard)):
-            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count)])
+            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count),
+                                                   *([f"achieved test {test}"] if test else [])])
             episodes = []
             for index in range(first, min(first + explore.episodes_per_shard, count)):
                 seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)
@@ -172,8 +177,7 @@ def plan_explore(
                     # a sub-task the campaign does not hold has no cached embedding: the policy encodes it
                     embeddings={text: embeddings[text].tolist() for text in said if text in embeddings},
                     # seen tasks only: a held-out task is never trained on, relabelled or not
-                    relabel_to=[t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
-                                and t.task_id != task.task_id],
+                    relabel_to=relabel_to,
                     expert_takeover=takeover,
                 )
             )

@@ -256,3 +256,28 @@ def test_a_wrist_camera_is_refused_for_families_without_one():
         check_render(RenderConfig(wrist_camera=True), tasks)
     check_render(RenderConfig(wrist_camera=True), [t for t in tasks if t.family == "robosuite"])
     check_render(RenderConfig(), tasks)
+
+
+def _stack(picked: str, base: str) -> TaskRecord:
+    return TaskRecord(task_id=f"stack-{picked}-{base}", spec="stack", family="robosuite", env_name="Stack",
+                      object_colours={"pick": picked, "place": base}, instructions=["a", "b", "c"], split="seen",
+                      horizon=160)
+
+
+def test_a_stack_that_ended_the_other_way_round_did_the_reversed_task():
+    """Hindsight relabelling's test on Stack: the episode's base cube put on its picked cube (placed there
+    here, released) is the reversed pair's success; a pair of other colours, or the episode's own task, is not."""
+    red_on_green, green_on_red, blue_on_green = _stack("red", "green"), _stack("green", "red"), _stack("blue", "green")
+    env = RobosuiteEnv("Stack", None)
+    try:
+        assert env.achieved([green_on_red]) is None  # before any reset: no episode to ask about
+        env.reset(red_on_green, seed=3)
+        assert env.achieved([blue_on_green, green_on_red, red_on_green]) is None  # both cubes on the table
+        sim = env.env.sim
+        picked = sim.data.body_xpos[env.env.cubeA_body_id].copy()
+        sim.data.set_joint_qpos("cubeB_joint0", np.r_[picked + [0.0, 0.0, 0.044], 1.0, 0.0, 0.0, 0.0])
+        sim.forward()  # the base cube (2.5 cm half-size) resting on the picked one (2 cm)
+        assert env.achieved([blue_on_green, red_on_green, green_on_red]) == green_on_red
+        assert env.achieved([blue_on_green, red_on_green]) is None
+    finally:
+        env.close()

@@ -325,3 +325,20 @@ def test_with_expert_takeover_the_policys_episodes_say_how_many_steps_the_expert
         assert all(s["action"] == s["expert_action"] for s in own)  # the expert drove every step
     episodes, _ = _shards(plain[0])
     assert all(e["explorer_stats"] is None for e in episodes if e["explorer"] == "policy:m/1")
+
+
+def test_a_unit_that_could_relabel_keys_on_its_scenes_achieved_test(tmp_path, monkeypatch):
+    """Stack's test came after units were keyed: with relabelling on, a Stack unit's key names the test (a
+    cached unit explored without it redoes); a Lift unit (no test) and every unit with relabelling off key as before."""
+    def keys(relabel: bool) -> dict[str, str]:
+        config = CampaignConfig(name="relabel-keys", tasks=TasksConfig(specs=["stack", "lift"], colours=["red", "green"],
+                                                                       weak_experts="keep"),
+                                explore=ExploreConfig(episodes_per_task=1, episodes_per_shard=1, workers=1, relabel=relabel))
+        return {unit.task.task_id: unit.unit_key for unit in _plan(config, tmp_path)}
+
+    with_test = {relabel: keys(relabel) for relabel in (True, False)}
+    monkeypatch.setattr("stages.explore.ACHIEVED_TESTS", {})
+    without = {relabel: keys(relabel) for relabel in (True, False)}
+    assert sorted(with_test[True]) == ["lift-green", "lift-red", "stack-green-red", "stack-red-green"]
+    assert sorted(t for t in with_test[True] if with_test[True][t] != without[True][t]) == ["stack-green-red", "stack-red-green"]
+    assert with_test[False] == without[False]
