@@ -159,10 +159,11 @@ def instruction_embeddings(workspace: Workspace, config: CampaignConfig,
 def trained_seeds(workspace: Workspace, config: CampaignConfig, model: ModelRef, task_ids: list[str]) -> dict[str, list[int]]:
     """Per task, the seeds of the campaign's episodes kept up to the model's iteration, in the order they were
     explored: an environment reset with one of them starts where a training episode started (the placement the
-    model was shown, with its expert label), as explore drew it (`sim2act shadow --placements trained`)."""
+    model was shown, with its expert label), as explore drew it (`sim2act shadow --placements trained`). Relabelled
+    episodes are left out: their seed under the task they were filed as would colour the objects the other way."""
     rows = Catalog(workspace.catalog).query(
         "SELECT task_id, seed FROM episodes WHERE campaign = ? AND iteration <= ? AND error IS NULL "
-        "AND list_contains(?, task_id) "
+        "AND list_contains(?, task_id) AND coalesce(explorer_stats, '') NOT LIKE '%relabelled_from%' "
         "AND episode_id IN (SELECT episode_id FROM filter_decisions WHERE kept) ORDER BY iteration, episode_id",
         [config.name, model.iteration, task_ids])
     seeds: dict[str, list[int]] = {}
