@@ -163,13 +163,13 @@ def markdown(cases: list[CaseShadow], label: str) -> str:
 
 
 STILL = 0.02  # an expert first move varying less than this across placements (sd, unit action) has nothing to follow
-AXES = "xyz"
 
 
-def placement_markdown(cases: list[CaseShadow], least: int = 3) -> str:
+def placement_markdown(cases: list[CaseShadow], least: int = 3, trained: bool = False) -> str:
     """A row per spec (its colours and splits pooled) with at least `least` episodes: across their first
     states, the correlation of the policy's first hand motion with the expert's per axis, and each one's
-    spread. "" when no spec has enough episodes of a continuous family."""
+    spread. `trained`: the episodes started where the model's training episodes did (the caption says so).
+    "" when no spec has enough episodes of a continuous family."""
     pooled: dict[str, list[tuple[list[float], list[float]]]] = {}
     for case in cases:
         pooled.setdefault(case.spec or case.task_id, []).extend(case.first_moves)
@@ -186,8 +186,10 @@ def placement_markdown(cases: list[CaseShadow], least: int = 3) -> str:
     if not rows:
         return ""
     return "\n".join([
-        "Does the first move follow the placement? Each episode starts from an object placement the model never "
-        "trained on; across a spec's episodes, the correlation of the policy's first hand motion with the "
+        "Does the first move follow the placement? Each episode starts from "
+        + ("the object placement one of the model's training episodes started from" if trained else
+           "an object placement the model never trained on")
+        + "; across a spec's episodes, the correlation of the policy's first hand motion with the "
         f"expert's per axis (-: the expert's varies by less than {STILL}), and their spreads. Near 1 the policy "
         "localises the object; near 0, or a policy that hardly varies, it moves as it learned to wherever the object is:", "",
         "| spec | episodes | r, x | r, y | r, z | sd of the first move, policy / expert (x, y, z) |",

@@ -220,7 +220,7 @@ def cmd_shadow(args: argparse.Namespace) -> int:
            + (", from its training episodes' placements" if args.placements == "trained" else ""))
     cases_shadowed = [shadows[u.unit_key] for u in units]
     print(markdown(cases_shadowed, f"{model.label} ({how})"))
-    if placements := placement_markdown(cases_shadowed):
+    if placements := placement_markdown(cases_shadowed, trained=args.placements == "trained"):
         print(f"\n{placements}")
     return 0
 

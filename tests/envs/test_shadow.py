@@ -91,3 +91,5 @@ def test_the_placement_table_tells_a_policy_that_follows_the_object_from_one_tha
     assert rows["lift-blind"][1:4] == ["4", "policy constant", "policy constant"]
     assert rows["lift-blind"][5].startswith("0.00 / ")  # the policy's spread in x is none, the expert's is not
     assert placement_markdown([follows], least=5) == ""  # too few episodes to correlate
+    assert "starts from an object placement the model never trained on" in placement_markdown([follows])
+    assert "training episodes started from" in placement_markdown([follows], trained=True)
