@@ -37,7 +37,7 @@ class ReplayError(Sim2ActError, ValueError):
 @dataclass(frozen=True)
 class StoredEpisode:
     episode_id: str
-    task: TaskRecord
+    task: TaskRecord  # the task explore reset it as (a relabelled episode's intended one, not the one it is filed as)
     seed: int
     randomisation: Randomisation | None
     render: RenderConfig | None  # None: explored without a camera
@@ -56,13 +56,17 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     from warehouse.tasks import find_task
 
     rows = catalog.query(
-        "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, r.summary FROM episodes e "
+        "SELECT e.campaign, e.task_id, e.seed, e.randomisation, e.render, e.error, r.summary, "
+        "json_extract_string(e.explorer_stats, '$.relabelled_from') FROM episodes e "
         "LEFT JOIN stage_runs r ON r.unit_key = e.shard_key WHERE e.episode_id = ?", [episode_id]
     )
     if not rows:
         raise ReplayError(f"replay: no episode {episode_id!r} in {catalog.path} "
                           "(`sim2act sql \"SELECT episode_id FROM episodes\"` lists them)")
-    campaign, task_id, seed, randomisation, render, error, summary = rows[0]
+    campaign, filed_as, seed, randomisation, render, error, summary, relabelled_from = rows[0]
+    # a relabelled episode is filed as the task it ended doing; explore reset it as the one it set out for,
+    # and the reset is what colours the objects
+    task_id = relabelled_from or filed_as
     # render fields newer than episodes.render: the unit's summary keeps those not at their legacy values
     kept = json.loads(summary) if summary else {}
     later = {field: kept.get(field, legacy) for field, legacy in RENDER_LEGACY_VALUES.items()}

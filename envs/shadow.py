@@ -13,9 +13,10 @@ turning away. A success rate says that a task fails; this says how (issue 9 item
    take (closing where it opens: a grasp tried short; opening where it holds: a drop), the hand's
    distance to the grasp point when the policy first closes, and the furthest expert phase reached;
 4. per spec (`placement_markdown`): whether the policy's first move follows where the object is. Each
-   episode starts from a placement the model never trained on, and the expert's first move points at
-   the object; across a spec's episodes, a policy that localises moves as the expert varies (correlation
-   near 1), one that memorised its training placements moves the same way wherever the object is.
+   episode starts from a placement the model never trained on (or, `sim2act shadow --placements trained`,
+   from one its training episodes started at), and the expert's first move points at the object; across a
+   spec's episodes, a policy that localises moves as the expert varies (correlation near 1), one that
+   memorised its training placements moves the same way wherever the object is.
 """
 
 from __future__ import annotations

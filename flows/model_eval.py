@@ -157,10 +157,13 @@ def instruction_embeddings(workspace: Workspace, config: CampaignConfig,
 
 
 def trained_seeds(workspace: Workspace, config: CampaignConfig, model: ModelRef, task_ids: list[str]) -> dict[str, list[int]]:
-    """Per task, the seeds of the campaign's episodes kept up to the model's iteration, in the order they were
-    explored: an environment reset with one of them starts where a training episode started (the placement the
-    model was shown, with its expert label), as explore drew it (`sim2act shadow --placements trained`). Relabelled
-    episodes are left out: their seed under the task they were filed as would colour the objects the other way."""
+    """Per task, the seeds of the campaign's episodes kept up to the model's iteration, iteration by iteration
+    (within one, by episode id), each once: an environment reset with one of them starts where a training
+    episode started (the placement the model was shown, with its expert label), as explore drew it (`sim2act
+    shadow --placements trained`). A seed explored twice (a unit redone under a new key) is one placement.
+    `train.where` is not applied: these are the campaign's kept episodes, a narrowed training saw fewer.
+    Relabelled episodes are left out: their seed under the task they were filed as colours the objects the
+    other way."""
     rows = Catalog(workspace.catalog).query(
         "SELECT task_id, seed FROM episodes WHERE campaign = ? AND iteration <= ? AND error IS NULL "
         "AND list_contains(?, task_id) AND coalesce(explorer_stats, '') NOT LIKE '%relabelled_from%' "
@@ -168,7 +171,8 @@ def trained_seeds(workspace: Workspace, config: CampaignConfig, model: ModelRef,
         [config.name, model.iteration, task_ids])
     seeds: dict[str, list[int]] = {}
     for task_id, seed in rows:
-        seeds.setdefault(task_id, []).append(int(seed))
+        if int(seed) not in (known := seeds.setdefault(task_id, [])):
+            known.append(int(seed))
     return seeds
 
 

@@ -261,7 +261,7 @@ def episode_actor(unit: EvalUnit) -> Callable[[int], Decide]:
 
 def ended_doing(env, others: list[TaskRecord]) -> str | None:
     """The task of `others` whose goal a failed episode ended at, where the environment can tell
-    (navigation's `achieved`, as hindsight relabelling asks it); None otherwise."""
+    (its `achieved`, as hindsight relabelling asks it: navigation, robosuite's Stack); None otherwise."""
     if not others or not hasattr(env, "achieved"):
         return None
     done = env.achieved(others)
@@ -382,10 +382,12 @@ def evaluation_cases(tasks: list[TaskRecord], held_out_wordings: bool = False) -
 
 
 def others_of(task: TaskRecord, cases: list[tuple[TaskRecord, str, str]]) -> list[TaskRecord]:
-    """The cases' other one-goal tasks in `task`'s environment, each once, in case order."""
+    """The cases' other tasks in `task`'s environment, each once, in case order: the scene's `achieved`
+    says which of them, if any, a failed episode ended doing (navigation: one-goal tasks; robosuite's
+    Stack: the reversed pair)."""
     others: dict[str, TaskRecord] = {}
     for other, _, _ in cases:
-        if other.env_name == task.env_name and other.task_id != task.task_id and len(other.object_colours) == 1:
+        if other.env_name == task.env_name and other.task_id != task.task_id:
             others.setdefault(other.task_id, other)
     return list(others.values())
 

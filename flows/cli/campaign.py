@@ -166,7 +166,7 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     if args.episodes is not None and args.episodes < 1:
         raise ConfigError(f"--episodes: at least 1, got {args.episodes}")
     if args.steps is not None and args.steps < 1:
-        raise ConfigError(f"--steps: at least 1, got {args.steps}")
+        raise ConfigError(f"--steps: expected at least 1, got {args.steps}")
     # --episodes N: N per case, drawn as the evaluation draws them (so its first N, and more the same way)
     config = campaign_config(args, {} if args.episodes is None else
                              {"evaluate": {"episodes_per_task": args.episodes, "episodes_per_split": None}})

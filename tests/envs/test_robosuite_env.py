@@ -14,6 +14,7 @@ from schemas.frames import decode_frame
 from schemas.tables import EPISODES, STEPS
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
+from stages.evaluate import ended_doing, others_of
 from stages.explore import plan_explore, run_explore_unit
 
 
@@ -279,5 +280,8 @@ def test_a_stack_that_ended_the_other_way_round_did_the_reversed_task():
         sim.forward()  # the base cube (2.5 cm half-size) resting on the picked one (2 cm)
         assert env.achieved([blue_on_green, red_on_green, green_on_red]) == green_on_red
         assert env.achieved([blue_on_green, red_on_green]) is None
+        # evaluation asks the same: the episode's other cases in its scene
+        cases = [(task, "seen", "a") for task in (red_on_green, blue_on_green, green_on_red)]
+        assert ended_doing(env, others_of(red_on_green, cases)) == green_on_red.task_id
     finally:
         env.close()

@@ -348,7 +348,7 @@ def test_shadow_names_where_a_model_and_the_expert_part_and_registers_nothing(fi
         "(SELECT episode_id FROM filter_decisions WHERE kept)", [model_key])
     assert kept > 0 and f"on 1 case(s), {min(kept, 3)} episodes each" in trained.stdout, (kept, trained.stdout)
 
-    for flags, says in ((["--task", "no-such-task"], "lift-red"), (["--steps", "0"], "--steps: at least 1, got 0"),
+    for flags, says in ((["--task", "no-such-task"], "lift-red"), (["--steps", "0"], "--steps: expected at least 1, got 0"),
                         (["--execution", "receding", "--execute-steps", "9"], "--execute-steps: expected at most the model's chunk (8)")):
         refused = shadow("--model", "champion", *flags)
         assert refused.returncode == 2 and says in refused.stderr, refused.stderr
