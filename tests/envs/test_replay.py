@@ -148,3 +148,25 @@ def test_an_episode_explored_with_later_render_settings_replays_with_them(tmp_pa
     default = {field: RenderConfig.model_fields[field].default}
     plain = list(replay_frames(episode, replay_render(episode).model_copy(update=default)))
     assert not all(np.array_equal(a, b) for a, b in zip(plain, stored))  # that field at its default: other pixels
+
+
+def test_a_relabelled_episode_replays_as_the_task_it_set_out_for(tmp_path):
+    """A relabelled episode is filed as the task it ended doing; its scene was laid out for the one it set
+    out for (navigation's rooms and start depend on the goal), so replay resets as that one."""
+    config = CampaignConfig.model_validate({
+        "name": "replay-relabel",
+        "tasks": {"specs": ["nav-room"], "colours": ["red", "green", "blue", "yellow"], "unseen_colours": ["yellow"],
+                  "horizon": {"nav-room": 6}},
+        "explore": {"episodes_per_task": 6, "episodes_per_shard": 6, "workers": 1, "relabel": True},
+    })
+    workspace = explored_workspace(tmp_path, config)
+    rows = Catalog(workspace.catalog).query(
+        "SELECT episode_id, task_id, json_extract_string(explorer_stats, '$.relabelled_from') FROM episodes "
+        "WHERE explorer_stats LIKE '%relabelled_from%' ORDER BY episode_id")
+    assert rows, "no episode ended in another seen task's room"
+    episode_id, filed_as, intended = rows[0]
+    episode = load_episode(Catalog(workspace.catalog), episode_id)
+    assert episode.task.task_id == intended != filed_as
+    stored = _stored_frames(workspace, episode_id)
+    replayed = list(replay_frames(episode, replay_render(episode)))
+    assert all(np.array_equal(frame, original) for frame, original in zip(replayed, stored)) and len(replayed) == len(stored)
