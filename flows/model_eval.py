@@ -178,7 +178,7 @@ def trained_seeds(workspace: Workspace, config: CampaignConfig, model: ModelRef,
 
 def started_as_trained(units: list[EvalUnit], seeds: dict[str, list[int]]) -> list[EvalUnit]:
     """The units of tasks with trained seeds (`trained_seeds`), each playing as many of them as it asked
-    episodes, in explore's order. Raises ConfigError where no unit's task was trained on."""
+    episodes, in `trained_seeds` order. Raises ConfigError where no unit's task was trained on."""
     started = [unit.model_copy(update={"seeds": seeds[unit.task.task_id][:len(unit.seeds)]})
                for unit in units if seeds.get(unit.task.task_id)]
     if not started:
