@@ -353,6 +353,13 @@ class TrainConfig(_Strict):
         "steps' qpos, normalised per component), supervision available in simulation at training time only and read "
         "nowhere when acting; it asks the encoder where the objects are; 0: off (the recipe before session 13)",
     )
+    proprio_dropout: float = Field(
+        default=0.0, ge=0.0, le=1.0,
+        description="share of training samples whose proprio is replaced by the dataset's mean (zero once "
+        "normalised): the robot's start noise makes each episode's proprio unique, so a policy of few episodes can "
+        "tell them apart by it and learn their first moves by heart instead of reading where the object is in the "
+        "frame (causal confusion: de Haan et al. 2019, Wen et al. 2020); acting always reads proprio; 0: off",
+    )
     targets: Literal["expert", "executed"] = Field(
         default="expert",
         description="what the policy learns to output: the expert's noiseless action at each state where the "

@@ -42,7 +42,7 @@ EXECUTION_FIELDS = {"threads", "checkpoint_every", "log_every", "device", "amp"}
 # Fields added after the stage's version, each with the value that does what the stage did before it
 # existed: at that value a field stays out of the key, so a model trained before it keeps its key.
 LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 0, "ema": None, "language_augment": 0.0,
-                 "model": MODEL_LEGACY_VALUES}
+                 "proprio_dropout": 0.0, "model": MODEL_LEGACY_VALUES}
 log = logging.getLogger("sim2act.stages.train")
 
 OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
@@ -288,6 +288,16 @@ def random_shift(image: torch.Tensor, pad: int, generator: torch.Generator | Non
     return padded.gather(3, cols[:, None, None, :].expand(b, c, h, w))
 
 
+def drop_proprio(proprio: torch.Tensor, share: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """`proprio` (B, D), normalised, with about `share` of its rows set to zero, the dataset's mean
+    (train.proprio_dropout). Drawn on the CPU from `generator`, the training's own like the shifts'; at
+    share 0 nothing is drawn, so a training without it draws the shifts it drew before the field existed."""
+    if share == 0:
+        return proprio
+    keep = torch.rand(len(proprio), generator=generator) >= share
+    return proprio * keep.to(proprio.device, proprio.dtype).unsqueeze(-1)
+
+
 def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device: torch.device,
                shifts: torch.Generator | None = None, bf16: bool | None = None, channels_last: bool | None = None):
     """One optimiser step. `bf16`, `channels_last`: None for this device's choice (policies/precision.py);
@@ -303,7 +313,8 @@ def train_step(model, optimiser, schedule, batch: dict, cfg: TrainConfig, device
     with autocast(device, bf16):
         losses = vla_loss(
             model, image, model.language_input(batch["instruction"], cached),
-            batch["proprio"].to(device, non_blocking=True), batch["action"].to(device, non_blocking=True),
+            drop_proprio(batch["proprio"].to(device, non_blocking=True), cfg.proprio_dropout, shifts),
+            batch["action"].to(device, non_blocking=True),
             batch["action_index"].to(device, non_blocking=True), cfg.contrastive_weight, cfg.temperature,
             state, cfg.state_weight,
             batch["action_mask"].to(device, non_blocking=True) if "action_mask" in batch else None,

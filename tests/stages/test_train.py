@@ -30,8 +30,8 @@ from stages.filter import run_filter
 from stages.generate_tasks import run_generate_tasks
 from stages.index import IndexResult, latest_index, run_index
 from warehouse.tasks import load_embeddings, load_tasks
-from stages.train import (EXECUTION_FIELDS, STAGE, VERSION, TrainingCollate, action_targets, random_shift, run_train,
-                          train_unit_key)
+from stages.train import (EXECUTION_FIELDS, STAGE, VERSION, TrainingCollate, action_targets, drop_proprio, random_shift,
+                          run_train, train_unit_key)
 from tests.conftest import SIM2ACT
 from warehouse.catalog import Catalog
 
@@ -268,7 +268,8 @@ def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the
     legacy = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}}})
     [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
     dataset = latest_index(workspace, legacy.name)
-    added = {name: True for name in EXECUTION_FIELDS | {"state_weight", "init_from", "steps", "seed", "ema", "language_augment"}}
+    added = {name: True for name in EXECUTION_FIELDS | {"state_weight", "init_from", "steps", "seed", "ema", "language_augment",
+                                                  "proprio_dropout"}}
     added["model"] = {"chunk": True, "execution": True, "execute_steps": True, "ensemble_decay": True}
     before = {"train": legacy.train.model_dump(exclude=added), "seed": legacy.seed,
               "image": legacy.render.image_size, "depth": legacy.render.depth}
@@ -282,6 +283,20 @@ def test_without_the_state_loss_a_start_model_or_a_step_budget_a_model_keeps_the
     wrist = load_config("smoke", campaign[0], {"train": {"state_weight": 0.0, "ema": None, "model": {"chunk": 1}},
                                                 "render": {"wrist_camera": True}})
     assert train_unit_key(wrist, dataset, tasks_key) != train_unit_key(legacy, dataset, tasks_key)  # reads two views
+
+
+def test_proprio_dropout_zeroes_whole_rows_reproducibly_and_draws_nothing_when_off():
+    proprio = torch.rand(2000, 9) + 1.0  # no row is zero by chance
+    generator = torch.Generator().manual_seed(0)
+    assert drop_proprio(proprio, 0.0, generator) is proprio
+    assert torch.equal(torch.rand(3, generator=generator), torch.rand(3, generator=torch.Generator().manual_seed(0)))
+    dropped = drop_proprio(proprio, 0.25, torch.Generator().manual_seed(1))
+    zero = (dropped == 0).all(-1)
+    assert ((dropped == 0) == zero.unsqueeze(-1)).all()  # a row goes whole or stays whole
+    assert torch.equal(dropped[~zero], proprio[~zero])
+    assert 0.2 < zero.float().mean() < 0.3
+    assert torch.equal(drop_proprio(proprio, 0.25, torch.Generator().manual_seed(1)), dropped)
+    assert (drop_proprio(proprio, 1.0) == 0).all()
 
 
 def test_random_shift_moves_whole_frames_by_at_most_the_pad():
