@@ -55,18 +55,21 @@ Act = Callable[[Observation], np.ndarray]
 
 
 def rollout(
-    env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None
+    env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None,
+    steps: int | None = None,
 ) -> tuple[list[dict], Observation, bool]:
     """Run one episode until success or the horizon. -> (step rows, final observation, success).
-    `label`, if given, is asked for its action at every state the explorer visits (DAgger)."""
+    `label`, if given, is asked for its action at every state the explorer visits (DAgger); `steps`,
+    if given, ends it sooner (explore.policy_steps): its last row is `done`, unsuccessful unless it was."""
     obs = env.reset(task, seed, randomisation)
     rows, success = [], False
-    for step in range(task.horizon):
+    last = task.horizon if steps is None else min(steps, task.horizon)
+    for step in range(last):
         state = env.mujoco_state()
         action = np.asarray(act(obs), dtype=np.float32)
         expert_action = None if label is None else np.asarray(label(obs), dtype=np.float32).tolist()
         next_obs, reward, success = env.step(action)
-        done = success or step == task.horizon - 1
+        done = success or step == last - 1
         rows.append(
             {
                 "step": step, "image": obs.image, "depth": obs.depth, "proprio": obs.proprio.tolist(), "action": action.tolist(),

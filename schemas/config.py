@@ -166,6 +166,10 @@ def _levels(value: float | list[float]) -> list[float]:
 
 class ExploreConfig(_Strict):
     episodes_per_task: PositiveInt = 8
+    first_episodes_per_task: PositiveInt | None = Field(
+        default=None, description="iteration 0's episodes per seen task (the experts' seed set: MimicGen starts "
+        "from 10), when the later iterations' budget is another (explore.episodes_per_task); None: the same"
+    )
     episodes_per_shard: PositiveInt = 4
     expert_noise: NoiseLevel | list[NoiseLevel] = Field(
         default=0.1, description="std of the expert's Gaussian action noise; a list is a schedule of levels cycled "
@@ -195,6 +199,14 @@ class ExploreConfig(_Strict):
         "gets to alone (a grasp, a carry); explorer_stats counts the steps it drove. A list is a schedule over "
         "iterations 1, 2, ... (the last level repeats), e.g. [0.5, 0.25, 0.125]: DAgger's beta_i falling as the "
         "policy's own states become the ones it must learn to recover from"
+    )
+    policy_steps: PositiveInt | None = Field(
+        default=None, description="the policy's episodes (not the chained ones of explore.curriculum) end after "
+        "this many steps, or at the task's horizon if sooner; None: the horizon. A model that has not learnt to "
+        "find the object parts from the expert at its first steps (`sim2act shadow` placement table), so short "
+        "episodes spend the steps on more placements, each one's first states labelled by the expert "
+        "(explore.expert_labels), instead of on the late steps of a few. The filter judges a cut episode by its "
+        "return like any other (filter.min_return)"
     )
     curriculum: bool = Field(
         default=False, description="long-horizon tasks (specs with subtasks) are learnt from their sub-tasks: no "
@@ -230,6 +242,10 @@ class ExploreConfig(_Strict):
         a single share reads the same at every iteration, so its explore key changes only with that."""
         levels = _levels(self.expert_takeover)
         return levels[min(max(iteration, 1), len(levels)) - 1]
+
+    def episodes_at(self, iteration: int) -> int:
+        """A seen task's episodes at `iteration` before any prioritising: first_episodes_per_task at 0."""
+        return (self.first_episodes_per_task or self.episodes_per_task) if iteration == 0 else self.episodes_per_task
 
     def noise_of(self, expert_episode: int) -> float:
         """The noise level of a task's `expert_episode`-th expert episode."""

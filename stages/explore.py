@@ -38,7 +38,8 @@ STAGE, VERSION = "explore", 4  # 4: the pick-and-place expert catches up with a 
 EXPERT, VLM = "expert", "vlm"
 CHAINED = "via subtasks"  # suffix of the champion's name on the episodes it explores by chaining sub-tasks
 # Fields added after VERSION, at the value that does what the stage did before them (stages/train.py)
-LEGACY_VALUES = {"curriculum": False, "relabel": False, "expert_takeover": 0.0}
+LEGACY_VALUES = {"curriculum": False, "relabel": False, "expert_takeover": 0.0, "policy_steps": None,
+                 "first_episodes_per_task": None}
 log = logging.getLogger("sim2act.stages.explore")
 
 
@@ -78,6 +79,7 @@ class ExploreUnit(BaseModel):
     embeddings: dict[str, list[float]]
     relabel_to: list[TaskRecord] = []  # explore.relabel: the seen tasks a failed episode may have done instead
     expert_takeover: float = 0.0  # explore.expert_takeover: the share of the policy's steps the expert drives
+    policy_steps: int | None = None  # explore.policy_steps: the policy's episodes end after this many steps
     # where the warehouse keeps shards (warehouse/store.py; not part of the key): a worker, which has no
     # catalog, writes there with the credentials of its own environment
     shard_store: str = FOLDER
@@ -129,7 +131,7 @@ def plan_explore(
     subgoals_of: dict[str, list[str]] | None = None,
 ) -> list[ExploreUnit]:
     """Pure: the shards this iteration explores, `episodes_of[task_id]` episodes per seen task
-    (default: explore.episodes_per_task each). Unseen tasks are never explored. Under
+    (default: explore.episodes_at(iteration) each). Unseen tasks are never explored. Under
     explore.curriculum a task with sub-tasks (`subgoals_of[task_id]`: their instructions) is
     explored only by the policy chaining them, so not at all before there is one."""
     explore = config.explore
@@ -140,7 +142,12 @@ def plan_explore(
         "randomise": config.randomise,
         # the takeover share in effect at this iteration, not the schedule: changing a later level
         # of the schedule redoes only the iterations from that one on
-        "explore": key_fields(explore.model_copy(update={"expert_takeover": takeover}),
+        # what is in effect at this iteration: policy_steps only where a policy explores, the episode count
+        # its own, so iteration 0 is the same work with either or without
+        "explore": key_fields(explore.model_copy(update={"expert_takeover": takeover,
+                                                         "policy_steps": explore.policy_steps if policy else None,
+                                                         "episodes_per_task": explore.episodes_at(iteration),
+                                                         "first_episodes_per_task": None}),
                               {"workers", "dask_address"}, LEGACY_VALUES),
         "policy": policy.model_key if policy else None,
     }
@@ -149,7 +156,7 @@ def plan_explore(
         subgoals = (subgoals_of or {}).get(task.task_id, []) if explore.curriculum else []
         if subgoals and policy is None:
             continue
-        count = explore.episodes_per_task if episodes_of is None else episodes_of[task.task_id]
+        count = explore.episodes_at(iteration) if episodes_of is None else episodes_of[task.task_id]
         explorer_of = [f"{policy.name} {CHAINED}"] * count if subgoals else _explorers(config, iteration, task, policy, count)
         # the noise schedule runs over the expert's own episodes: each level gets its share
         expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
@@ -179,6 +186,7 @@ def plan_explore(
                     # seen tasks only: a held-out task is never trained on, relabelled or not
                     relabel_to=relabel_to,
                     expert_takeover=takeover,
+                    policy_steps=explore.policy_steps if policy else None,
                 )
             )
     return units
@@ -286,7 +294,9 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             explorer, label = expert_takeover(explorer.act, label, unit.expert_takeover,
                                               np.random.default_rng([plan.seed, 3]))
         try:
-            rows, final, success = rollout(env, unit.task, plan.seed, explorer.act, randomisation, label)
+            own = unit.policy is not None and plan.explorer == unit.policy.name  # not a chained episode
+            rows, final, success = rollout(env, unit.task, plan.seed, explorer.act, randomisation, label,
+                                           steps=unit.policy_steps if own else None)
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         done = {**common, "instruction": plan.instruction}

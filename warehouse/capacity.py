@@ -57,7 +57,8 @@ def bytes_per_step(config: CampaignConfig, catalog: Catalog | None) -> tuple[flo
 
 def expected_steps(config: CampaignConfig, task: TaskRecord, experts: ExpertTable | None = None) -> float:
     """The steps one iteration explores in a seen task: its episodes x its expert's mean episode length
-    (the horizon where the table has no row)."""
+    (the horizon where the table has no row). The later iterations' count (explore.episodes_per_task)
+    for every iteration: where iteration 0 explores fewer (first_episodes_per_task), an overestimate."""
     experts = experts or load_expert_table()
     row = experts.rows.get(task.task_id)
     return config.explore.episodes_per_task * (row.mean_length if row else task.horizon)

@@ -247,7 +247,8 @@ def test_without_a_curriculum_long_tasks_are_the_experts_and_keys_stay_as_before
     assert {u.task.task_id for u in units} == {t.task_id for t in tasks}
     assert all(e.explorer == EXPERT and not e.subgoals for u in units for e in u.episodes)
     explore = config.explore.model_dump(exclude={"workers", "dask_address", "curriculum", "relabel",
-                                                 "expert_takeover"})  # added later
+                                                 "expert_takeover", "policy_steps",
+                                                 "first_episodes_per_task"})  # added later
     render = config.render.model_dump(exclude={"mesh_detail", "wrist_camera", "decimate_colliding"})  # added later
     reads = {"campaign": config.name, "seed": config.seed, "iteration": 0, "render": render,
              "randomise": config.randomise, "explore": explore, "policy": None}
@@ -306,12 +307,17 @@ def test_the_navigation_scene_says_which_task_the_agent_is_doing_now():
     assert env.achieved([tasks["nav-ball-red"]]) is None  # another environment's task
 
 
-def test_with_expert_takeover_the_policys_episodes_say_how_many_steps_the_expert_drove(tmp_path):
-    config, tasks, checkpoint = _curriculum(tmp_path, curriculum=False)
+def _nav_room_policy(tmp_path) -> tuple[CampaignConfig, list, PolicyExplorer]:
+    """nav-room in two colours, 6-step episodes, and a real (untrained) policy to explore them."""
+    config, _, checkpoint = _curriculum(tmp_path, curriculum=False)
     config = config.model_copy(update={"tasks": config.tasks.model_copy(update={"specs": ["nav-room"],
                                                                                  "horizon": {"nav-room": 6}})})
-    tasks = generate_tasks(config.tasks, config.seed)
-    policy = PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint=str(checkpoint))
+    return (config, generate_tasks(config.tasks, config.seed),
+            PolicyExplorer(name="policy:m/1", model_key="m1", checkpoint=str(checkpoint)))
+
+
+def test_with_expert_takeover_the_policys_episodes_say_how_many_steps_the_expert_drove(tmp_path):
+    config, tasks, policy = _nav_room_policy(tmp_path)
     plain = _plan_curriculum(config, tasks, tmp_path, policy)
     taken = config.model_copy(update={"explore": config.explore.model_copy(update={"expert_takeover": 1.0})})
     units = _plan_curriculum(taken, tasks, tmp_path, policy)
@@ -325,6 +331,44 @@ def test_with_expert_takeover_the_policys_episodes_say_how_many_steps_the_expert
         assert all(s["action"] == s["expert_action"] for s in own)  # the expert drove every step
     episodes, _ = _shards(plain[0])
     assert all(e["explorer_stats"] is None for e in episodes if e["explorer"] == "policy:m/1")
+
+
+def test_policy_steps_cut_the_policys_episodes_only_and_key_only_where_a_policy_explores(tmp_path):
+    config, tasks, policy = _nav_room_policy(tmp_path)
+    cut = config.model_copy(update={"explore": config.explore.model_copy(update={"policy_steps": 2})})
+    assert [u.unit_key for u in _plan_curriculum(cut, tasks, tmp_path, None)] == \
+        [u.unit_key for u in _plan_curriculum(config, tasks, tmp_path, None)]  # iteration 0: no policy, same work
+    plain, units = (_plan_curriculum(c, tasks, tmp_path, policy) for c in (config, cut))
+    assert {u.unit_key for u in units}.isdisjoint(u.unit_key for u in plain)
+    for unit, before in zip(units, plain):
+        episodes, steps = _shards(unit)
+        _, steps_before = _shards(before)
+        assert {e["explorer"] for e in episodes} == {"policy:m/1", EXPERT}
+        for episode in episodes:
+            own = [s for s in steps if s["episode_id"] == episode["episode_id"]]
+            uncut = [s for s in steps_before if s["episode_id"].endswith(episode["episode_id"][-5:])
+                     and s["task_id"] == episode["task_id"]]
+            if episode["explorer"] == EXPERT:  # the expert's episodes run as before
+                assert len(own) == len(uncut)
+                continue
+            assert len(own) == episode["num_steps"] == min(2, len(uncut))
+            assert own[-1]["done"] and not any(s["done"] for s in own[:-1])
+            assert [s["qpos"] for s in own] == [s["qpos"] for s in uncut[:len(own)]]  # the same episode, cut
+
+
+def test_iteration_0_explores_first_episodes_per_task_as_a_campaign_of_that_many_would(tmp_path):
+    config, tasks, policy = _nav_room_policy(tmp_path)
+    explore = config.explore.model_copy(update={"prioritise": False, "episodes_per_shard": 1})
+    small = config.model_copy(update={"explore": explore.model_copy(update={"episodes_per_task": 2})})
+    grown = config.model_copy(update={"explore": explore.model_copy(update={"episodes_per_task": 5,
+                                                                             "first_episodes_per_task": 2})})
+    first = _plan_curriculum(grown, tasks, tmp_path, None)
+    assert [u.unit_key for u in first] == [u.unit_key for u in _plan_curriculum(small, tasks, tmp_path, None)]
+    assert Counter(u.task.task_id for u in first) == {"nav-room-red": 2, "nav-room-green": 2}
+    later = _plan_curriculum(grown, tasks, tmp_path, policy)
+    assert Counter(u.task.task_id for u in later) == {"nav-room-red": 5, "nav-room-green": 5}
+    assert [grown.explore.episodes_at(i) for i in (0, 1, 3)] == [2, 5, 5]
+    assert [small.explore.episodes_at(i) for i in (0, 1)] == [2, 2]
 
 
 def test_a_unit_that_could_relabel_keys_on_its_scenes_achieved_test(tmp_path, monkeypatch):
