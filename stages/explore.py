@@ -140,10 +140,9 @@ def plan_explore(
         "campaign": config.name, "seed": config.seed, "iteration": iteration,
         "render": render_key_fields(config.render),
         "randomise": config.randomise,
-        # the takeover share in effect at this iteration, not the schedule: changing a later level
-        # of the schedule redoes only the iterations from that one on
-        # what is in effect at this iteration: policy_steps only where a policy explores, the episode count
-        # its own, so iteration 0 is the same work with either or without
+        # what is in effect at this iteration, not the config: the takeover share, not its schedule (changing
+        # a later level redoes only the iterations from that one on); policy_steps only where a policy explores;
+        # the iteration's own episode count (iteration 0 is the same work with first_episodes_per_task or without)
         "explore": key_fields(explore.model_copy(update={"expert_takeover": takeover,
                                                          "policy_steps": explore.policy_steps if policy else None,
                                                          "episodes_per_task": explore.episodes_at(iteration),
