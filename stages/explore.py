@@ -136,6 +136,7 @@ def plan_explore(
     explored only by the policy chaining them, so not at all before there is one."""
     explore = config.explore
     takeover = explore.takeover_of(iteration)
+    policy_steps = explore.policy_steps if policy else None  # only where a policy explores
     reads = {
         "campaign": config.name, "seed": config.seed, "iteration": iteration,
         "render": render_key_fields(config.render),
@@ -144,7 +145,7 @@ def plan_explore(
         # a later level redoes only the iterations from that one on); policy_steps only where a policy explores;
         # the iteration's own episode count (iteration 0 is the same work with first_episodes_per_task or without)
         "explore": key_fields(explore.model_copy(update={"expert_takeover": takeover,
-                                                         "policy_steps": explore.policy_steps if policy else None,
+                                                         "policy_steps": policy_steps,
                                                          "episodes_per_task": explore.episodes_at(iteration),
                                                          "first_episodes_per_task": None}),
                               {"workers", "dask_address"}, LEGACY_VALUES),
@@ -185,7 +186,7 @@ def plan_explore(
                     # seen tasks only: a held-out task is never trained on, relabelled or not
                     relabel_to=relabel_to,
                     expert_takeover=takeover,
-                    policy_steps=explore.policy_steps if policy else None,
+                    policy_steps=policy_steps,
                 )
             )
     return units

@@ -1,9 +1,10 @@
 """Will the campaign's exploration fit on the disk? Estimated before any work, so a million-triplet
 preset on a small disk costs one line instead of a run that stops hours in with the disk full.
 
-Explored steps: each seen task's episodes (explore.episodes_per_task per iteration) times its scripted
-expert's measured mean episode length (schemas/task_specs/experts.json, docs/experts.md; the task's
-horizon where it has no record), for every iteration not yet indexed. Bytes per step: this warehouse's
+Explored steps: each seen task's episodes at each iteration not yet indexed (explore.episodes_at:
+first_episodes_per_task at iteration 0, episodes_per_task after) times its scripted expert's measured
+mean episode length (schemas/task_specs/experts.json, docs/experts.md; the task's horizon where it has no
+record); episodes cut short (explore.policy_steps) are counted whole, so that is an upper bound. Bytes per step: this warehouse's
 own steps shards of this campaign where it has some, else the figure measured on 84 px frames scaled by
 the frame's area.
 """
@@ -55,13 +56,13 @@ def bytes_per_step(config: CampaignConfig, catalog: Catalog | None) -> tuple[flo
     return BYTES_PER_STEP_84PX * scale, False
 
 
-def expected_steps(config: CampaignConfig, task: TaskRecord, experts: ExpertTable | None = None) -> float:
-    """The steps one iteration explores in a seen task: its episodes x its expert's mean episode length
-    (the horizon where the table has no row). The later iterations' count (explore.episodes_per_task)
-    for every iteration: where iteration 0 explores fewer (first_episodes_per_task), an overestimate."""
+def expected_steps(config: CampaignConfig, task: TaskRecord, experts: ExpertTable | None = None,
+                   iteration: int = 0) -> float:
+    """The steps `iteration` explores in a seen task: its episodes (explore.episodes_at) x its expert's
+    mean episode length (the horizon where the table has no row)."""
     experts = experts or load_expert_table()
     row = experts.rows.get(task.task_id)
-    return config.explore.episodes_per_task * (row.mean_length if row else task.horizon)
+    return config.explore.episodes_at(iteration) * (row.mean_length if row else task.horizon)
 
 
 def explore_estimate(config: CampaignConfig, tasks: list[TaskRecord], catalog: Catalog | None = None,
@@ -72,9 +73,10 @@ def explore_estimate(config: CampaignConfig, tasks: list[TaskRecord], catalog: C
     if catalog is not None and catalog.path.exists():
         [(done,)] = catalog.query("SELECT count(DISTINCT iteration) FROM iterations WHERE campaign = ?", [config.name])
     left = max(0, config.iterations - done)
-    per_iteration = sum(expected_steps(config, t, experts) for t in tasks if t.split == "seen")
+    steps = sum(expected_steps(config, t, experts, i) for i in range(done, config.iterations) for t in tasks
+                if t.split == "seen")
     size, measured = bytes_per_step(config, catalog)
-    return ExploreEstimate(iterations=left, steps=round(left * per_iteration), bytes_per_step=size, measured_here=measured)
+    return ExploreEstimate(iterations=left, steps=round(steps), bytes_per_step=size, measured_here=measured)
 
 
 def check_disk(root: Path, config: CampaignConfig, tasks: list[TaskRecord], catalog: Catalog | None = None) -> ExploreEstimate:
