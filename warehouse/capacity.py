@@ -4,9 +4,9 @@ preset on a small disk costs one line instead of a run that stops hours in with 
 Explored steps: each seen task's episodes at each iteration not yet indexed (explore.episodes_at:
 first_episodes_per_task at iteration 0, episodes_per_task after) times its scripted expert's measured
 mean episode length (schemas/task_specs/experts.json, docs/experts.md; the task's horizon where it has no
-record); episodes cut short (explore.policy_steps) are counted whole, so that is an upper bound. Bytes per step: this warehouse's
-own steps shards of this campaign where it has some, else the figure measured on 84 px frames scaled by
-the frame's area.
+record); episodes cut short (explore.policy_steps) are counted whole, so that is an upper bound. Bytes
+per step: this warehouse's own steps shards of this campaign where it has some, else the figure measured
+on 84 px frames scaled by the frame's area.
 """
 
 from __future__ import annotations
