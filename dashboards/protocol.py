@@ -65,6 +65,26 @@ def protocol_success(by_seed: list[list[TaskEvaluation]]) -> list[SeedsSuccess]:
 NOT_RECIPE = {"seed", "final_loss", "resumed_at_step"}
 
 
+def _flat(settings: dict, prefix: str = "train.") -> dict[str, object]:
+    flat: dict[str, object] = {}
+    for name, value in settings.items():
+        flat.update(_flat(value, f"{prefix}{name}.") if isinstance(value, dict) else {f"{prefix}{name}": value})
+    return flat
+
+
+def differing_settings(groups: list["SeedGroup"]) -> list[dict[str, object]]:
+    """Per group, the train settings (`train.targets`, `train.model.chunk`, ...) whose values are not the same in
+    every group: what tells two rows of one dataset apart when their summaries' headline fields agree. A summary
+    from before the recipe was recorded (no `recipe`) adds none."""
+    import json
+
+    flat = [_flat(g.recipe.get("recipe") or {}) for g in groups]
+    recorded = [s for s in flat if s]
+    names = sorted({name for settings in recorded for name in settings})
+    differing = [n for n in names if len({json.dumps(s.get(n), sort_keys=True) for s in recorded}) > 1]
+    return [{n: s[n] for n in differing if n in s} for s in flat]
+
+
 class SeedGroup(BaseModel):
     """Trainings of one dataset with one recipe, differing only in train.seed, evaluated alike."""
 

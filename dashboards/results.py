@@ -10,7 +10,7 @@ import json
 import os
 import platform
 
-from dashboards.protocol import seed_groups
+from dashboards.protocol import differing_settings, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
@@ -142,9 +142,10 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
              "rate), and the pooled episodes with their Wilson 95% interval.", ""]
     splits = [s for s in SPLITS if any(f.group == s for g in groups for f in g.figures)]
     rows = []
-    for group in groups:
-        recipe = ", ".join(f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
-                                                                                "where") and v is not None)
+    for group, differing in zip(groups, differing_settings(groups)):
+        recipe = ", ".join([f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
+                                                                                 "where") and v is not None]
+                           + [f"{k} {v}" for k, v in differing.items() if k != "train.where"])
         by_split = {f.group: f for f in group.figures}
         rows.append([str(group.iteration), recipe, group.weights, ", ".join(map(str, group.seeds)),
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])

@@ -69,6 +69,13 @@ def train_unit_key(config: CampaignConfig, dataset: IndexResult, tasks_key: str)
     return unit_key(STAGE, VERSION, reads, [dataset.dataset_digest, tasks_key])
 
 
+def training_recipe(config: CampaignConfig) -> dict:
+    """What a training computes, less its seed (the train key's settings): trainings of one dataset with
+    equal recipes differ only in train.seed, and the results protocol pools exactly those
+    (dashboards/protocol.py), so an ablation (train.targets, train.where, ...) never joins the recipe it ablates."""
+    return key_fields(config.train, EXECUTION_FIELDS | {"seed"}, LEGACY_VALUES)
+
+
 def training_epochs(cfg: TrainConfig, batches_per_epoch: int) -> int:
     """train.epochs, or the fewest epochs that give train.steps optimiser steps."""
     return cfg.epochs if cfg.steps is None else math.ceil(cfg.steps / batches_per_epoch)
@@ -521,7 +528,7 @@ def run_train(
         summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
                  "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where,
                  "weights": "final" if cfg.ema is None else f"ema {cfg.ema}", "chunk": cfg.model.chunk,
-                 "seed": cfg.seed},
+                 "seed": cfg.seed, "recipe": training_recipe(config)},
         earlier_wall_s=sum(m.earlier_wall_s for m in members),
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,

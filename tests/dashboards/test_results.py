@@ -78,10 +78,11 @@ def test_success_per_spec_and_split_per_iteration(tmp_path, monkeypatch):
     assert spec_markdown(catalog_one_spec, CAMPAIGN) == []  # one spec: the split table says it all
 
 
-def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "d0", iteration: int = 0) -> None:
-    catalog.register_unit(unit_key=key, stage="train", campaign=CAMPAIGN, iteration=iteration,
-                          summary={"final_loss": -seed, "steps": 2400, "members": 1, "resumed_at_step": 0, "where": None,
-                                   "weights": "ema 0.999", "chunk": chunk, "seed": seed},
+def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "d0", iteration: int = 0,
+              recipe: dict | None = None) -> None:
+    summary = {"final_loss": -seed, "steps": 2400, "members": 1, "resumed_at_step": 0, "where": None,
+               "weights": "ema 0.999", "chunk": chunk, "seed": seed, **({} if recipe is None else {"recipe": recipe})}
+    catalog.register_unit(unit_key=key, stage="train", campaign=CAMPAIGN, iteration=iteration, summary=summary,
                           rows={"models": [{"model_key": key, "campaign": CAMPAIGN, "iteration": iteration,
                                             "checkpoint_path": "x",
                                             "dataset_digest": digest, "dataset_shards": [], "train_samples": 1,
@@ -149,3 +150,23 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     assert rows == ["| navigation | seen | 2 | 0 | 0 | 0 | 0 | 0 | 0 |", "| navigation | unseen | 1 | 0 | 0 | 0 | 0 | 0 | 0 |",
                     "| all |  | 3 | 0 | 0 | 0 | 0 | 0 | 0 |"], text
     assert "| index | 0 | 1 | 2 | 0.00 | 0.00 |" in text
+
+
+def test_an_ablation_of_the_same_dataset_is_its_own_row_named_by_what_it_changes(tmp_path):
+    """train.targets=executed on the loop's dataset: the headline fields (chunk, steps, weights) equal the
+    recipe it ablates, so only the recorded recipe keeps its seeds out of that recipe's pool."""
+    from dashboards.results import protocol_markdown
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    for arm, targets, wins in (("expert", "expert", (9, 7, 8)), ("executed", "executed", (2, 1, 3))):
+        for seed, won in enumerate(wins):
+            recipe = {"targets": targets, "epochs": 65, "model": {"chunk": 8, "vision": "hybrid"}}
+            _training(catalog, f"train-{arm}-s{seed}", seed, 8, iteration=3, recipe=recipe)
+            _evaluated(catalog, f"train-{arm}-s{seed}", won)
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if "| chunk" in line]
+    assert [row[1] for row in rows] == [
+        "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets executed",
+        "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets expert"]
+    assert [row[4].split(" over")[0] for row in rows] == ["20% ± 10 (20, 10, 30)", "80% ± 10 (90, 70, 80)"]

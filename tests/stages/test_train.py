@@ -135,6 +135,8 @@ def test_a_chunked_training_on_mixed_actions_registers_its_average_and_acts_per_
     assert any(not torch.equal(state["members"][0][k], state["final_members"][0][k]) for k in state["members"][0])
     [(summary,)] = Catalog(Workspace.at(workspace).catalog).query("SELECT summary FROM stage_runs WHERE stage = 'train'")
     assert json.loads(summary)["chunk"] == 3 and json.loads(summary)["weights"] == "ema 0.999"
+    recipe = json.loads(summary)["recipe"]  # what the protocol pools seeds by: every setting but the seed
+    assert recipe["model"]["chunk"] == 3 and recipe["targets"] == "expert" and "seed" not in recipe
     embeddings = load_embeddings(Workspace.at(workspace), *Catalog(Workspace.at(workspace).catalog).query(
         "SELECT DISTINCT unit_key FROM tasks")[0], "all-MiniLM-L6-v2")
     policy = Policy.load(path, embeddings)
