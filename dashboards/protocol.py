@@ -143,3 +143,61 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
                                     model_keys=[k for _, k in members], seeds=[s for s, _ in members], figures=figures))
     # by iteration, then recipe: a loop's iteration 0 reads above its iteration 3
     return sorted(groups, key=lambda g: (g.iteration, json.dumps(g.recipe, sort_keys=True), g.weights != "registered"))
+
+
+class Ablation(BaseModel):
+    """A recipe trained on an iteration's data beside the one the loop trained there, both over seeds, on one split."""
+
+    iteration: int
+    changed: dict[str, object]  # the settings in which it differs from the loop's recipe (`train.targets`: ...)
+    ablation: SeedsSuccess
+    loop: SeedsSuccess
+
+    @property
+    def delta(self) -> float:
+        return self.ablation.mean - self.loop.mean
+
+    def reading(self) -> str:
+        if self.ablation.ci_high < self.loop.ci_low:
+            return "below the loop's: the pooled intervals are apart"
+        if self.ablation.ci_low > self.loop.ci_high:
+            return "above the loop's: the pooled intervals are apart"
+        return "within the noise: the pooled intervals overlap"
+
+
+def _recipe_changes(loop: dict, other: dict) -> dict[str, object]:
+    """Settings of `other` that differ from `loop`'s: the recorded recipes where both have one, else the
+    summaries' headline fields."""
+    import json
+
+    if loop.get("recipe") and other.get("recipe"):
+        mine, theirs = _flat(loop["recipe"]), _flat(other["recipe"])
+    else:
+        mine, theirs = ({k: v for k, v in r.items() if k != "recipe"} for r in (loop, other))
+    names = sorted(set(mine) | set(theirs))
+    return {n: theirs.get(n) for n in names
+            if json.dumps(mine.get(n), sort_keys=True) != json.dumps(theirs.get(n), sort_keys=True)}
+
+
+def ablations(catalog, campaign: str, groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:
+    """Every other recipe of an iteration against the loop's own there: the group holding the model that
+    iteration deployed (its seed from `sim2act run`, the others from `sim2act train --set train.seed=N`),
+    registered weights, on `split`. Which part of the loop does the work is read off these (issue 9 item 5)."""
+    deployed = {(iteration, key) for iteration, key in catalog.query(
+        "SELECT iteration, model_key FROM deployments WHERE campaign = ?", [campaign])}
+    registered = [g for g in groups if g.weights == "registered"]
+
+    def figure(group: SeedGroup) -> SeedsSuccess | None:
+        return next((f for f in group.figures if f.group == split), None)
+
+    found = []
+    for loop in registered:
+        loop_figure = figure(loop)
+        if loop_figure is None or not any((loop.iteration, key) in deployed for key in loop.model_keys):
+            continue
+        for other in registered:
+            other_figure = figure(other)
+            if other is not loop and other.iteration == loop.iteration and other_figure is not None:
+                found.append(Ablation(iteration=loop.iteration, changed=_recipe_changes(loop.recipe, other.recipe),
+                                      ablation=other_figure, loop=loop_figure))
+    return found

@@ -10,7 +10,7 @@ import json
 import os
 import platform
 
-from dashboards.protocol import differing_settings, seed_groups
+from dashboards.protocol import ablations, differing_settings, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
@@ -149,7 +149,22 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         by_split = {f.group: f for f in group.figures}
         rows.append([str(group.iteration), recipe, group.weights, ", ".join(map(str, group.seeds)),
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
-    return lines + _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
+    lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
+    return lines + ablation_markdown(ablations(catalog, campaign, groups))
+
+
+def ablation_markdown(found: list) -> list[str]:
+    """The ablations: each other recipe of an iteration against the loop's own, seen split, with what differs."""
+    if not found:
+        return []
+    rows = [[str(a.iteration), ", ".join(f"{k} {v}" for k, v in a.changed.items()) or "(the same settings)",
+             a.ablation.describe(), a.loop.describe(), f"{100 * a.delta:+.1f}", a.reading()] for a in found]
+    return ["", "### Ablations: each recipe against the loop's own", "",
+            "Each row: trainings of an iteration's data with one setting changed (or a part of the data left out: "
+            "`train.where`), against the recipe the loop trained there (the group holding the iteration's deployed "
+            "model), registered weights, seen split; Δ is the difference of the means over seeds, in points.", "",
+            *_table(["iteration", "changed from the loop's recipe", "seen, the ablation", "seen, the loop's",
+                     "Δ points", "reading"], rows)]
 
 
 def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],

@@ -152,7 +152,7 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     assert "| index | 0 | 1 | 2 | 0.00 | 0.00 |" in text
 
 
-def test_an_ablation_of_the_same_dataset_is_its_own_row_named_by_what_it_changes(tmp_path):
+def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_the_loops_recipe(tmp_path):
     """train.targets=executed on the loop's dataset: the headline fields (chunk, steps, weights) equal the
     recipe it ablates, so only the recorded recipe keeps its seeds out of that recipe's pool."""
     from dashboards.results import protocol_markdown
@@ -170,3 +170,18 @@ def test_an_ablation_of_the_same_dataset_is_its_own_row_named_by_what_it_changes
         "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets executed",
         "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets expert"]
     assert [row[4].split(" over")[0] for row in rows] == ["20% ± 10 (20, 10, 30)", "80% ± 10 (90, 70, 80)"]
+    assert not any(line.startswith("### Ablations") for line in lines)  # no deployed model: no loop to compare with
+
+    # the loop deployed the expert arm's seed 0 at iteration 3: the other recipe there is its ablation
+    catalog.register_unit(unit_key="redeploy-3", stage="redeploy", campaign=CAMPAIGN, iteration=3, summary={},
+                          rows={"deployments": [{
+                              "unit_key": "redeploy-3", "model_key": "train-expert-s0", "campaign": CAMPAIGN,
+                              "iteration": 3, "registered_model": "m", "version": 4, "alias": "champion",
+                              "champion_version": 4, "champion_model_key": "train-expert-s0", "promoted": True,
+                              "decision": "", "mlflow_run_id": ""}]})
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    ablations = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[lines.index(
+        "### Ablations: each recipe against the loop's own"):] if line.startswith("| 3")]
+    assert ablations == [["3", "train.targets executed", "20% ± 10 (20, 10, 30) over 3 seeds, 6/30 pooled [10%, 37%]",
+                          "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]", "-60.0",
+                          "below the loop's: the pooled intervals are apart"]]
