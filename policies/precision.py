@@ -6,16 +6,30 @@ channels_last on CPU. Numbers behind the choices are in docs/bench-train.md.
   fp32's speed (743 vs 794 samples/s, both channels_last); with neither, oneDNN emulates bf16 and the
   step is ~10x *slower* (an AVX2-only AMD EPYC: 631 -> 65 samples/s). So `train.amp` asks for bf16 and
   gets it only where it helps: AMX on CPU.
+- AVX-512 BF16 without AMX is a toss-up that depends on the core and the batch: 1.32x fp32 at batch 256
+  on an AMD Zen 4, 0.97x there at batch 64, 0.94x at 256 on an Intel Xeon. So there a long training
+  measures both on its own model and batch once (`measured_bf16`) and takes bf16 only if it wins clearly.
 - channels_last (NHWC) lets oneDNN pick its blocked convolution kernels without reordering every
   activation: 1.2-1.4x on the default model in fp32 on that same CPU; the conv trunk is ~60% of a step.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import platform
+from collections.abc import Callable
 from contextlib import AbstractContextManager
+from pathlib import Path
 
 import torch
 from torch import nn
+
+# bf16 is taken where it is measured only if it beats fp32 by this much: a choice that flips on timing
+# noise would make two trainings of one recipe compute differently for nothing
+BF16_MARGIN = 1.10
+# a shorter training stays in fp32 unmeasured: the probe's ~10-20 s would not pay back
+PROBE_MIN_SAMPLES = 500_000
 
 
 def cpu_has_bf16_units() -> bool:
@@ -27,6 +41,52 @@ def cpu_has_bf16_units() -> bool:
 def uses_bf16(device: torch.device, amp: bool) -> bool:
     """`train.amp` on this device: bf16 autocast on cuda, and on a CPU with bf16 units; fp32 elsewhere."""
     return amp and (device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16_units()))
+
+
+def cpu_bf16_may_pay(device: torch.device) -> bool:
+    """AVX-512 BF16 dot products without AMX tiles: only a measurement on the model and batch tells."""
+    return device.type == "cpu" and not cpu_has_bf16_units() and bool(torch.cpu._is_avx512_bf16_supported())
+
+
+def cpu_name() -> str:
+    """The CPU's model name (/proc/cpuinfo), else the machine type."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            return next(line.split(":", 1)[1].strip() for line in info if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.machine()
+
+
+def probe_key(model_digest: str, batch_size: int) -> str:
+    """What a measured choice holds for: this host's CPU and torch, the threads, the model and the batch."""
+    return (f"{cpu_name()} ({torch.backends.cpu.get_cpu_capability()}), torch {torch.__version__}, "
+            f"{torch.get_num_threads()} threads, batch {batch_size}, model {model_digest}")
+
+
+def measured_bf16(step_seconds: Callable[[bool], float], cache: Path, key: str, trials: int = 3) -> tuple[bool, float]:
+    """Whether bf16 autocast beats fp32 by BF16_MARGIN on `step_seconds(bf16)` (one training step, timed),
+    measured once per `key` (probe_key) and kept in `cache`, so a resumed training and the next
+    iteration's compute as this one. A warm-up step of each, then `trials` of each in turns; the
+    fastest of each counts (the least disturbed by other load). Returns (bf16, bf16's speed-up)."""
+    choices = json.loads(cache.read_text()) if cache.exists() else {}
+    if key not in choices:
+        step_seconds(False), step_seconds(True)  # oneDNN builds each precision's kernels on its first step
+        fastest = _in_turns(step_seconds, trials)
+        choices[key] = {"fp32_s": fastest[False], "bf16_s": fastest[True], "speedup": fastest[False] / fastest[True]}
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        partial = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")
+        partial.write_text(json.dumps(choices, indent=1, sort_keys=True))
+        partial.replace(cache)
+    speedup = choices[key]["speedup"]
+    return speedup >= BF16_MARGIN, speedup
+
+
+def _in_turns(step_seconds: Callable[[bool], float], trials: int) -> dict[bool, float]:
+    times: dict[bool, list[float]] = {False: [], True: []}
+    for _ in range(trials):
+        for bf16 in (False, True):
+            times[bf16].append(step_seconds(bf16))
+    return {bf16: min(seconds) for bf16, seconds in times.items()}
 
 
 def uses_channels_last(device: torch.device) -> bool:

@@ -43,6 +43,12 @@ class Workspace:
         return self.models / model_key / f"train-state-{member}.pt"
 
     @property
+    def precision_choices(self) -> Path:
+        """bf16 or fp32 as measured on this host per model and batch (policies/precision.py), so a resumed
+        training and the next iteration's compute as the first did."""
+        return self.models / "precision.json"
+
+    @property
     def media(self) -> Path:
         return self.root / "media"
 

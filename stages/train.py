@@ -24,7 +24,8 @@ from policies.ema import WeightAverage
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, join_views, pixels, split_views, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
-from policies.precision import autocast, describe, image_layout, to_device_layout, uses_bf16
+from policies.precision import (PROBE_MIN_SAMPLES, autocast, cpu_bf16_may_pay, describe, image_layout, measured_bf16,
+                                probe_key, to_device_layout, uses_bf16)
 from schemas.config import MODEL_LEGACY_VALUES, CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.wordings import training_variants
@@ -348,6 +349,7 @@ class _Run:
     start: list[dict] | None  # fine-tuning: the source model's members' weights
     on_metrics: OnMetrics | None
     progress: Progress
+    bf16: bool  # autocast: the device's rule, or measured on this CPU (training_precision)
 
 
 @dataclass
@@ -428,7 +430,7 @@ def _train_member(run: _Run, member: int) -> _Member:
         waited += time.monotonic() - wait_started
         if int(batch["batch"]) != step:
             raise RuntimeError(f"data out of order: batch {int(batch['batch'])} at step {step}")
-        losses = train_step(model, optimiser, schedule, batch, cfg, run.device, shifts)
+        losses = train_step(model, optimiser, schedule, batch, cfg, run.device, shifts, bf16=run.bf16)
         step += 1
         if average is not None:
             average.update(model, step)
@@ -456,6 +458,44 @@ def _train_member(run: _Run, member: int) -> _Member:
             save_state()
         wait_started = time.monotonic()
     return _Member(model, average, history, resumed_at, earlier_wall_s)
+
+
+def training_precision(workspace: Workspace, config: CampaignConfig, batches: StepBatches, device: torch.device,
+                       state: Normaliser | None) -> tuple[bool, str]:
+    """bf16 autocast or fp32 for this training, and the log line's why: the device's rule (policies/precision.py);
+    on a CPU where bf16 may pay (AVX-512 BF16, no AMX), a training of at least PROBE_MIN_SAMPLES measures a
+    step of its own model on its own first batch both ways, once per host, model and batch
+    (Workspace.precision_choices)."""
+    cfg = config.train
+    samples = cfg.ensemble * batches.epochs * batches.batches_per_epoch * cfg.batch_size
+    if not (cfg.amp and cpu_bf16_may_pay(device) and samples >= PROBE_MIN_SAMPLES):
+        return uses_bf16(device, cfg.amp), describe(device, cfg.amp)
+    dims = model_dims(config, state)
+    key = probe_key(digest_of([cfg.model.model_dump_json(), repr(dims)]), cfg.batch_size)
+    bf16, speedup = measured_bf16(_step_timer(cfg, dims, batches.first_batch(), device),
+                                  workspace.precision_choices, key)
+    return bf16, (f"{'bf16 autocast' if bf16 else 'fp32'}, channels_last: bf16 measured at {speedup:.2f}x fp32's "
+                  f"speed on this CPU at batch {cfg.batch_size}")
+
+
+def _step_timer(cfg: TrainConfig, dims: ModelDims, batch: dict, device: torch.device) -> Callable[[bool], float]:
+    """Seconds of one training step of a throwaway model on `batch`, in bf16 or fp32; the global RNG as it was."""
+    rng = torch.get_rng_state()
+    model = to_device_layout(VLAModel(cfg.model, dims), device)
+    torch.set_rng_state(rng)
+    optimiser = optimiser_for(model, cfg)
+    schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, lambda _: 1.0)
+    shifts = torch.Generator().manual_seed(0)
+
+    def seconds(bf16: bool) -> float:
+        rng = torch.get_rng_state()
+        started = time.perf_counter()
+        train_step(model, optimiser, schedule, batch, cfg, device, shifts, bf16=bf16)
+        elapsed = time.perf_counter() - started
+        torch.set_rng_state(rng)
+        return elapsed
+
+    return seconds
 
 
 def run_train(
@@ -507,14 +547,15 @@ def run_train(
     )
     batches.epochs = training_epochs(cfg, batches.batches_per_epoch)
     samples, steps_per_member = batches.rows_per_epoch, batches.epochs * batches.batches_per_epoch
+    bf16, precision = training_precision(workspace, config, batches, device, state_norm)
     log.info(
         "train it%d: %d triplets (%s), %s%d epochs x %d steps on %s (%s), dataset %s", iteration, samples,
         cfg.where or "all kept", f"{cfg.ensemble} members x " if cfg.ensemble > 1 else "", batches.epochs,
-        batches.batches_per_epoch, device, describe(device, cfg.amp), digest[:12],
+        batches.batches_per_epoch, device, precision, digest[:12],
     )
     progress = Progress(log, f"train it{iteration}", cfg.ensemble * steps_per_member, "steps", "samples")
     run = _Run(workspace, config, iteration, key, batches, device, state_norm,
-               None if source is None else checkpoint_members(source), on_metrics, progress)
+               None if source is None else checkpoint_members(source), on_metrics, progress, bf16)
     try:
         members = [_train_member(run, member) for member in range(cfg.ensemble)]
     finally:

@@ -27,7 +27,7 @@ import duckdb
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from torch.utils.data import IterableDataset, get_worker_info
+from torch.utils.data import IterableDataset, default_convert, get_worker_info
 
 from schemas.errors import Sim2ActError
 from schemas.frames import decode_depth, decode_frame
@@ -261,6 +261,13 @@ class StepBatches(IterableDataset):
         rows = self._shuffled(np.random.default_rng([self.seed, epoch, stream]), self.parts[stream])
         while batch := list(itertools.islice(rows, self.batch_size)):
             yield batch
+
+    def first_batch(self) -> dict[str, Any]:
+        """The first `batch_size` rows in file order, collated into tensors as a DataLoader yields them: a
+        batch of this training's shape and content for timing a step (policies/precision.py), without
+        filling the shuffle buffer."""
+        rows = (row for piece in self.parts[0] for row in self._piece_rows(piece))
+        return default_convert(self.collate(list(itertools.islice(rows, self.batch_size))))
 
     def __iter__(self) -> Iterator[dict[str, Any]]:
         worker = get_worker_info()

@@ -1,6 +1,8 @@
 """The CPU precision path: bf16 autocast only where the CPU has bf16 units, channels_last on CPU, and a
 training step that runs (and learns) in bf16 on CPU when asked."""
 
+import json
+
 import pytest
 import torch
 
@@ -60,3 +62,30 @@ def test_a_bf16_training_step_on_cpu_computes_in_bf16_and_learns():
     assert out.z_ol.dtype == torch.bfloat16  # the matmuls ran in bf16
     assert all(p.dtype == torch.float32 for p in model.parameters())  # the weights stay fp32
     assert losses[-1] < 0.6 * losses[0]
+
+
+def test_where_bf16_may_pay_a_training_measures_once_and_takes_it_only_when_it_wins_clearly(tmp_path, monkeypatch):
+    """AVX-512 BF16 without AMX: 1.32x on one CPU, 0.94x on another (docs/bench-train.md): measured, kept."""
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    assert precision.cpu_bf16_may_pay(CPU) and not precision.cpu_bf16_may_pay(CUDA)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: True)
+    assert not precision.cpu_bf16_may_pay(CPU)  # AMX: bf16 without asking (uses_bf16)
+
+    calls = []
+
+    def timed(seconds):
+        def step(bf16: bool) -> float:
+            calls.append(bf16)
+            return seconds[bf16] * (2.0 if len(calls) <= 2 else 1.0)  # the first step of each builds its kernels
+        return step
+
+    cache = tmp_path / "models" / "precision.json"
+    assert precision.measured_bf16(timed({False: 1.0, True: 0.75}), cache, "host, batch 256") == (True, 1.0 / 0.75)
+    assert calls == [False, True] + [False, True] * 3  # a warm-up of each, then turns
+    assert precision.measured_bf16(timed({False: 1.0, True: 9.0}), cache, "host, batch 256") == (True, 1.0 / 0.75)
+    assert len(calls) == 8  # kept: the resumed training and the next iteration's take the same without measuring
+    bf16, speedup = precision.measured_bf16(timed({False: 1.0, True: 0.95}), cache, "host, batch 64")
+    assert not bf16 and speedup == pytest.approx(1.0 / 0.95)  # a 5% win is within timing noise: fp32
+    assert sorted(json.loads(cache.read_text())) == ["host, batch 256", "host, batch 64"]
+    assert not list(cache.parent.glob("*.tmp"))

@@ -376,3 +376,25 @@ def test_language_augmentation_rewords_instructions_reproducibly_and_brings_thei
     assert half(rows[::-1])["instruction"] != said[::-1]  # another batch, other draws
     none = TrainingCollate(Normaliser.fit(np.zeros((0, 7)), 7), identity, embeddings, "expert")
     assert set(none(rows)["instruction"]) == {"pick up the red block"}
+
+
+def test_a_long_training_where_bf16_may_pay_measures_its_own_step_once_per_host_model_and_batch(
+        campaign, tmp_path, monkeypatch):
+    import stages.train as train
+
+    workspace = Workspace.at(_copy(campaign, tmp_path, "precision"))
+    config = load_config("smoke", campaign[0], {"train": {"loader_workers": 0, "steps": 4}})
+    [(tasks_key,)] = Catalog(workspace.catalog).query("SELECT DISTINCT unit_key FROM tasks")
+    embeddings = load_embeddings(workspace, tasks_key, config.train.model.language_encoder)
+    dataset = latest_index(workspace, config.name)
+    monkeypatch.setattr(train, "cpu_bf16_may_pay", lambda device: True)
+    run_train(workspace, config, 0, dataset, tasks_key, embeddings)
+    assert not workspace.precision_choices.exists()  # 4 steps of 16: far below PROBE_MIN_SAMPLES, unmeasured
+
+    monkeypatch.setattr(train, "PROBE_MIN_SAMPLES", 0)
+    seeded = config.model_copy(update={"train": config.train.model_copy(update={"seed": 1})})
+    result = run_train(workspace, seeded, 0, dataset, tasks_key, embeddings)
+    [(key, choice)] = json.loads(workspace.precision_choices.read_text()).items()
+    assert "batch 16" in key and "threads" in key and choice["fp32_s"] > 0 and choice["bf16_s"] > 0
+    assert choice["speedup"] == pytest.approx(choice["fp32_s"] / choice["bf16_s"])
+    assert result.history and math.isfinite(result.history[-1]["loss"])
