@@ -28,7 +28,7 @@ from torch import nn
 # bf16 is taken where it is measured only if it beats fp32 by this much: a choice that flips on timing
 # noise would make two trainings of one recipe compute differently for nothing
 BF16_MARGIN = 1.10
-# a shorter training stays in fp32 unmeasured: the probe's ~10-20 s would not pay back
+# a shorter training stays in fp32 unmeasured: the probe (a batch read, 8 steps: seconds) would not pay back
 PROBE_MIN_SAMPLES = 500_000
 
 
