@@ -5,6 +5,7 @@ anywhere in 22-83% (docs/results.md), so a figure without its spread across seed
 
 from __future__ import annotations
 
+import json
 import statistics
 
 from pydantic import BaseModel
@@ -72,12 +73,10 @@ def _flat(settings: dict, prefix: str = "train.") -> dict[str, object]:
     return flat
 
 
-def differing_settings(groups: list["SeedGroup"]) -> list[dict[str, object]]:
+def differing_settings(groups: list[SeedGroup]) -> list[dict[str, object]]:
     """Per group, the train settings (`train.targets`, `train.model.chunk`, ...) whose values are not the same in
     every group: what tells two rows of one dataset apart when their summaries' headline fields agree. A summary
     from before the recipe was recorded (no `recipe`) adds none."""
-    import json
-
     flat = [_flat(g.recipe.get("recipe") or {}) for g in groups]
     recorded = [s for s in flat if s]
     names = sorted({name for settings in recorded for name in settings})
@@ -104,8 +103,6 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
     """Every group of two or more trainings of the same dataset and recipe (their registered summaries
     less the seed) whose models were all evaluated on `suite`, once per weights, over the cases every
     seed met."""
-    import json
-
     from stages.evaluate import read_evaluations
 
     trainings: dict[str, list[tuple[int, str]]] = {}
@@ -168,8 +165,6 @@ class Ablation(BaseModel):
 def _recipe_changes(loop: dict, other: dict) -> dict[str, object]:
     """Settings of `other` that differ from `loop`'s: the recorded recipes where both have one, else the
     summaries' headline fields."""
-    import json
-
     if loop.get("recipe") and other.get("recipe"):
         mine, theirs = _flat(loop["recipe"]), _flat(other["recipe"])
     else:
