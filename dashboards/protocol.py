@@ -62,8 +62,9 @@ def protocol_success(by_seed: list[list[TaskEvaluation]]) -> list[SeedsSuccess]:
     return figures
 
 
-# what a training's summary says that is not its recipe: the seed, and what it measured
-NOT_RECIPE = {"seed", "final_loss", "resumed_at_step"}
+# what a training's summary says that is not its recipe: the seed, what it measured, and the precision the device
+# (or, on a CPU where bf16 may pay, a timing of its own step) chose: one recipe's seeds may differ in it by host
+NOT_RECIPE = {"seed", "final_loss", "resumed_at_step", "precision"}
 
 
 def _flat(settings: dict, prefix: str = "train.") -> dict[str, object]:
@@ -92,6 +93,7 @@ class SeedGroup(BaseModel):
     weights: str  # which weights were evaluated: registered (the training's own choice) or final
     model_keys: list[str]  # one per seed, in seed order
     seeds: list[int]
+    precisions: list[str] = []  # per seed: "bf16" or "fp32" as it trained ("" where its summary predates the record)
     figures: list[SeedsSuccess]
 
 
@@ -106,6 +108,7 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
     from stages.evaluate import read_evaluations
 
     trainings: dict[str, list[tuple[int, str]]] = {}
+    precision: dict[str, str] = {}
     recipes: dict[str, dict] = {}
     iterations: dict[str, int] = {}
     for model_key, summary, digest, iteration in catalog.query(
@@ -117,6 +120,7 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
         group = json.dumps([digest, recipe], sort_keys=True)
         recipes[group], iterations[group] = recipe, iteration
         trainings.setdefault(group, []).append((int(fields.get("seed", 0)), model_key))
+        precision[model_key] = fields.get("precision", "")
     evaluated: dict[str, list] = {}
     for model_key, evaluation in read_evaluations(catalog, "v.model_key", "WHERE v.campaign = ? AND v.suite = ?",
                                                   [campaign, suite]):
@@ -137,7 +141,8 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
                 continue
             figures = protocol_success(runs)
             groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights,
-                                    model_keys=[k for _, k in members], seeds=[s for s, _ in members], figures=figures))
+                                    model_keys=[k for _, k in members], seeds=[s for s, _ in members],
+                                    precisions=[precision[k] for _, k in members], figures=figures))
     # by iteration, then recipe: a loop's iteration 0 reads above its iteration 3
     return sorted(groups, key=lambda g: (g.iteration, json.dumps(g.recipe, sort_keys=True), g.weights != "registered"))
 

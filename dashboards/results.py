@@ -146,11 +146,23 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         recipe = ", ".join([f"{k} {v}" for k, v in group.recipe.items() if k in ("chunk", "weights", "steps", "members",
                                                                                  "where") and v is not None]
                            + [f"{k} {v}" for k, v in differing.items() if k != "train.where"])
+        recipe, seeds = _with_precision(recipe, group.seeds, group.precisions)
         by_split = {f.group: f for f in group.figures}
-        rows.append([str(group.iteration), recipe, group.weights, ", ".join(map(str, group.seeds)),
+        rows.append([str(group.iteration), recipe, group.weights, seeds,
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
     lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
     return lines + ablation_markdown(ablations(catalog, campaign, groups))
+
+
+def _with_precision(recipe: str, seeds: list[int], precisions: list[str]) -> tuple[str, str]:
+    """The recipe and seeds cells with the precision the trainings ran in: in the recipe where every seed
+    ran in the same one, per seed where they differ (a seed with no record says "precision not recorded")."""
+    named = [p or "precision not recorded" for p in precisions]
+    if len(set(named)) > 1:
+        return recipe, ", ".join(f"{seed} ({p})" for seed, p in zip(seeds, named))
+    if precisions and precisions[0]:
+        recipe = f"{recipe}, {precisions[0]}"
+    return recipe, ", ".join(map(str, seeds))
 
 
 def ablation_markdown(found: list) -> list[str]:

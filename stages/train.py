@@ -569,7 +569,8 @@ def run_train(
         summary={"final_loss": history[-1]["loss"], "epochs": batches.epochs, "steps": cfg.ensemble * steps_per_member,
                  "members": cfg.ensemble, "resumed_at_step": resumed_at, "where": cfg.where,
                  "weights": "final" if cfg.ema is None else f"ema {cfg.ema}", "chunk": cfg.model.chunk,
-                 "seed": cfg.seed, "recipe": training_recipe(config)},
+                 "seed": cfg.seed, "recipe": training_recipe(config),
+                 "precision": "bf16" if bf16 else "fp32"},  # the device's or the probe's choice, not the recipe's
         earlier_wall_s=sum(m.earlier_wall_s for m in members),
         rows={"models": [{
             "model_key": key, "campaign": config.name, "iteration": iteration,

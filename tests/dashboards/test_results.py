@@ -79,9 +79,10 @@ def test_success_per_spec_and_split_per_iteration(tmp_path, monkeypatch):
 
 
 def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "d0", iteration: int = 0,
-              recipe: dict | None = None) -> None:
+              recipe: dict | None = None, precision: str | None = None) -> None:
     summary = {"final_loss": -seed, "steps": 2400, "members": 1, "resumed_at_step": 0, "where": None,
-               "weights": "ema 0.999", "chunk": chunk, "seed": seed, **({} if recipe is None else {"recipe": recipe})}
+               "weights": "ema 0.999", "chunk": chunk, "seed": seed, **({} if recipe is None else {"recipe": recipe}),
+               **({} if precision is None else {"precision": precision})}
     catalog.register_unit(unit_key=key, stage="train", campaign=CAMPAIGN, iteration=iteration, summary=summary,
                           rows={"models": [{"model_key": key, "campaign": CAMPAIGN, "iteration": iteration,
                                             "checkpoint_path": "x",
@@ -154,7 +155,9 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
 
 def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_the_loops_recipe(tmp_path):
     """train.targets=executed on the loop's dataset: the headline fields (chunk, steps, weights) equal the
-    recipe it ablates, so only the recorded recipe keeps its seeds out of that recipe's pool."""
+    recipe it ablates, so only the recorded recipe keeps its seeds out of that recipe's pool. The precision a
+    seed trained in is not its recipe (the loop's seed 0 in fp32, its other seeds where the probe chose bf16):
+    one row, which names it per seed."""
     from dashboards.results import protocol_markdown
 
     catalog = Catalog(Workspace.at(tmp_path).create().catalog)
@@ -162,13 +165,15 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
     for arm, targets, wins in (("expert", "expert", (9, 7, 8)), ("executed", "executed", (2, 1, 3))):
         for seed, won in enumerate(wins):
             recipe = {"targets": targets, "epochs": 65, "model": {"chunk": 8, "vision": "hybrid"}}
-            _training(catalog, f"train-{arm}-s{seed}", seed, 8, iteration=3, recipe=recipe)
+            precision = "fp32" if (arm, seed) == ("expert", 0) else "bf16"
+            _training(catalog, f"train-{arm}-s{seed}", seed, 8, iteration=3, recipe=recipe, precision=precision)
             _evaluated(catalog, f"train-{arm}-s{seed}", won)
     lines = protocol_markdown(catalog, CAMPAIGN)
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if "| chunk" in line]
     assert [row[1] for row in rows] == [
-        "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets executed",
+        "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets executed, bf16",
         "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets expert"]
+    assert [row[3] for row in rows] == ["0, 1, 2", "0 (fp32), 1 (bf16), 2 (bf16)"]
     assert [row[4].split(" over")[0] for row in rows] == ["20% ± 10 (20, 10, 30)", "80% ± 10 (90, 70, 80)"]
     assert not any(line.startswith("### Ablations") for line in lines)  # no deployed model: no loop to compare with
 

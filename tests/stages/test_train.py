@@ -21,6 +21,7 @@ from mlflow import MlflowClient
 
 from envs.observation import Observation
 from policies.policy import Normaliser, Policy, checkpoint_members
+from policies.precision import uses_bf16
 from schemas.config import load_config
 from schemas.frames import encode_frame
 from schemas.keys import unit_key
@@ -137,6 +138,7 @@ def test_a_chunked_training_on_mixed_actions_registers_its_average_and_acts_per_
     assert json.loads(summary)["chunk"] == 3 and json.loads(summary)["weights"] == "ema 0.999"
     recipe = json.loads(summary)["recipe"]  # what the protocol pools seeds by: every setting but the seed
     assert recipe["model"]["chunk"] == 3 and recipe["targets"] == "expert" and "seed" not in recipe
+    assert json.loads(summary)["precision"] == ("bf16" if uses_bf16(torch.device("cpu"), True) else "fp32")
     embeddings = load_embeddings(Workspace.at(workspace), *Catalog(Workspace.at(workspace).catalog).query(
         "SELECT DISTINCT unit_key FROM tasks")[0], "all-MiniLM-L6-v2")
     policy = Policy.load(path, embeddings)
