@@ -160,11 +160,32 @@ class Ablation(BaseModel):
         return self.ablation.mean - self.loop.mean
 
     def reading(self) -> str:
-        if self.ablation.ci_high < self.loop.ci_low:
-            return "below the loop's: the pooled intervals are apart"
-        if self.ablation.ci_low > self.loop.ci_high:
-            return "above the loop's: the pooled intervals are apart"
-        return "within the noise: the pooled intervals overlap"
+        return _against(self.ablation, self.loop, "the loop's")
+
+
+class Climb(BaseModel):
+    """The loop's own recipe at its first and its last iteration trained over seeds, on one split: whether the
+    loop climbs (issue 9 item 5: by >= 15 points, the pooled intervals apart)."""
+
+    first_iteration: int
+    last_iteration: int
+    first: SeedsSuccess
+    last: SeedsSuccess
+
+    @property
+    def delta(self) -> float:
+        return self.last.mean - self.first.mean
+
+    def reading(self) -> str:
+        return _against(self.last, self.first, f"iteration {self.first_iteration}'s")
+
+
+def _against(figure: SeedsSuccess, reference: SeedsSuccess, whose: str) -> str:
+    if figure.ci_high < reference.ci_low:
+        return f"below {whose}: the pooled intervals are apart"
+    if figure.ci_low > reference.ci_high:
+        return f"above {whose}: the pooled intervals are apart"
+    return "within the noise: the pooled intervals overlap"
 
 
 def _recipe_changes(loop: dict, other: dict) -> dict[str, object]:
@@ -179,25 +200,43 @@ def _recipe_changes(loop: dict, other: dict) -> dict[str, object]:
             if json.dumps(mine.get(n), sort_keys=True) != json.dumps(theirs.get(n), sort_keys=True)}
 
 
-def ablations(catalog, campaign: str, groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:
-    """Every other recipe of an iteration against the loop's own there: the group holding the model that
-    iteration deployed (its seed from `sim2act run`, the others from `sim2act train --set train.seed=N`),
-    registered weights, on `split`. Which part of the loop does the work is read off these (issue 9 item 5)."""
+def _figure(group: SeedGroup, split: str) -> SeedsSuccess | None:
+    return next((f for f in group.figures if f.group == split), None)
+
+
+def loop_groups(catalog, campaign: str, groups: list[SeedGroup]) -> list[SeedGroup]:
+    """The loop's own recipe per iteration: the group (registered weights) holding the model that iteration's
+    redeploy stage met, promoted or not (its seed from `sim2act run`, the others from `sim2act train --set
+    train.seed=N`), by iteration."""
     deployed = {(iteration, key) for iteration, key in catalog.query(
         "SELECT iteration, model_key FROM deployments WHERE campaign = ?", [campaign])}
-    registered = [g for g in groups if g.weights == "registered"]
+    return sorted((g for g in groups if g.weights == "registered"
+                   and any((g.iteration, key) in deployed for key in g.model_keys)), key=lambda g: g.iteration)
 
-    def figure(group: SeedGroup) -> SeedsSuccess | None:
-        return next((f for f in group.figures if f.group == split), None)
 
+def ablations(catalog, campaign: str, groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:
+    """Every other recipe of an iteration against the loop's own there (loop_groups), registered weights, on
+    `split`. Which part of the loop does the work is read off these (issue 9 item 5)."""
     found = []
-    for loop in registered:
-        loop_figure = figure(loop)
-        if loop_figure is None or not any((loop.iteration, key) in deployed for key in loop.model_keys):
+    for loop in loop_groups(catalog, campaign, groups):
+        loop_figure = _figure(loop, split)
+        if loop_figure is None:
             continue
-        for other in registered:
-            other_figure = figure(other)
-            if other is not loop and other.iteration == loop.iteration and other_figure is not None:
+        for other in groups:
+            other_figure = _figure(other, split)
+            if (other is not loop and other.weights == "registered" and other.iteration == loop.iteration
+                    and other_figure is not None):
                 found.append(Ablation(iteration=loop.iteration, changed=_recipe_changes(loop.recipe, other.recipe),
                                       ablation=other_figure, loop=loop_figure))
     return found
+
+
+def climbs(catalog, campaign: str, groups: list[SeedGroup]) -> list[Climb]:
+    """Per split, the loop's recipe at its first iteration trained over seeds against its last: empty until two
+    iterations of the loop have several seeds each."""
+    loops = loop_groups(catalog, campaign, groups)
+    if len(loops) < 2:
+        return []
+    first, last = loops[0], loops[-1]
+    return [Climb(first_iteration=first.iteration, last_iteration=last.iteration, first=a, last=b)
+            for a in first.figures if (b := _figure(last, a.group)) is not None]

@@ -10,7 +10,7 @@ import json
 import os
 import platform
 
-from dashboards.protocol import ablations, differing_settings, seed_groups
+from dashboards.protocol import ablations, climbs, differing_settings, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
@@ -151,7 +151,21 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         rows.append([str(group.iteration), recipe, group.weights, seeds,
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
     lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
-    return lines + ablation_markdown(ablations(catalog, campaign, groups))
+    return lines + climb_markdown(climbs(catalog, campaign, groups)) + ablation_markdown(ablations(catalog, campaign, groups))
+
+
+def climb_markdown(found: list) -> list[str]:
+    """The loop's first iteration trained over seeds against its last, per split."""
+    if not found:
+        return []
+    first, last = found[0].first_iteration, found[0].last_iteration
+    rows = [[c.first.group, c.first.describe(), c.last.describe(), f"{100 * c.delta:+.1f}", c.reading()]
+            for c in found]
+    return ["", f"### The loop over seeds: iteration {first} against iteration {last}", "",
+            "The loop's own recipe (the rows holding the models its iterations deployed) at its first and its "
+            "last iteration trained over several seeds, registered weights; Δ is the difference of the means "
+            "over seeds, in points.", "",
+            *_table(["split", f"iteration {first}", f"iteration {last}", "Δ points", "reading"], rows)]
 
 
 def _with_precision(recipe: str, seeds: list[int], precisions: list[str]) -> tuple[str, str]:

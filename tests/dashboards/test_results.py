@@ -153,6 +153,44 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     assert "| index | 0 | 1 | 2 | 0.00 | 0.00 |" in text
 
 
+def _deployed(catalog: Catalog, iteration: int, model_key: str, promoted: bool = True) -> None:
+    catalog.register_unit(unit_key=f"redeploy-{iteration}", stage="redeploy", campaign=CAMPAIGN, iteration=iteration,
+                          summary={}, rows={"deployments": [{
+                              "unit_key": f"redeploy-{iteration}", "model_key": model_key, "campaign": CAMPAIGN,
+                              "iteration": iteration, "registered_model": "m", "version": iteration + 1,
+                              "alias": "champion", "champion_version": iteration + 1,
+                              "champion_model_key": model_key, "promoted": promoted, "decision": "",
+                              "mlflow_run_id": ""}]})
+
+
+def test_the_report_sets_the_loops_last_iteration_over_seeds_against_its_first(tmp_path):
+    """Issue 9 item 5's reading: the loop's recipe at iteration 0 and 3, three seeds each, 50 episodes per seed;
+    an ablation at iteration 3 and a seeded iteration the loop did not deploy from stay out of it."""
+    from dashboards.results import protocol_markdown
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    for iteration, wins in ((0, (5, 10, 15)), (3, (30, 35, 40))):
+        for seed, won in enumerate(wins):
+            _training(catalog, f"train-it{iteration}-s{seed}", seed, 8, digest=f"d{iteration}", iteration=iteration,
+                      recipe={"targets": "expert"})
+            _evaluated(catalog, f"train-it{iteration}-s{seed}", won, episodes=50)
+        _training(catalog, f"train-it{iteration}-executed-s{seed}", seed, 8, digest=f"d{iteration}",
+                  iteration=iteration, recipe={"targets": "executed"})  # one seed of an ablation: no row
+    assert "### The loop over seeds" not in "\n".join(protocol_markdown(catalog, CAMPAIGN))  # nothing deployed yet
+    _deployed(catalog, 0, "train-it0-s0")
+    _deployed(catalog, 3, "train-it3-s0", promoted=False)  # met by the redeploy stage, not promoted: still the loop's
+    for seed, won in enumerate((49, 50)):  # seeds of a recipe at iteration 5 whose dataset the loop never deployed from
+        _training(catalog, f"train-it5-s{seed}", seed, 8, digest="d5", iteration=5, recipe={"targets": "expert"})
+        _evaluated(catalog, f"train-it5-s{seed}", won, episodes=50)
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    assert "### The loop over seeds: iteration 0 against iteration 3" in lines
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| seen |")]
+    assert rows == [["seen", "20% ± 10 (10, 20, 30) over 3 seeds, 30/150 pooled [14%, 27%]",
+                     "70% ± 10 (60, 70, 80) over 3 seeds, 105/150 pooled [62%, 77%]", "+50.0",
+                     "above iteration 0's: the pooled intervals are apart"]]
+
+
 def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_the_loops_recipe(tmp_path):
     """train.targets=executed on the loop's dataset: the headline fields (chunk, steps, weights) equal the
     recipe it ablates, so only the recorded recipe keeps its seeds out of that recipe's pool. The precision a
@@ -177,13 +215,7 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
     assert [row[4].split(" over")[0] for row in rows] == ["20% ± 10 (20, 10, 30)", "80% ± 10 (90, 70, 80)"]
     assert not any(line.startswith("### Ablations") for line in lines)  # no deployed model: no loop to compare with
 
-    # the loop deployed the expert arm's seed 0 at iteration 3: the other recipe there is its ablation
-    catalog.register_unit(unit_key="redeploy-3", stage="redeploy", campaign=CAMPAIGN, iteration=3, summary={},
-                          rows={"deployments": [{
-                              "unit_key": "redeploy-3", "model_key": "train-expert-s0", "campaign": CAMPAIGN,
-                              "iteration": 3, "registered_model": "m", "version": 4, "alias": "champion",
-                              "champion_version": 4, "champion_model_key": "train-expert-s0", "promoted": True,
-                              "decision": "", "mlflow_run_id": ""}]})
+    _deployed(catalog, 3, "train-expert-s0")  # the loop's seed: the other recipe at iteration 3 is its ablation
     lines = protocol_markdown(catalog, CAMPAIGN)
     ablations = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[lines.index(
         "### Ablations: each recipe against the loop's own"):] if line.startswith("| 3")]
