@@ -235,7 +235,7 @@ def climbs(catalog, campaign: str, groups: list[SeedGroup]) -> list[Climb]:
     """Per split, the loop's recipe at its first iteration trained over seeds against its last: empty until two
     iterations of the loop have several seeds each."""
     loops = loop_groups(catalog, campaign, groups)
-    if len(loops) < 2:
+    if len({g.iteration for g in loops}) < 2:  # one iteration's loop rows (a redone iteration) do not climb
         return []
     first, last = loops[0], loops[-1]
     return [Climb(first_iteration=first.iteration, last_iteration=last.iteration, first=a, last=b)

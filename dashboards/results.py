@@ -162,7 +162,8 @@ def climb_markdown(found: list) -> list[str]:
     rows = [[c.first.group, c.first.describe(), c.last.describe(), f"{100 * c.delta:+.1f}", c.reading()]
             for c in found]
     return ["", f"### The loop over seeds: iteration {first} against iteration {last}", "",
-            "The loop's own recipe (the rows holding the models its iterations deployed) at its first and its "
+            "The loop's own recipe (the rows holding the models its iterations' redeploy stage met, promoted or "
+            "not) at its first and its "
             "last iteration trained over several seeds, registered weights; Δ is the difference of the means "
             "over seeds, in points.", "",
             *_table(["split", f"iteration {first}", f"iteration {last}", "Δ points", "reading"], rows)]

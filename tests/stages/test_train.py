@@ -32,7 +32,7 @@ from stages.generate_tasks import run_generate_tasks
 from stages.index import IndexResult, latest_index, run_index
 from warehouse.tasks import load_embeddings, load_tasks
 from stages.train import (EXECUTION_FIELDS, STAGE, VERSION, TrainingCollate, action_targets, drop_proprio, random_shift,
-                          run_train, train_unit_key)
+                          run_train, train_unit_key, training_device)
 from tests.conftest import SIM2ACT
 from warehouse.catalog import Catalog
 
@@ -138,7 +138,7 @@ def test_a_chunked_training_on_mixed_actions_registers_its_average_and_acts_per_
     assert json.loads(summary)["chunk"] == 3 and json.loads(summary)["weights"] == "ema 0.999"
     recipe = json.loads(summary)["recipe"]  # what the protocol pools seeds by: every setting but the seed
     assert recipe["model"]["chunk"] == 3 and recipe["targets"] == "expert" and "seed" not in recipe
-    assert json.loads(summary)["precision"] == ("bf16" if uses_bf16(torch.device("cpu"), True) else "fp32")
+    assert json.loads(summary)["precision"] == ("bf16" if uses_bf16(training_device("auto"), True) else "fp32")
     embeddings = load_embeddings(Workspace.at(workspace), *Catalog(Workspace.at(workspace).catalog).query(
         "SELECT DISTINCT unit_key FROM tasks")[0], "all-MiniLM-L6-v2")
     policy = Policy.load(path, embeddings)
