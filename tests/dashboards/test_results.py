@@ -192,6 +192,9 @@ def test_the_report_sets_the_loops_last_iteration_over_seeds_against_its_first(t
     assert rows == [["seen", "20% ± 10 (10, 20, 30) over 3 seeds, 30/150 pooled [14%, 27%]",
                      "70% ± 10 (60, 70, 80) over 3 seeds, 105/150 pooled [62%, 77%]", "+50.0",
                      "above iteration 0's: the pooled intervals are apart"]]
+    climb = lines[lines.index("### The loop over seeds: iteration 0 against iteration 3"):]
+    assert [line.split("|")[1].strip() for line in climb[:climb.index("### Ablations: each recipe against the loop's own")]
+            if line.startswith("| ") and not line.startswith("| split")] == ["seen"]  # splits; families are above
     ablation = lines[lines.index("### Ablations: each recipe against the loop's own"):]
     assert [line.split("|")[2].strip() for line in ablation if line.startswith("| 3")] == ["train.targets executed"]
 
