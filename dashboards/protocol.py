@@ -214,11 +214,11 @@ def loop_groups(catalog, campaign: str, groups: list[SeedGroup]) -> list[SeedGro
                    and any((g.iteration, key) in deployed for key in g.model_keys)), key=lambda g: g.iteration)
 
 
-def ablations(catalog, campaign: str, groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:
-    """Every other recipe of an iteration against the loop's own there (loop_groups), registered weights, on
-    `split`. Which part of the loop does the work is read off these (issue 9 item 5)."""
+def ablations(loops: list[SeedGroup], groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:
+    """Every other recipe of an iteration against the loop's own there (`loops`: loop_groups), registered
+    weights, on `split`. Which part of the loop does the work is read off these (issue 9 item 5)."""
     found = []
-    for loop in loop_groups(catalog, campaign, groups):
+    for loop in loops:
         loop_figure = _figure(loop, split)
         if loop_figure is None:
             continue
@@ -231,10 +231,9 @@ def ablations(catalog, campaign: str, groups: list[SeedGroup], split: str = "see
     return found
 
 
-def climbs(catalog, campaign: str, groups: list[SeedGroup]) -> list[Climb]:
-    """Per split, the loop's recipe at its first iteration trained over seeds against its last: empty until two
-    iterations of the loop have several seeds each."""
-    loops = loop_groups(catalog, campaign, groups)
+def climbs(loops: list[SeedGroup]) -> list[Climb]:
+    """Per split, the loop's recipe (`loops`: loop_groups) at its first iteration trained over seeds against its
+    last: empty until two iterations of the loop have several seeds each."""
     if len({g.iteration for g in loops}) < 2:  # one iteration's loop rows (a redone iteration) do not climb
         return []
     first, last = loops[0], loops[-1]

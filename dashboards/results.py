@@ -10,7 +10,7 @@ import json
 import os
 import platform
 
-from dashboards.protocol import ablations, climbs, differing_settings, seed_groups
+from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
@@ -151,7 +151,8 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         rows.append([str(group.iteration), recipe, group.weights, seeds,
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
     lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
-    return lines + climb_markdown(climbs(catalog, campaign, groups)) + ablation_markdown(ablations(catalog, campaign, groups))
+    loops = loop_groups(catalog, campaign, groups)  # the deployments read once, for both tables below
+    return lines + climb_markdown(climbs(loops)) + ablation_markdown(ablations(loops, groups))
 
 
 def climb_markdown(found: list) -> list[str]:
