@@ -26,7 +26,7 @@ from schemas.config import load_config
 from schemas.settings import SECRETS_FILE_ENV
 from schemas.workspace import Workspace
 from tests.campaign import snapshot
-from tests.conftest import SIM2ACT, _free_port
+from tests.conftest import _free_port
 from tests.dask_hosts import dask_hosts
 from tests.flows.test_service import PREFECT, get_json, post_json, sim2act
 from tests.postgres import postgres_server
