@@ -10,7 +10,7 @@ import statistics
 
 from pydantic import BaseModel
 
-from stages.evaluate import TaskEvaluation, evaluated_key, group_success, wilson_interval
+from stages.evaluate import SPLITS, TaskEvaluation, evaluated_key, group_success, wilson_interval
 
 class SeedsSuccess(BaseModel):
     """Success over a group of cases (a split, a family, a split within a family), per training seed and pooled."""
@@ -232,10 +232,10 @@ def ablations(loops: list[SeedGroup], groups: list[SeedGroup], split: str = "see
 
 
 def climbs(loops: list[SeedGroup]) -> list[Climb]:
-    """Per split, the loop's recipe (`loops`: loop_groups) at its first iteration trained over seeds against its
-    last: empty until two iterations of the loop have several seeds each."""
+    """Per split (not per family: the seeds table has those), the loop's recipe (`loops`: loop_groups) at its first
+    iteration trained over seeds against its last: empty until two iterations of the loop have several seeds each."""
     if len({g.iteration for g in loops}) < 2:  # one iteration's loop rows (a redone iteration) do not climb
         return []
     first, last = loops[0], loops[-1]
     return [Climb(first_iteration=first.iteration, last_iteration=last.iteration, first=a, last=b)
-            for a in first.figures if (b := _figure(last, a.group)) is not None]
+            for a in first.figures if a.group in SPLITS and (b := _figure(last, a.group)) is not None]

@@ -158,7 +158,6 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
 def climb_markdown(found: list) -> list[str]:
     """The loop's first iteration trained over seeds against its last, per split (the families' rows are in the
     table above)."""
-    found = [c for c in found if c.first.group in SPLITS]
     if not found:
         return []
     first, last = found[0].first_iteration, found[0].last_iteration
