@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import BaseModel
 
 from envs.observation import DISCRETE_FAMILIES, Observation
-from envs.pool import Progress, run_in_pool
+from envs.pool import Progress, interleaved, run_in_pool
 from envs.rollout import rollout, worker_env
 from envs.shadow import CaseShadow, shadow_episode
 from schemas.config import Acting, CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
@@ -442,7 +442,8 @@ def evaluate_model(
     units = evaluation_units(workspace, config, model_key, agent, cases, embeddings, suite)
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
-    todo = [u for u in units if u.unit_key in pending]
+    # a case of each family in turn: a navigation case runs in seconds, a robosuite one in minutes
+    todo = interleaved([u for u in units if u.unit_key in pending], lambda u: u.task.family)
     done = len(units) - len(todo)
     log.info("evaluate it%d: %d cases (%d already evaluated), %s episodes each", iteration, len(units), done,
              "/".join(str(n) for n in sorted({len(u.seeds) for u in units})))

@@ -18,7 +18,7 @@ import pyarrow as pa
 from pydantic import BaseModel
 
 from envs.observation import Observation
-from envs.pool import Progress, run_in_pool
+from envs.pool import Progress, interleaved, run_in_pool
 from envs.registry import ACHIEVED_TESTS
 from envs.rollout import Act, Explorer, rollout, worker_env
 from schemas.config import (RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig,
@@ -401,7 +401,8 @@ def run_explore(
     keys = [u.unit_key for u in units]
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(keys))
-    todo = [u for u in units if u.unit_key in pending]
+    # shard 0 of every task, then shard 1 of every task, ...: the families differ 16x in speed per step
+    todo = interleaved([u for u in units if u.unit_key in pending], lambda u: u.task.task_id)
     explorers = dict(Counter(e.explorer for u in units for e in u.episodes))
     log.info("explore it%d: %d shards (%d already registered), episodes by explorer: %s",
              iteration, len(units), len(units) - len(todo), explorers)

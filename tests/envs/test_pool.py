@@ -12,7 +12,7 @@ import psutil
 import pytest
 from pydantic import BaseModel
 
-from envs.pool import UnitFailed, WorkerLost, WorkerPool, keep_workers, run_in_pool
+from envs.pool import UnitFailed, WorkerLost, WorkerPool, interleaved, keep_workers, run_in_pool
 
 
 class Job(BaseModel):
@@ -113,6 +113,13 @@ def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
     progress.resume_at(1600)
     progress.advance(20, 5120)
     assert lines == ["train: 1620/9056 steps, 5120 samples, 512.0 samples/s, ETA 3718s"]
+
+
+def test_interleaving_takes_each_group_in_turn_and_keeps_every_unit_once():
+    units = ["nav-a0", "nav-a1", "nav-a2", "mw-b0", "rs-c0", "rs-c1"]
+    order = interleaved(units, lambda u: u.split("-")[0])
+    assert order == ["nav-a0", "mw-b0", "rs-c0", "nav-a1", "rs-c1", "nav-a2"]
+    assert interleaved([], str) == []
 
 
 def test_closing_a_pool_with_busy_workers_abandons_their_units_without_an_error():

@@ -22,9 +22,10 @@ from schemas.config import CampaignConfig, ExploreConfig, ModelConfig, TasksConf
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages.explore import (CHAINED, EXPERT, STAGE, VERSION, PolicyExplorer, _explorer, curriculum_subgoals, expert_takeover,
-                            plan_explore, run_explore_unit)
+                            plan_explore, run_explore, run_explore_unit)
 from envs.suite import generate_tasks
 from tests.chat_server import closed_port
+from warehouse.catalog import Catalog
 from warehouse.shard_writer import read_shard
 
 
@@ -386,3 +387,21 @@ def test_a_unit_that_could_relabel_keys_on_its_scenes_achieved_test(tmp_path, mo
     assert sorted(with_test[True]) == ["lift-green", "lift-red", "stack-green-red", "stack-red-green"]
     assert sorted(t for t in with_test[True] if with_test[True][t] != without[True][t]) == ["stack-green-red", "stack-red-green"]
     assert with_test[False] == without[False]
+
+
+def test_an_iteration_runs_shard_0_of_every_task_before_any_tasks_shard_1(tmp_path):
+    """So the first minutes' pace (and ETA) is the whole mix's, not the first family's."""
+    config = _config(episodes_per_task=4, episodes_per_shard=2)
+    workspace = Workspace.at(tmp_path).create()
+    Catalog(workspace.catalog).initialise()
+    tasks = generate_tasks(config.tasks, config.seed)
+    handed = []
+
+    def record(units):
+        handed.extend((u.task.task_id, u.shard) for u in units)
+        return iter(())
+
+    run_explore(workspace, config, 0, tasks, None, {}, execute=record)
+    seen = [t.task_id for t in tasks if t.split == "seen"]
+    assert len(seen) >= 2
+    assert handed == [(task, shard) for shard in (0, 1) for task in seen]
