@@ -137,3 +137,40 @@ def test_an_agent_acting_otherwise_than_it_trained_is_never_registered_as_the_mo
     with pytest.raises(ValueError, match="expected the agent acting as it trained to, got acting execution receding"):
         evaluate_model(Workspace.at(tmp_path).create(), CampaignConfig(), 0, "train-m", agent, [], {})
     assert not (tmp_path / "warehouse").exists() or not any((tmp_path / "warehouse").rglob("*.parquet"))
+
+
+def test_an_evaluation_takes_a_case_of_each_family_in_turn(tmp_path, monkeypatch):
+    """So its first minutes' pace (and ETA) is the mix's: a navigation case runs in seconds, a robosuite one in minutes."""
+    import numpy as np
+
+    import stages.evaluate as evaluate
+    from envs.suite import generate_tasks
+    from schemas.config import CampaignConfig, TasksConfig
+    from schemas.workspace import Workspace
+    from warehouse.catalog import Catalog
+
+    class Handed(Exception):
+        pass
+
+    handed = []
+
+    def record(work, units, workers, label):
+        handed.extend(u.task.family for u in units)
+        raise Handed
+        yield  # a generator, as run_in_pool is
+
+    monkeypatch.setattr(evaluate, "run_in_pool", record)
+    config = CampaignConfig(tasks=TasksConfig(specs=["lift", "nav-room", "mw-reach", "mw-push"], colours=["red", "green"]))
+    tasks = generate_tasks(config.tasks, config.seed)
+    cases = evaluate.evaluation_cases(tasks)
+    embeddings = {instruction: np.zeros(384, dtype=np.float32) for _, _, instruction in cases}
+    workspace = Workspace.at(tmp_path).create()
+    Catalog(workspace.catalog).initialise()
+    with pytest.raises(Handed):
+        evaluate.evaluate_model(workspace, config, 0, "train-m", evaluate.Agent(kind="expert"), cases, embeddings)
+    families = [task.family for task, _, _ in cases]
+    assert families[:2] == ["robosuite", "robosuite"]  # the cases' own order: task by task
+    assert sorted(handed) == sorted(families)
+    rounds = min(families.count(family) for family in set(families))
+    assert len(set(families)) == 3 and rounds >= 2
+    assert all(len(set(handed[i:i + 3])) == 3 for i in range(0, 3 * rounds, 3))
