@@ -23,6 +23,21 @@ SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
 AGENT_NAMES = {EXPERT: "scripted expert, noiseless (ceiling)", "ppo": "PPO from scratch", "sac": "SAC from scratch"}
 
 
+def running_seconds(spans: list[tuple[float, float]]) -> float:
+    """The length of the union of the (start, end) spans: the seconds in which at least one was under way.
+    A campaign stopped in the evening and resumed the next day was not running overnight; its elapsed time
+    says it was."""
+    total, current = 0.0, None
+    for start, end in sorted(spans):
+        if current is not None and start <= current[1]:
+            current = (current[0], max(current[1], end))
+            continue
+        if current is not None:
+            total += current[1] - current[0]
+        current = (start, end)
+    return total + (current[1] - current[0] if current is not None else 0.0)
+
+
 def _cell(group: GroupSuccess | None) -> str:
     if group is None:
         return "–"
@@ -304,19 +319,26 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
 
     lines += ["", "## Compute", "",
               f"Per stage, as the stages recorded their units: the units' wall seconds summed (an explore unit holds one "
-              f"core, so there they are CPU-seconds; a training holds `train.threads`), and the stage's elapsed time "
-              f"(first unit's start to last unit's end, resumes included). The report ran on {platform.machine()} with "
-              f"{os.cpu_count()} CPU(s) ({platform.platform(terse=True)}); the campaign ran where its workspace was made.", ""]
-    lines += _table(["stage", "iteration", "units", "wall s (summed)", "unit-hours", "elapsed h"],
-                    [[stage, iteration, units, f"{seconds:,.0f}", f"{seconds / 3600:,.2f}", f"{elapsed / 3600:,.2f}"]
-                     for stage, iteration, units, seconds, elapsed in catalog.query(
-                        "SELECT CASE WHEN v.model_key = ? OR b.unit_key IS NOT NULL THEN 'evaluate (baselines)' "
-                        "ELSE s.stage END, s.iteration, count(*), sum(s.wall_s), "
-                        "epoch(max(s.finished_at) - min(s.finished_at - to_microseconds((s.wall_s * 1e6)::BIGINT))) "
-                        "FROM stage_runs s "
-                        "LEFT JOIN evaluations v ON v.unit_key = s.unit_key "
-                        "LEFT JOIN stage_runs b ON b.stage = ? AND b.unit_key = v.model_key "
-                        "WHERE s.campaign = ? AND (v.unit_key IS NULL OR v.suite = ?) "
-                        "GROUP BY ALL ORDER BY s.iteration, min(s.finished_at)",
-                        [EXPERT, BASELINES_STAGE, campaign, CAMPAIGN_SUITE])])
+              f"core, so there they are CPU-seconds; a training holds `train.threads`), the stage's elapsed time "
+              f"(first unit's start to last unit's end, resumes included) and its running time (the hours in which "
+              f"at least one of its units was in flight: the elapsed time less the pauses between a stop and its "
+              f"resume). The report ran on {platform.machine()} with {os.cpu_count()} CPU(s) "
+              f"({platform.platform(terse=True)}); the campaign ran where its workspace was made.", ""]
+    spans: dict[tuple[str, int], list[tuple[float, float]]] = {}
+    for stage, iteration, start, end in catalog.query(
+            "SELECT CASE WHEN v.model_key = ? OR b.unit_key IS NOT NULL THEN 'evaluate (baselines)' ELSE s.stage END, "
+            "s.iteration, epoch(s.finished_at) - s.wall_s, epoch(s.finished_at) "
+            "FROM stage_runs s "
+            "LEFT JOIN evaluations v ON v.unit_key = s.unit_key "
+            "LEFT JOIN stage_runs b ON b.stage = ? AND b.unit_key = v.model_key "
+            "WHERE s.campaign = ? AND (v.unit_key IS NULL OR v.suite = ?) ORDER BY s.iteration, s.finished_at",
+            [EXPERT, BASELINES_STAGE, campaign, CAMPAIGN_SUITE]):
+        spans.setdefault((stage, iteration), []).append((start, end))
+    rows = []
+    for (stage, iteration), group in sorted(spans.items(), key=lambda item: (item[0][1], min(e for _, e in item[1]))):
+        seconds = sum(end - start for start, end in group)
+        elapsed = max(end for _, end in group) - min(start for start, _ in group)
+        rows.append([stage, iteration, len(group), f"{seconds:,.0f}", f"{seconds / 3600:,.2f}", f"{elapsed / 3600:,.2f}",
+                     f"{running_seconds(group) / 3600:,.2f}"])
+    lines += _table(["stage", "iteration", "units", "wall s (summed)", "unit-hours", "elapsed h", "running h"], rows)
     return "\n".join(lines) + "\n"

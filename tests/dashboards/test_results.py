@@ -7,7 +7,7 @@ import json
 import pytest
 
 from dashboards import results
-from dashboards.results import results_markdown, spec_markdown
+from dashboards.results import results_markdown, running_seconds, spec_markdown
 from schemas.tasks import CAMPAIGN_SUITE
 from schemas.workspace import Workspace
 from stages.evaluate import wilson_interval
@@ -150,7 +150,33 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     rows = [line for line in text.splitlines() if line.startswith("| navigation |") or line.startswith("| all |")]
     assert rows == ["| navigation | seen | 2 | 0 | 0 | 0 | 0 | 0 | 0 |", "| navigation | unseen | 1 | 0 | 0 | 0 | 0 | 0 | 0 |",
                     "| all |  | 3 | 0 | 0 | 0 | 0 | 0 | 0 |"], text
-    assert "| index | 0 | 1 | 2 | 0.00 | 0.00 |" in text
+    assert "| index | 0 | 1 | 2 | 0.00 | 0.00 | 0.00 |" in text
+
+
+def test_running_time_is_the_union_of_the_units_spans():
+    # two workers overlapping, a unit inside another, then a pause of 1,000 s before a resume
+    assert running_seconds([(0, 10), (5, 12), (6, 7), (1012, 1020)]) == 20
+    assert running_seconds([(3, 4)]) == 1 and running_seconds([]) == 0
+
+
+def test_the_compute_table_counts_a_pause_between_sessions_in_elapsed_time_only(tmp_path):
+    """The generalist's exploration: 61 minutes of running, stopped with the session for 26 and resumed; its
+    elapsed time counts the pause, its running time does not."""
+    catalog = _catalog_with_tasks(tmp_path)
+    for n, (finished, wall) in enumerate([(1_000, 600), (1_300, 600), (5_200, 900)]):  # two in parallel, then 3,000 s idle
+        catalog.register_unit(unit_key=f"explore-{n}", stage="explore", campaign=CAMPAIGN, iteration=0, summary={},
+                              wall_s=wall)
+        with catalog.connect() as con:
+            con.execute("UPDATE stage_runs SET finished_at = make_timestamp(?::BIGINT) WHERE unit_key = ?",
+                        [finished * 1_000_000, f"explore-{n}"])
+    catalog.register_unit(unit_key="index-0", stage="index", campaign=CAMPAIGN, iteration=0, summary={}, wall_s=1.0,
+                          rows={"iterations": [{
+                              "unit_key": "index-0", "campaign": CAMPAIGN, "iteration": 0, "dataset_digest": "d",
+                              "explore_units": [], "filter_units": [], "episodes": 0, "kept_episodes": 0,
+                              "triplets": 0}]})
+    text = results_markdown(catalog, CAMPAIGN, "sim2act report")
+    # summed 2,100 s; elapsed 400 -> 5,200 s (1.33 h); running 400 -> 1,300 and 4,300 -> 5,200 (1,800 s: 0.50 h)
+    assert "| explore | 0 | 3 | 2,100 | 0.58 | 1.33 | 0.50 |" in text, text
 
 
 def _deployed(catalog: Catalog, iteration: int, model_key: str, promoted: bool = True) -> None:
