@@ -335,7 +335,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
             [EXPERT, BASELINES_STAGE, campaign, CAMPAIGN_SUITE]):
         spans.setdefault((stage, iteration), []).append((start, end))
     rows = []
-    for (stage, iteration), group in sorted(spans.items(), key=lambda item: (item[0][1], min(e for _, e in item[1]))):
+    for (stage, iteration), group in spans.items():  # in the query's order: by iteration, then first unit's end
         seconds = sum(end - start for start, end in group)
         elapsed = max(end for _, end in group) - min(start for start, _ in group)
         rows.append([stage, iteration, len(group), f"{seconds:,.0f}", f"{seconds / 3600:,.2f}", f"{elapsed / 3600:,.2f}",
