@@ -5,6 +5,7 @@ and acting with a saved one."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 import shutil
 from collections.abc import Callable
@@ -16,6 +17,7 @@ from envs.gym_env import adapter_action, agent_observation
 from envs.observation import DISCRETE_FAMILIES, Observation
 
 RL_ALGORITHMS = ("ppo", "sac")
+log = logging.getLogger("sim2act.policies.rl_agent")
 
 
 def supports(algorithm: str, family: str) -> bool:
@@ -31,10 +33,14 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     rollouts of at most 512 steps (its default 2,048 would be a whole small budget), sized so that
     whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
     holds the budget (at most `replay_size` transitions: each keeps two frames), learning starts
-    after a tenth of it (at most 1,000 steps), batches of 64."""
+    after a tenth of it (at most 1,000 steps), batches of 64. The encoder is SB3's own
+    (policies/rl_encoder.py: in bf16 during updates once `encoder_precision` says so)."""
     from stable_baselines3 import PPO, SAC
 
-    common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu"}
+    from policies.rl_encoder import AutocastExtractor
+
+    common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu",
+              "policy_kwargs": {"features_extractor_class": AutocastExtractor}}  # SB3's own, bf16 where it pays
     if algorithm == "ppo":
         rollouts = math.ceil(env_steps / 512)
         n_steps = math.ceil(env_steps / rollouts)
@@ -82,7 +88,7 @@ def remove_checkpoints(folder: Path) -> None:
 
 def learn_with_checkpoints(
     algorithm: str, env, env_steps: int, seed: int, folder: Path, every: int, replay_size: int | None = None,
-    on_progress: Callable[[int, int], None] | None = None,
+    on_progress: Callable[[int, int], None] | None = None, precision_cache: Path | None = None,
 ):
     """Train an agent to `env_steps` environment steps, from the last checkpoint in `folder` where a
     kill interrupted an earlier run, saving one every `every` steps at the start of a rollout (after
@@ -90,7 +96,9 @@ def learn_with_checkpoints(
 
     A resumed agent's later episodes are seeded by (seed, the step it resumed at): a run killed at
     the same steps repeats itself, though not the unbroken run's episodes. `on_progress(done,
-    resumed_at)` is called at every rollout's start.
+    resumed_at)` is called at every rollout's start. With `precision_cache` (the workspace's precision
+    choices) the encoder's updates take bf16 where it pays on this CPU (policies/rl_encoder.py), decided
+    anew at every start; without it, fp32.
 
     Returns:
         (agent, the step it resumed at: 0 when it started afresh)."""
@@ -108,6 +116,10 @@ def learn_with_checkpoints(
         env.episodes_finished, env.successes = state["episodes"], state["successes"]
         resumed = agent.num_timesteps
         agent.set_random_seed(seed + resumed)
+    if precision_cache is not None:
+        from policies.rl_encoder import encoder_precision
+
+        log.info("%s: %s", algorithm, encoder_precision(agent, precision_cache)[1])
 
     class Checkpoints(BaseCallback):
         due = resumed + every

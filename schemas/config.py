@@ -411,7 +411,8 @@ class TrainConfig(_Strict):
     amp: bool = Field(default=True, description="bf16 autocast where the device has bf16 matrix units: cuda, and "
                       "CPUs with AMX; with AVX-512 BF16 alone (0.94x-1.33x fp32 by core and batch) a long training "
                       "measures its own step both ways once and takes bf16 at >= 1.10x; emulated bf16 (~10x slower) "
-                      "never; policies/precision.py")
+                      "never; policies/precision.py. The same rule puts the RL baselines' encoders in bf16 "
+                      "during their updates (policies/rl_encoder.py)")
     threads: PositiveInt = 2
     model: ModelConfig = ModelConfig()
 

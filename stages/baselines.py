@@ -44,6 +44,8 @@ class RLUnit(BaseModel):
     checkpoint_every: int  # environment steps between resumable checkpoints
     seed: int
     path: str  # where the trained agent is saved; its checkpoints beside it
+    # train.amp's rule for its encoder's updates: the workspace's measured precision choices; None: fp32
+    precision_cache: str | None = None
 
 
 class RLTrained(BaseModel):
@@ -110,7 +112,8 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
 
     try:
         agent, resumed_at = learn_with_checkpoints(unit.algorithm, env, unit.env_steps, unit.seed, path.parent,
-                                                   unit.checkpoint_every, unit.replay_size, on_progress)
+                                                   unit.checkpoint_every, unit.replay_size, on_progress,
+                                                   Path(unit.precision_cache) if unit.precision_cache else None)
     finally:
         progress.close()
     tmp = path.with_name(path.stem + ".tmp.zip")
@@ -146,8 +149,19 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, replay_size=replay,
                                 checkpoint_every=config.baselines.checkpoint_every, seed=config.seed,
-                                path=str(workspace.models / key / "agent.zip")))
+                                path=str(workspace.models / key / "agent.zip"),
+                                precision_cache=str(workspace.precision_choices) if config.train.amp else None))
     return units
+
+
+def longest_first(units: list[RLUnit]) -> list[RLUnit]:
+    """The agents in the order the pool starts them: SAC before PPO, then the larger budgets.
+
+    With fewer workers than agents the stage ends when its last agent does, so the long ones start
+    first and the short ones fill in beside them. A SAC step takes a gradient step on a batch of 64
+    frames: ~120-160 ms of a core at 84 px, against PPO's 8-18 ms (`sim2act bench rl` on the
+    generalist's families); at the generalist's budgets that is ~15 h for SAC on robosuite."""
+    return sorted(units, key=lambda unit: (unit.algorithm != "sac", -unit.env_steps))
 
 
 def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks_key: str,
@@ -167,7 +181,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     units = rl_units(workspace, config, tasks_key, tasks, embeddings, exploration_steps(catalog, explore_units))
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
-    todo = [u for u in units if u.unit_key in pending]
+    todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}"):

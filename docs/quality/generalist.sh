@@ -11,7 +11,7 @@
 # 2. the same command with the preset's adaptation (adapt.*: five seen tasks of the three families, 2/4/8/16
 #    target-domain episodes, three seeds per point, from the champion and from scratch);
 # 3. the same command with the preset's baselines: PPO and SAC from scratch per family, at the environment steps
-#    the family's exploration took (255k-456k: hours each, checkpointed every 25,000 steps);
+#    the family's exploration took (255k-456k: ~15 h for SAC on robosuite, ~0.5-2 h per PPO; started longest first);
 # 4. `sim2act report`: per family and split, the seeds pooled, the baselines and the adaptation curves.
 # Every step is resumable or cached: running the script again skips what finished and resumes what was cut (an
 # explore or evaluation unit, a training from its last checkpoint, an RL agent from its last). Logs: WORKSPACE-logs/.
@@ -29,5 +29,7 @@ trap 'echo "generalist.sh: a step failed; its log is the newest in $LOGS/" >&2' 
 
 $S run "${C[@]}" --set 'baselines.agents=[expert]' --set 'adapt.episodes_per_task=[]' >> "$LOGS/iteration.log" 2>&1
 $S run "${C[@]}" --set 'baselines.agents=[expert]' >> "$LOGS/adapt.log" 2>&1
-$S run "${C[@]}" >> "$LOGS/baselines.log" 2>&1
+# a SAC step costs ~120 ms of a core (docs/bench-rl.md): a checkpoint every 5,000 steps (10 minutes, its ~2 GB replay
+# written in seconds) rather than 25,000 (50 minutes lost to a kill or a session's end); not part of the agents' keys
+$S run "${C[@]}" --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
 $S report "${C[@]}" | tee "$LOGS/report.md"

@@ -1,4 +1,4 @@
-"""Benchmarks: `sim2act bench envs | warehouse | rollout | train`, each side by side with its reference."""
+"""Benchmarks: `sim2act bench envs | warehouse | rollout | train | rl | panels | soak`."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 from flows.cli.common import Commands, add_campaign_options, add_workspace_option, print_or_write
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
-from schemas.workspace import write_text_atomically
+from schemas.workspace import Workspace, write_text_atomically
 
 
 def cmd_bench_envs(args: argparse.Namespace) -> int:
@@ -61,6 +61,40 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
         sizes = sizes.model_copy(update={"cases": args.cases.split(",")})
     bench = bench_train(sizes, args.scratch)
     return print_or_write(args, bench.model_dump_json(indent=1), markdown(bench, args.command_line))
+
+
+def cmd_bench_rl(args: argparse.Namespace) -> int:
+    from bench.rl import bench_rl, markdown, rl_cases
+    from envs.suite import generate_tasks
+    from flows.cli.common import campaign_config
+
+    if args.steps < 1:
+        raise ConfigError(f"bench rl: --steps must be at least 1, got {args.steps}")
+    config = campaign_config(args)
+    if args.agent:
+        config = config.model_copy(update={"baselines": config.baselines.model_copy(update={"agents": args.agent})})
+    tasks = [t for t in generate_tasks(config.tasks, config.seed) if not args.family or t.family in args.family]
+    cases = rl_cases(config, tasks, args.steps, _explored_steps(args, config.name))
+    if not cases:
+        raise ConfigError(f"bench rl: expected an RL agent (baselines.agents: ppo, sac) and a family with seen tasks "
+                          f"it acts in, got agents {config.baselines.agents} over {sorted({t.family for t in tasks})}")
+    costs = bench_rl(cases)
+    return print_or_write(args, json.dumps([c.model_dump() for c in costs], indent=1),
+                          markdown(costs, config.name, args.command_line))
+
+
+def _explored_steps(args: argparse.Namespace, campaign: str) -> dict[str, int]:
+    """family -> environment steps the campaign explored in the workspace: the RL agents' budgets
+    (none where the workspace holds no warehouse)."""
+    from flows.cli.common import open_catalog
+    from stages.baselines import exploration_steps
+
+    if not Workspace.at(args.workspace).catalog.exists():
+        return {}
+    _, catalog = open_catalog(args)
+    units = [key for (key,) in catalog.query(
+        "SELECT unit_key FROM stage_runs WHERE stage = 'explore' AND campaign = ?", [campaign])]
+    return exploration_steps(catalog, units) if units else {}
 
 
 def cmd_bench_soak(args: argparse.Namespace) -> int:
@@ -147,6 +181,15 @@ def register(commands: Commands) -> None:
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
                                 "stage, memory, precision (fp32 vs bf16, CPU), workers0, resnet18, vit, minilm, cuda, act")
+    rl = add_campaign_options(bench_commands.add_parser(
+        "rl", help="an RL baseline's environment step (PPO, SAC), CPU ms per family; with a workspace that explored "
+                   "the campaign, the hours its budget takes"))
+    rl.add_argument("--steps", type=int, default=400, help="timed training steps per agent")
+    rl.add_argument("--agent", choices=["ppo", "sac"], action="append", help="default: the campaign's baselines.agents")
+    rl.add_argument("--family", choices=FAMILIES, action="append", help="default: every family with seen tasks")
+    rl.add_argument("--json", action="store_true", help="print the figures as JSON")
+    rl.add_argument("--out", type=Path, help="also write the table as markdown here")
+    rl.set_defaults(handler=cmd_bench_rl)
     panels = add_workspace_option(bench_commands.add_parser(
         "panels", help="each dashboard panel's query timed on a warehouse (target: 1 s)"))
     panels.add_argument("--campaign", help="whose panels (default: the warehouse's one campaign)")

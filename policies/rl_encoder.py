@@ -1,0 +1,82 @@
+"""The RL baselines' observation encoder: stable-baselines3's own (NatureCNN on the frames, the proprio
+and instruction vectors flattened beside it), in bf16 autocast during the agent's updates where that
+pays on this CPU, as `train.amp` decides for our policy (policies/precision.py).
+
+Why: a SAC step takes a gradient step on 64 frames, five encoder passes and two backward ones, ~150 ms
+of a core in fp32 (docs/bench-rl.md), so the generalist's SAC agents train for ~16-20 h each. Only the
+encoder autocasts: its features come back in fp32, so the heads, losses, log-probabilities and entropy
+terms compute as SB3 wrote them. Acting (batch 1) stays fp32, where bf16's casts would cost more than
+they save; so do SAC's target critics (SB3 keeps them out of training mode)."""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from stable_baselines3.common.torch_layers import CombinedExtractor
+
+from policies.precision import cpu_bf16_may_pay, describe, measured_bf16, probe_key, uses_bf16
+from schemas.keys import digest_of
+
+CPU = torch.device("cpu")
+
+
+class AutocastExtractor(CombinedExtractor):
+    """SB3's CombinedExtractor; while `bf16` is set and the module is in training mode (SB3 sets it for
+    `train()` and unsets it to act), its pass runs in bf16 autocast and returns fp32 features. Unset,
+    it is CombinedExtractor exactly (the same parameters, drawn from the same seeds)."""
+
+    bf16 = False
+
+    def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
+        if not (self.bf16 and self.training):
+            return super().forward(observations)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            features = super().forward(observations)
+        return features.float()
+
+
+def extractors(agent) -> list[AutocastExtractor]:
+    return [module for module in agent.policy.modules() if isinstance(module, AutocastExtractor)]
+
+
+def encoder_precision(agent, cache: Path, batch_size: int = 64) -> tuple[bool, str]:
+    """bf16 for the agent's encoders during its updates, or fp32, and why (for the log): `train.amp`'s rule for
+    this CPU (bf16 with AMX, fp32 without bf16 units); with AVX-512 BF16 alone, one update-sized pass
+    and backward of the encoder measured both ways, once per host and encoder (`cache`: the workspace's
+    precision choices), bf16 taken at >= 1.10x. Sets the agent's extractors accordingly."""
+    found = extractors(agent)
+    if not found:  # an agent saved before the encoder existed: SB3's own, fp32
+        return False, "fp32 (an agent saved with SB3's own encoder)"
+    if not cpu_bf16_may_pay(CPU):
+        bf16, why = uses_bf16(CPU, True), describe(CPU, True)
+    else:
+        encoder = found[0]
+        key = probe_key(digest_of(["sb3 CombinedExtractor", repr(agent.observation_space)]), batch_size)
+        bf16, speedup = measured_bf16(_pass_timer(agent, encoder, batch_size), cache, key)
+        why = f"{'bf16 autocast' if bf16 else 'fp32'}: bf16 measured at {speedup:.2f}x fp32's speed on this CPU"
+    for extractor in found:
+        extractor.bf16 = bf16
+    return bf16, f"encoder in {why} during updates"
+
+
+def _pass_timer(agent, encoder: AutocastExtractor, batch_size: int):
+    """Seconds of one forward and backward pass of a copy of `encoder` over `batch_size` sampled
+    observations, in bf16 or fp32; the agent, its spaces' RNG and torch's as they were."""
+    space = copy.deepcopy(agent.observation_space)
+    space.seed(0)
+    samples = [space.sample() for _ in range(batch_size)]
+    batch = {key: torch.as_tensor(np.stack([s[key] for s in samples])) for key in samples[0]}
+    probe = copy.deepcopy(encoder).train()
+
+    def seconds(bf16: bool) -> float:
+        probe.bf16 = bf16
+        probe.zero_grad(set_to_none=True)
+        started = time.perf_counter()
+        agent.policy.extract_features(batch, probe).sum().backward()
+        return time.perf_counter() - started
+
+    return seconds

@@ -1,0 +1,81 @@
+"""The RL baselines' encoder: SB3's own exactly in fp32; in bf16 only during updates, its features back in
+fp32 and near the fp32 ones; the precision chosen by train.amp's rule for this CPU, once per host."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.preprocessing import preprocess_obs
+from stable_baselines3.common.torch_layers import CombinedExtractor
+
+from envs.gym_env import InstructedTasksEnv
+from envs.suite import generate_tasks
+from policies.precision import cpu_bf16_may_pay, uses_bf16
+from policies.rl_agent import learn_with_checkpoints, new_agent
+from policies.rl_encoder import AutocastExtractor, encoder_precision, extractors
+from schemas.config import RandomiseConfig, RenderConfig, TasksConfig
+
+
+@pytest.fixture(scope="module")
+def env() -> InstructedTasksEnv:
+    tasks = generate_tasks(TasksConfig(specs=["nav-room"], colours=["red", "green"]), seed=0)
+    said = sorted({text for task in tasks for text in task.instructions})
+    return InstructedTasksEnv(tasks, {text: np.full(8, i, dtype=np.float32) for i, text in enumerate(said)},
+                              RenderConfig(image_size=48), RandomiseConfig())
+
+
+def _batch(space, size: int = 16) -> dict[str, torch.Tensor]:
+    """Sampled observations as the agent sees them (SB3 wraps the env: its frames channels-first)."""
+    space.seed(1)
+    samples = [space.sample() for _ in range(size)]
+    return {key: torch.as_tensor(np.stack([s[key] for s in samples])) for key in samples[0]}
+
+
+def test_unset_it_is_sb3s_extractor_exactly(env):
+    space = new_agent("ppo", env, 600, 0).observation_space
+    torch.manual_seed(0)
+    ours = AutocastExtractor(space).train()
+    torch.manual_seed(0)
+    theirs = CombinedExtractor(space).train()
+    observed = preprocess_obs(_batch(space), space)
+    assert torch.equal(ours(observed), theirs(observed))
+
+
+def test_bf16_only_while_training_and_its_features_in_fp32(env):
+    agent = new_agent("ppo", env, 600, 0)
+    found = extractors(agent)
+    assert len(found) == 1  # PPO's actor and critic share it
+    encoder, batch = found[0], _batch(agent.observation_space)
+    encoder.train()
+    fp32 = agent.policy.extract_features(batch, encoder)
+    encoder.bf16 = True
+    bf16 = agent.policy.extract_features(batch, encoder)
+    assert bf16.dtype == torch.float32 and not torch.equal(bf16, fp32)  # computed in bf16, handed on in fp32
+    assert torch.allclose(bf16, fp32, rtol=0.05, atol=0.05)
+    encoder.eval()  # acting: SB3 leaves training mode, and the pass is fp32 again
+    assert torch.equal(agent.policy.extract_features(batch, encoder), fp32)
+
+
+def test_the_choice_follows_the_cpu_and_is_measured_once_per_host(env, tmp_path):
+    agent = new_agent("ppo", env, 600, 0)
+    cache = tmp_path / "precision.json"
+    bf16, why = encoder_precision(agent, cache, batch_size=8)
+    assert all(e.bf16 == bf16 for e in extractors(agent))
+    if cpu_bf16_may_pay(torch.device("cpu")):  # AVX-512 BF16 without AMX: measured, kept, read back
+        [measured] = json.loads(cache.read_text()).values()
+        assert bf16 == (measured["speedup"] >= 1.10) and "measured" in why
+        assert encoder_precision(new_agent("ppo", env, 600, 0), cache, batch_size=8)[0] == bf16
+        assert len(json.loads(cache.read_text())) == 1
+    else:  # the device's rule: bf16 with AMX, fp32 without bf16 units; nothing measured
+        assert bf16 == uses_bf16(torch.device("cpu"), True) and not cache.exists()
+
+
+def test_a_training_with_the_cache_learns_and_saves_an_agent_that_loads(env, tmp_path):
+    agent, _ = learn_with_checkpoints("ppo", env, 128, 0, tmp_path / "agent", 64,
+                                      precision_cache=tmp_path / "precision.json")
+    assert agent.num_timesteps >= 128
+    agent.save(tmp_path / "agent.zip")
+    from stable_baselines3 import PPO
+    loaded = PPO.load(tmp_path / "agent.zip", device="cpu")
+    assert extractors(loaded) and not any(e.bf16 for e in extractors(loaded))  # an execution choice, not saved
