@@ -13,8 +13,8 @@ import platform
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
-from stages.adapt import (STAGE as ADAPT_STAGE, AdaptPoint, AdaptResult, adapt_results, episodes_to_reach, pooled,
-                          pooled_score)
+from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
+                          episodes_to_reach, points_of_family, pooled, pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
@@ -86,9 +86,9 @@ def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str
     return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
 
 
-def _reached(result: AdaptResult, start: str) -> str:
-    episodes = episodes_to_reach(result.points, start, result.target_success)
-    most = max(p.episodes for p in result.points)
+def _reached(points: list[AdaptPoint], start: str, target: float) -> str:
+    episodes = episodes_to_reach(points, start, target)
+    most = max(p.episodes for p in points)
     return f"**{episodes}**" if episodes is not None else f"not reached within {most}"
 
 
@@ -125,10 +125,59 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
                     + [[n, cells.get((n, "fine-tuned"), "–"), cells.get((n, "scratch"), "–")] for n in counts])
     [(seconds,)] = catalog.query("SELECT coalesce(sum(wall_s), 0) FROM stage_runs WHERE campaign = ? AND stage <> ?",
                                  [result.campaign, ADAPT_STAGE])
-    lines += ["", f"Episodes to reach {result.target_success:.0%}: fine-tuned {_reached(result, 'fine-tuned')}, "
-                  f"from scratch {_reached(result, 'scratch')} (the proposal's target: ≤ 50). "
+    target = result.target_success
+    lines += ["", f"Episodes to reach {target:.0%}: fine-tuned {_reached(result.points, 'fine-tuned', target)}, "
+                  f"from scratch {_reached(result.points, 'scratch', target)} (the proposal's target: ≤ 50). "
                   f"Compute: {seconds:,.0f} wall seconds over the adaptation's stages (campaign `{result.campaign}`)."]
-    return lines
+    return lines + adaptation_by_family(catalog, result)
+
+
+def adaptation_by_family(catalog: Catalog, result: AdaptResult) -> list[str]:
+    """Where the adapted tasks span several families: each family's points alone (its tasks' evaluation
+    rows, the seeds pooled) and the episodes each start needed there; the pooled table mixes a family
+    that adapts at once with one that never does."""
+    families = family_scores(catalog, result)
+    return family_table(result, families) if len(families) > 1 else []
+
+
+FamilyScores = dict[str, tuple[int, dict[str, tuple[int, int]]]]  # family -> (its tasks, model key -> (successes, episodes))
+
+
+def family_scores(catalog: Catalog, result: AdaptResult) -> FamilyScores:
+    """Each family's score of every model of the adaptation, on that family's adapted tasks, from the
+    evaluation rows the adaptation made (its episodes per task: rows of another `adapt.eval_episodes`
+    left out)."""
+    if not result.tasks:  # registered before adapt.tasks: one family's every seen task
+        return {}
+    per_task = result.points[0].trials // len(result.tasks)
+    rows = catalog.query(
+        "SELECT family, model_key, count(DISTINCT task_id), sum(successes), sum(episodes) FROM evaluations "
+        "WHERE campaign = ? AND suite = ? AND list_contains(?, task_id) AND list_contains(?, model_key) "
+        "AND episodes = ? GROUP BY ALL ORDER BY ALL",
+        [result.campaign, ADAPT_SUITE, result.tasks, [p.model_key for p in result.points], per_task])
+    families: FamilyScores = {}
+    for family, model_key, tasks, successes, episodes in rows:
+        families.setdefault(family, (int(tasks), {}))[1][model_key] = (int(successes), int(episodes))
+    return families
+
+
+def family_table(result: AdaptResult, families: FamilyScores) -> list[str]:
+    rows, target = [], result.target_success
+    for family, (tasks, scores) in families.items():
+        points = points_of_family(result.points, scores, tasks)
+        cells = {point: _pooled_cell(seeds) for point, seeds in pooled(points).items()}
+        for n in sorted({p.episodes_per_task for p in points}):
+            if n == 0:
+                rows.append([family, tasks, 0, cells.get((0, "source"), "–"), "–"])
+            else:
+                rows.append([family, tasks, n, cells.get((n * tasks, "fine-tuned"), "–"),
+                             cells.get((n * tasks, "scratch"), "–")])
+        rows.append([family, tasks, f"to reach {target:.0%}", _reached(points, "fine-tuned", target),
+                     _reached(points, "scratch", target)])
+    return ["", "Per family (the same models on each family's tasks alone; episodes per task, and on the \"to reach\" "
+            "row the family's target-domain episodes):", "",
+            *_table(["family", "tasks", "episodes per task", "fine-tuned from Sim2Act (0: the champion)", "from scratch"],
+                    rows)]
 
 
 def spec_markdown(catalog: Catalog, campaign: str) -> list[str]:

@@ -117,6 +117,15 @@ def episodes_to_reach(points: list[AdaptPoint], start: Start, success: float) ->
     return min(reached, default=None)
 
 
+def points_of_family(points: list[AdaptPoint], scores: dict[str, tuple[int, int]], tasks: int) -> list[AdaptPoint]:
+    """The points scored on one family's tasks alone: `scores` maps a model key to its successes and
+    episodes on those `tasks` (its rows in `evaluations`); each point counts the target-domain episodes
+    of those tasks only. A point whose model has no rows there is left out."""
+    return [point.model_copy(update={"successes": scores[point.model_key][0], "trials": scores[point.model_key][1],
+                                     "episodes": point.episodes_per_task * tasks})
+            for point in points if point.model_key in scores]
+
+
 def adapted_tasks(config: CampaignConfig, tasks: list[TaskRecord]) -> list[TaskRecord]:
     """The campaign's seen tasks the adaptation runs on: `adapt.tasks`, or every seen one.
 

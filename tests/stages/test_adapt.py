@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dashboards.results import adaptation_markdown
+from dashboards.results import adaptation_markdown, family_scores, family_table
 from envs.suite import generate_tasks
 from policies.policy import checkpoint_members
 from schemas.config import CampaignConfig, ConfigError, RandomiseConfig
@@ -87,6 +87,37 @@ def test_the_report_tabulates_the_latest_adaptation(adapted):
     assert f"| 4 | {cell[4, 'fine-tuned']} = " in text and "Episodes to reach 80%: fine-tuned " in text
     assert "stand-in" in text and "light (0.35, 0.55)" in text
     assert adaptation_markdown(catalog, "another-campaign")[0].startswith("No adaptation has run")
+
+
+def test_each_family_s_scores_come_from_the_adaptation_s_own_rows(adapted):
+    _, workspace, _, result = adapted
+    catalog = Catalog(workspace.catalog)
+    families = family_scores(catalog, result)
+    assert families == {"robosuite": (2, {p.model_key: (p.successes, p.trials) for p in result.points})}
+    assert "Per family" not in "\n".join(adaptation_markdown(catalog, "adapt-test"))  # one family: the pooled table says it
+
+
+def test_the_per_family_table_counts_each_family_s_episodes_to_its_target():
+    def point(start, per_task, key, seed=0):
+        return AdaptPoint(start=start, episodes_per_task=per_task, episodes=per_task * 4, model_key=key, successes=0,
+                          trials=40, seed=seed)
+
+    points = [point("source", 0, "champion"), point("fine-tuned", 2, "f2"), point("scratch", 2, "s2"),
+              point("fine-tuned", 4, "f4"), point("scratch", 4, "s4"), point("fine-tuned", 4, "f4b", seed=1)]
+    result = AdaptResult(campaign="c-adapt", source_model="champion", domain=RandomiseConfig(), target_success=0.8,
+                         points=points, tasks=["lift-red", "lift-green", "lift-blue", "nav-room-red"])
+    families = {  # three Lift tasks (10 episodes each) that adapt with 4 episodes each; one navigation task already there
+        "robosuite": (3, {"champion": (3, 30), "f2": (20, 30), "s2": (0, 30), "f4": (26, 30), "f4b": (24, 30),
+                          "s4": (6, 30)}),
+        "navigation": (1, {"champion": (9, 10), "f2": (8, 10), "s2": (2, 10), "f4": (10, 10), "f4b": (9, 10),
+                           "s4": (3, 10)}),
+    }
+    rows = {tuple(cell.strip() for cell in line.strip("|").split("|")[:3]): line
+            for line in family_table(result, families) if line.startswith("| robosuite") or line.startswith("| navigation")}
+    assert "50/60 = 83% (seeds 80%–87%)" in rows["robosuite", "3", "4"]  # the two seeds of f4 pooled
+    assert "| **12** | not reached within 12 |" in rows["robosuite", "3", "to reach 80%"]  # 4 episodes x 3 tasks
+    assert "| **0** | not reached within 4 |" in rows["navigation", "1", "to reach 80%"]  # the champion, as it is
+    assert "9/10 = 90%" in rows["navigation", "1", "0"]
 
 
 def test_a_rerun_does_no_work(adapted):
