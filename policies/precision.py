@@ -28,7 +28,8 @@ from torch import nn
 # bf16 is taken where it is measured only if it beats fp32 by this much: a choice that flips on timing
 # noise would make two trainings of one recipe compute differently for nothing
 BF16_MARGIN = 1.10
-# a shorter training stays in fp32 unmeasured: the probe (a batch read, 8 steps: seconds) would not pay back
+# a shorter training does not measure (the probe, a batch read and 8 steps: seconds, would not pay back): it takes
+# the choice a longer one measured for its model and batch on this host, else fp32
 PROBE_MIN_SAMPLES = 500_000
 
 
@@ -79,6 +80,12 @@ def measured_bf16(step_seconds: Callable[[bool], float], cache: Path, key: str, 
         partial.replace(cache)
     speedup = choices[key]["speedup"]
     return speedup >= BF16_MARGIN, speedup
+
+
+def known_bf16(cache: Path, key: str) -> bool:
+    """Whether `cache` already holds a measured choice for `key`: a training too short to measure one
+    takes it (the same host, threads, model and batch) instead of staying in fp32."""
+    return cache.exists() and key in json.loads(cache.read_text())
 
 
 def _in_turns(step_seconds: Callable[[bool], float], trials: int) -> dict[bool, float]:

@@ -24,8 +24,8 @@ from policies.ema import WeightAverage
 from policies.language import ENCODERS
 from policies.model import ModelDims, VLAModel, join_views, pixels, split_views, vla_loss
 from policies.policy import Normaliser, checkpoint_members, policy_state, save_atomically
-from policies.precision import (PROBE_MIN_SAMPLES, autocast, cpu_bf16_may_pay, describe, image_layout, measured_bf16,
-                                probe_key, to_device_layout, uses_bf16)
+from policies.precision import (PROBE_MIN_SAMPLES, autocast, cpu_bf16_may_pay, describe, image_layout, known_bf16,
+                                measured_bf16, probe_key, to_device_layout, uses_bf16)
 from schemas.config import MODEL_LEGACY_VALUES, CampaignConfig, TrainConfig
 from schemas.keys import derive_seed, digest_of, key_fields, unit_key
 from schemas.wordings import training_variants
@@ -465,13 +465,16 @@ def training_precision(workspace: Workspace, config: CampaignConfig, batches: St
     """bf16 autocast or fp32 for this training, and the log line's why: the device's rule (policies/precision.py);
     on a CPU where bf16 may pay (AVX-512 BF16, no AMX), a training of at least PROBE_MIN_SAMPLES measures a
     step of its own model on its own first batch both ways, once per host, model and batch
-    (Workspace.precision_choices)."""
+    (Workspace.precision_choices); a shorter one (an adaptation's fine-tuning) takes that choice where it
+    was measured, else fp32."""
     cfg = config.train
-    samples = cfg.ensemble * batches.epochs * batches.batches_per_epoch * cfg.batch_size
-    if not (cfg.amp and cpu_bf16_may_pay(device) and samples >= PROBE_MIN_SAMPLES):
+    if not (cfg.amp and cpu_bf16_may_pay(device)):
         return uses_bf16(device, cfg.amp), describe(device, cfg.amp)
     dims = model_dims(config, state)
     key = probe_key(digest_of([cfg.model.model_dump_json(), repr(dims)]), cfg.batch_size)
+    samples = cfg.ensemble * batches.epochs * batches.batches_per_epoch * cfg.batch_size
+    if samples < PROBE_MIN_SAMPLES and not known_bf16(workspace.precision_choices, key):
+        return uses_bf16(device, cfg.amp), describe(device, cfg.amp)
     bf16, speedup = measured_bf16(_step_timer(cfg, dims, batches.first_batch(), device),
                                   workspace.precision_choices, key)
     return bf16, (f"{'bf16 autocast' if bf16 else 'fp32'}, channels_last: bf16 measured at {speedup:.2f}x fp32's "

@@ -400,3 +400,14 @@ def test_a_long_training_where_bf16_may_pay_measures_its_own_step_once_per_host_
     assert "batch 16" in key and "threads" in key and choice["fp32_s"] > 0 and choice["bf16_s"] > 0
     assert choice["speedup"] == pytest.approx(choice["fp32_s"] / choice["bf16_s"])
     assert result.history and math.isfinite(result.history[-1]["loss"])
+
+    # short trainings again (an adaptation's fine-tunings): they do not measure, they take the measured choice
+    monkeypatch.setattr(train, "PROBE_MIN_SAMPLES", 10**9)
+    catalog = Catalog(workspace.catalog)
+    for seed, speedup, taken in ((2, 2.0, "bf16"), (3, 1.0, "fp32")):  # as if bf16 had won, then lost
+        workspace.precision_choices.write_text(json.dumps({key: {**choice, "speedup": speedup}}))
+        short = config.model_copy(update={"train": config.train.model_copy(update={"seed": seed})})
+        trained = run_train(workspace, short, 0, dataset, tasks_key, embeddings)
+        [(precision,)] = catalog.query("SELECT json_extract_string(summary, '$.precision') FROM stage_runs "
+                                       "WHERE unit_key = ?", [trained.model_key])
+        assert precision == taken, seed
