@@ -215,8 +215,26 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
         rows.append([str(group.iteration), recipe, group.weights, seeds,
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
     lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
+    lines += family_seeds_markdown(groups, splits)
     loops = loop_groups(catalog, campaign, groups)  # the deployments read once, for both tables below
     return lines + climb_markdown(climbs(loops)) + ablation_markdown(ablations(loops, groups))
+
+
+def family_seeds_markdown(groups: list, splits: list[str]) -> list[str]:
+    """Where the trainings met tasks of several families (the generalist): each group's figures per family
+    and split, in the rows' order above; one family's are the table above."""
+    families = sorted({f.group.split("/")[0] for g in groups for f in g.figures if "/" in f.group})
+    if len(families) < 2:
+        return []
+    rows = []
+    for group in groups:
+        by_group = {f.group: f for f in group.figures}
+        for family in families:
+            cells = [by_group[f"{family}/{s}"].describe() if f"{family}/{s}" in by_group else "–" for s in splits]
+            if any(cell != "–" for cell in cells):
+                rows.append([str(group.iteration), family, group.weights, ", ".join(map(str, group.seeds)), *cells])
+    return ["", "Per family, the same trainings:", "",
+            *_table(["iteration", "family", "weights evaluated", "seeds", *splits], rows)]
 
 
 def climb_markdown(found: list) -> list[str]:

@@ -90,16 +90,36 @@ def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "
                                             "final_loss": 0.0, "unit_key": key}]})
 
 
-def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10) -> None:
+def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None) -> None:
+    """`model`'s evaluation on one case: nav-room-red seen, or `task` (task id, family), seen."""
+    task_id, family = task or ("nav-room-red", "navigation")
     low, high = wilson_interval(won, episodes)
-    row = {"unit_key": f"evaluate-{model}", "campaign": CAMPAIGN, "iteration": 0, "suite": CAMPAIGN_SUITE,
-           "model_key": model, "task_id": "nav-room-red", "family": "navigation", "split": "seen",
-           "instruction": "nav-room-red", "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
+    row = {"unit_key": f"evaluate-{model}-{task_id}", "campaign": CAMPAIGN, "iteration": 0, "suite": CAMPAIGN_SUITE,
+           "model_key": model, "task_id": task_id, "family": family, "split": "seen",
+           "instruction": task_id, "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
            "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
            "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
            "failure_video": None, "episode_achieved": None, "success_rate": won / episodes}
-    catalog.register_unit(unit_key=f"evaluate-{model}", stage="evaluate", campaign=CAMPAIGN, iteration=0, summary={},
-                          rows={"evaluations": [row]})
+    catalog.register_unit(unit_key=f"evaluate-{model}-{task_id}", stage="evaluate", campaign=CAMPAIGN, iteration=0,
+                          summary={}, rows={"evaluations": [row]})
+
+
+def test_the_seeds_are_pooled_per_family_where_the_trainings_met_several(tmp_path):
+    from dashboards.results import protocol_markdown
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    for seed, (navigated, lifted) in enumerate(((9, 2), (7, 4), (8, 3))):
+        _training(catalog, f"train-s{seed}", seed, 8)
+        _evaluated(catalog, f"train-s{seed}", navigated)
+        _evaluated(catalog, f"train-s{seed}", lifted, task=("lift-red", "robosuite"))
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    rows = {row[1]: row for row in ([cell.strip() for cell in line.strip("|").split("|")] for line in lines)
+            if len(row) > 1 and row[1] in ("navigation", "robosuite")}
+    assert rows["navigation"] == ["0", "navigation", "registered", "0, 1, 2",
+                                  "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"]
+    assert rows["robosuite"][4].startswith("30% ± 10 (20, 40, 30) over 3 seeds, 9/30 pooled")
+    assert any(line.startswith("| 0 | chunk 8") and "55% ±" in line for line in lines)  # both families, above
 
 
 def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
