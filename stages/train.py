@@ -119,10 +119,11 @@ def action_targets(actions: list[list[float]], expert_actions: list[list[float] 
 
 
 def padded_states(qpos: list[list[float]], width: int) -> np.ndarray:
-    """Stored simulator states, one length per scene -> (n, width), NaN past each state's end."""
+    """Stored simulator states, one length per scene -> (n, width), NaN past each state's end; a state
+    longer than `width` (a fine-tuned model's head, sized by its source's data) is cut to it."""
     states = np.full((len(qpos), width), np.nan, np.float64)
     for i, state in enumerate(qpos):
-        states[i, : len(state)] = state
+        states[i, : min(len(state), width)] = state[:width]
     return states
 
 
@@ -191,12 +192,13 @@ class TrainingCollate:
         return batch
 
 
-def normalisers(catalog: Catalog, dataset: IndexResult,
-                cfg: TrainConfig) -> tuple[Normaliser, Normaliser, Normaliser | None]:
+def normalisers(catalog: Catalog, dataset: IndexResult, cfg: TrainConfig,
+                state_width: int | None = None) -> tuple[Normaliser, Normaliser, Normaliser | None]:
     """Statistics over exactly the training selection, in one read: of the action targets (continuous
     actions only), of proprio, and of the simulator states where an auxiliary state loss asks for
-    them (per component as long as the longest state; None at train.state_weight 0)."""
-    with_state = cfg.state_weight > 0
+    them (per component as long as the longest state, or `state_width`: a fine-tuning's source's
+    head; None at train.state_weight 0 or a width of 0)."""
+    with_state = cfg.state_weight > 0 and state_width != 0
     columns = ["action", "expert_action", "proprio", *(["qpos"] if with_state else [])]
     table = dataset.selection.kept_steps(catalog, columns, cfg.where)
     continuous, index = split_actions(
@@ -205,7 +207,7 @@ def normalisers(catalog: Catalog, dataset: IndexResult,
     state = None
     if with_state:
         qpos = table["qpos"].to_pylist()
-        state = Normaliser.fit(padded_states(qpos, max(map(len, qpos))), 0)
+        state = Normaliser.fit(padded_states(qpos, state_width or max(map(len, qpos))), 0)
     return Normaliser.fit(continuous[index < 0], ACTION_DIM), Normaliser.fit(proprio, PROPRIO_DIM), state
 
 
@@ -534,7 +536,10 @@ def run_train(
     rows = dataset.selection.rows(catalog, cfg.where)
     if not rows:
         raise SelectionError(f"train.where: {cfg.where!r} leaves no step of iteration {iteration}'s dataset to train on")
-    action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg)
+    # a fine-tuning keeps its source's heads: the state head as wide as the source's data made it (the generalist's
+    # million holds longer simulator states than the five tasks its adaptation trains on)
+    state_width = None if source is None else source.get("dims", {}).get("state_dim")
+    action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg, state_width)
     if source is not None:  # the source's heads speak in its own units
         action_norm, proprio_norm = Normaliser(*source["action"]), Normaliser(*source["proprio"])
     shards_read = sorted({catalog.store.rel_of(r.path) for r in rows})

@@ -3,6 +3,7 @@ train on its first episodes from the source model and from scratch, and every on
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -199,3 +200,14 @@ def test_a_chosen_task_with_training_seeds(adapted):
     assert all(p.trials == config.adapt.eval_episodes for p in result.points)  # one task's cases
     text = "\n".join(adaptation_markdown(catalog, "adapt-test"))
     assert f"seen tasks ({task})" in text and "2 training seeds each" in text and "(seeds " in text
+
+
+def test_a_fine_tuning_s_states_take_its_source_s_width():
+    """The generalist's million holds longer simulator states than the five tasks its adaptation trains on:
+    the fine-tuned model keeps its source's state head, so the states are padded or cut to its width."""
+    from stages.train import padded_states
+
+    states = padded_states([[1.0, 2.0, 3.0], [4.0]], 2)
+    assert states.shape == (2, 2) and states[0].tolist() == [1.0, 2.0]
+    assert states[1, 0] == 4.0 and np.isnan(states[1, 1])
+    assert padded_states([[1.0]], 3).shape == (1, 3)
