@@ -96,16 +96,12 @@ def measure_agent(case: RLCase) -> RLStepCost:
 def rl_cases(config: CampaignConfig, tasks: list[TaskRecord], steps: int, budgets: dict[str, int]) -> list[RLCase]:
     """One case per RL agent the campaign's baselines stage would train (an algorithm on a family it
     acts in)."""
-    from policies.rl_agent import RL_ALGORITHMS, supports
+    from stages.baselines import planned_agents
 
     cases = []
-    for algorithm in [a for a in config.baselines.agents if a in RL_ALGORITHMS]:
-        for family in sorted({t.family for t in tasks}):
-            seen = [t for t in tasks if t.family == family and t.split == "seen"]
-            if seen and supports(algorithm, family):
-                budget = config.baselines.env_steps or budgets.get(family)
-                cases.append(RLCase(algorithm=algorithm, family=family, tasks=seen, config=config, steps=steps,
-                                    budget=budget))
+    for algorithm, family, seen in planned_agents(config, tasks):
+        budget = config.baselines.env_steps or budgets.get(family)
+        cases.append(RLCase(algorithm=algorithm, family=family, tasks=seen, config=config, steps=steps, budget=budget))
     return cases
 
 

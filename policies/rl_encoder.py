@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.torch_layers import CombinedExtractor
 
-from policies.precision import cpu_bf16_may_pay, describe, measured_bf16, probe_key, uses_bf16
+from policies.precision import autocast, cpu_bf16_may_pay, describe, measured_bf16, probe_key, uses_bf16
 from schemas.keys import digest_of
 
 CPU = torch.device("cpu")
@@ -34,7 +34,7 @@ class AutocastExtractor(CombinedExtractor):
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
         if not (self.bf16 and self.training):
             return super().forward(observations)
-        with torch.autocast("cpu", dtype=torch.bfloat16):
+        with autocast(CPU, True):
             features = super().forward(observations)
         return features.float()
 

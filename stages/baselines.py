@@ -124,21 +124,33 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
                      resumed_at=resumed_at, path=str(path))
 
 
-def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],
-             embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
-    """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
-    from policies.rl_agent import RL_ALGORITHMS, replay_buffer_size, supports
+def planned_agents(config: CampaignConfig, tasks: list[TaskRecord]) -> list[tuple[str, str, list[TaskRecord]]]:
+    """(algorithm, family, its seen tasks) for each RL agent of `baselines.agents` on each family with
+    seen tasks that the algorithm acts in."""
+    from policies.rl_agent import RL_ALGORITHMS, supports
 
-    units = []
+    planned = []
     for algorithm in [a for a in config.baselines.agents if a in RL_ALGORITHMS]:
         for family in sorted({t.family for t in tasks}):
             seen = [t for t in tasks if t.family == family and t.split == "seen"]
-            steps = config.baselines.env_steps or budgets.get(family, 0)
-            if not seen or not steps:
+            if not seen:
                 continue
             if not supports(algorithm, family):
                 log.info("baselines: %s does not act in %s's discrete action space; skipped", algorithm, family)
                 continue
+            planned.append((algorithm, family, seen))
+    return planned
+
+
+def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],
+             embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
+    """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
+    from policies.rl_agent import replay_buffer_size
+
+    units = []
+    for algorithm, family, seen in planned_agents(config, tasks):
+        steps = config.baselines.env_steps or budgets.get(family, 0)
+        if steps:
             said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
             replay = replay_buffer_size(steps, config.baselines.replay_size)
             # a replay smaller than the budget changes the agent (keys of agents whose replay held it stay as they were)
