@@ -34,10 +34,11 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
     holds the budget (at most `replay_size` transitions: each keeps two frames), learning starts
     after a tenth of it (at most 1,000 steps), batches of 64. The encoder is SB3's own
-    (policies/rl_encoder.py: in bf16 during updates once `encoder_precision` says so)."""
+    (policies/rl_encoder.py: in bf16 during updates once `encoder_precision` says so); SAC's actor
+    loss skips the critic's encoder (`skip_critic_encoder_in_actor_loss`: the same updates, less work)."""
     from stable_baselines3 import PPO, SAC
 
-    from policies.rl_encoder import AutocastExtractor
+    from policies.rl_encoder import AutocastExtractor, skip_critic_encoder_in_actor_loss
 
     common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu",
               "policy_kwargs": {"features_extractor_class": AutocastExtractor}}  # SB3's own, bf16 where it pays
@@ -45,8 +46,10 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
         rollouts = math.ceil(env_steps / 512)
         n_steps = math.ceil(env_steps / rollouts)
         return PPO(n_steps=n_steps, batch_size=min(64, n_steps), **common)
-    return SAC(buffer_size=replay_buffer_size(env_steps, replay_size), learning_starts=min(1000, env_steps // 10),
-               batch_size=64, **common)
+    agent = SAC(buffer_size=replay_buffer_size(env_steps, replay_size), learning_starts=min(1000, env_steps // 10),
+                batch_size=64, **common)
+    skip_critic_encoder_in_actor_loss(agent)
+    return agent
 
 
 def replay_buffer_size(env_steps: int, replay_size: int | None) -> int:
@@ -111,7 +114,10 @@ def learn_with_checkpoints(
     else:
         agent = {"ppo": PPO, "sac": SAC}[algorithm].load(last / "agent.zip", env=env, device="cpu")
         if algorithm == "sac":
+            from policies.rl_encoder import skip_critic_encoder_in_actor_loss
+
             agent.load_replay_buffer(last / "replay.pkl")
+            skip_critic_encoder_in_actor_loss(agent)
         state = json.loads((last / "state.json").read_text())
         env.episodes_finished, env.successes = state["episodes"], state["successes"]
         resumed = agent.num_timesteps

@@ -79,3 +79,34 @@ def test_a_training_with_the_cache_learns_and_saves_an_agent_that_loads(env, tmp
     from stable_baselines3 import PPO
     loaded = PPO.load(tmp_path / "agent.zip", device="cpu")
     assert extractors(loaded) and not any(e.bf16 for e in extractors(loaded))  # an execution choice, not saved
+
+
+@pytest.fixture(scope="module")
+def lift() -> InstructedTasksEnv:
+    tasks = generate_tasks(TasksConfig(specs=["lift"], colours=["red"], horizon={"lift": 40}), seed=0)
+    said = sorted({text for task in tasks for text in task.instructions})
+    return InstructedTasksEnv(tasks, {text: np.full(8, i, dtype=np.float32) for i, text in enumerate(said)},
+                              RenderConfig(image_size=48), RandomiseConfig())
+
+
+def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift):
+    """SB3's SAC with its actor loss's wasted backward pass through the critic's encoder, against ours: the
+    same parameters after the same updates, bit for bit; ours builds a graph through that encoder once an
+    update (the critic's loss), SB3's twice (the actor's loss too)."""
+    from stable_baselines3 import SAC
+
+    def trained(skip: bool) -> tuple[SAC, list[bool]]:
+        agent = new_agent("sac", lift, 1_000, 3)
+        if not skip:  # SB3's own update: the hooks new_agent put on the optimisers removed
+            for optimizer in (agent.critic.optimizer, agent.actor.optimizer):
+                optimizer._optimizer_step_post_hooks.clear()
+        graphs: list[bool] = []
+        agent.critic.features_extractor.register_forward_hook(lambda _m, _i, out: graphs.append(out.requires_grad))
+        agent.learning_starts = 30
+        agent.learn(total_timesteps=33)  # 30 random steps, then 3 updates of 64 samples (drawn with repeats)
+        return agent, graphs
+
+    (ours, our_graphs), (sb3, sb3_graphs) = trained(True), trained(False)
+    assert our_graphs == [True, False] * 3 and sb3_graphs == [True, True] * 3
+    assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
+    assert all(p.requires_grad for p in ours.critic.features_extractor.parameters())  # thawed by the actor's step
