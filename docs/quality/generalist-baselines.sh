@@ -1,0 +1,29 @@
+#!/bin/bash
+# Issue 11 item 4's RL rows on a fresh machine: the generalist's million, one training of the policy (seed 0) and
+# its evaluation, the experts' ceiling, then PPO and SAC per family at the environment steps the family's exploration
+# took, all in one workspace, so that one `sim2act report` puts them side by side (docs/results-generalist.md).
+#
+#   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~16 h on 2 cores
+#
+# Why not docs/quality/generalist.sh: that script also trains the results protocol's other two seeds and runs the
+# adaptation before the baselines (~8 h), whose figures are in the docs already; a workspace that went with its
+# machine needs only the baselines again, and they are the long part (~13.9 h: docs/bench-rl.md).
+# 1. the iteration: explore the million (~1 h), train seed 0 (~0.7 h), evaluate it on 228 cases x 10 episodes
+#    (~0.6 h); the adaptation off;
+# 2. the baselines stage of the same command: the experts, then SAC and PPO per family, longest first, each agent
+#    checkpointed every 5,000 environment steps (~10 minutes of SAC lost to a kill or a session's end);
+# 3. `sim2act report` into WORKSPACE-logs/report.md.
+# Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.
+set -euo pipefail
+# this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+W=${1:?usage: generalist-baselines.sh WORKSPACE [SIM2ACT]}
+W=${W%/}
+S=${2:-sim2act}
+C=(--preset generalist --set render.mesh_detail=0.1 --set train.steps=7000 --workspace "$W")
+LOGS=$W-logs
+mkdir -p "$LOGS"
+trap 'echo "generalist-baselines.sh: a step failed; its log is $LOGS/baselines.log" >&2' ERR
+
+$S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
+$S report "${C[@]}" | tee "$LOGS/report.md"
