@@ -7,7 +7,7 @@
 # Lift is the family where the detail showed most (the generalist's model, trained at 0.1, fell from 72% to 30%
 # at 1.0: docs/rollouts.md), so the place where a detail that matters would show.
 #
-#   docs/quality/mesh-detail-parity.sh WORKSPACE_PREFIX [SIM2ACT]   # from the repository root; ~3 h on 2 cores
+#   docs/quality/mesh-detail-parity.sh WORKSPACE_PREFIX [SIM2ACT]   # from the repository root; ~1.4 h on 2 cores
 #
 # Workspaces WORKSPACE_PREFIX-1.0 and WORKSPACE_PREFIX-0.1 (the render settings are part of the explore and
 # evaluate keys: one campaign per detail). Every step resumes or is cached: run it again to go on. Logs beside.
