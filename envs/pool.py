@@ -346,17 +346,19 @@ def keep_workers() -> Iterator[None]:
 
 
 @contextmanager
-def borrowed_pool(workers: int) -> Iterator[WorkerPool]:
+def borrowed_pool(workers: int, fresh: bool = False) -> Iterator[WorkerPool]:
     """A pool of at least `workers` processes: the kept one (grown if it is smaller) or, outside
     keep_workers, a fresh one closed on return. A borrower that leaves early (an error, or its caller
-    stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one."""
+    stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one.
+    `fresh` retires the kept pool first, and with it the scenes earlier stages built in its workers:
+    the new pool is kept for the stages after."""
     global _kept
     if not _keeping:
         with WorkerPool(workers) as pool:
             yield pool
         return
     with _kept_lock:
-        if _kept is not None and _kept.size < workers:
+        if _kept is not None and (fresh or _kept.size < workers):
             _kept.close()
             _kept = None
         if _kept is None:
@@ -374,13 +376,16 @@ def borrowed_pool(workers: int) -> Iterator[WorkerPool]:
 
 def run_in_pool(
     work: Callable[[Unit], Result], units: Sequence[Unit], workers: int, label: Callable[[Unit], str] = repr,
+    fresh_workers: bool = False,
 ) -> Iterator[tuple[Unit, Result, float]]:
     """Yield (unit, result, seconds in the worker) in completion order; the caller registers
-    each before the next. Stopping early (an error, or the caller's) abandons the rest."""
+    each before the next. Stopping early (an error, or the caller's) abandons the rest.
+    `fresh_workers`: on processes that hold nothing from earlier stages (`borrowed_pool`'s `fresh`),
+    for units that run for hours on a few scenes of their own."""
     if not units:
         return
     count = min(workers, len(units))
-    with borrowed_pool(count) as pool:
+    with borrowed_pool(count, fresh_workers) as pool:
         threads = ThreadPoolExecutor(max_workers=count, thread_name_prefix="sim2act-pool")
         try:
             futures = {threads.submit(run_with_retries, pool, work, unit, label(unit)): unit for unit in units}

@@ -67,12 +67,13 @@ def test_a_unit_that_raises_is_not_retried_and_says_why(tmp_path):
 
 def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path):
     """Two stages in a campaign run on the same two processes, which stay up between them; a stage
-    that fails closes the pool (its units may still run), the next gets fresh workers; leaving
-    keep_workers closes the last."""
+    that asks for fresh workers retires them, and its own are kept for the next; a stage that fails
+    closes the pool (its units may still run), the next gets fresh workers; leaving keep_workers
+    closes the last."""
 
-    def stage(first: int) -> set[int]:
+    def stage(first: int, fresh_workers: bool = False) -> set[int]:
         jobs = [Job(n=n, attempts_dir=str(tmp_path)) for n in range(first, first + 4)]
-        return {pid for _, (_, pid), _ in run_in_pool(attempt, jobs, workers=2)}
+        return {pid for _, (_, pid), _ in run_in_pool(attempt, jobs, workers=2, fresh_workers=fresh_workers)}
 
     def workers() -> set[int]:  # spawned workers: not multiprocessing's resource tracker, nor other tests' servers
         found = set()
@@ -89,6 +90,11 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
         kept = workers()
         assert len(kept) == 2 and explore <= kept
         assert stage(10) <= kept and workers() == kept
+        trained = stage(30, fresh_workers=True)
+        retrained = workers()
+        assert len(retrained) == 2 and trained <= retrained and not retrained & kept  # the old ones gone
+        assert stage(40) <= retrained and workers() == retrained
+        kept = retrained
         with pytest.raises(UnitFailed):
             list(run_in_pool(attempt, [Job(n=-1, attempts_dir=str(tmp_path))], workers=2))
         after = stage(20)
