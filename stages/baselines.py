@@ -196,8 +196,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
     # fresh workers: the kept ones hold every scene the campaign's evaluation built, GBs an agent training
-    # for hours on one family's never uses (the generalist's two SAC workers: 10.5 and 8.8 GB after its
-    # evaluation, 5.7 and 4.2 GB fresh, at the same step)
+    # for hours on one family's never uses (docs/evaluation.md)
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
         ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
