@@ -52,7 +52,10 @@ class InstructedTasksEnv(gym.Env):
 
         self.tasks, self.embeddings, self.randomise = tasks, embeddings, randomise
         self.family = families.pop()
-        self.envs = {task.env_name: worker_env(task, render) for task in tasks}  # one adapter per env name
+        self.render = render
+        # an adapter per env name, asked for at each reset: a family with more env names than a worker
+        # keeps scenes (SIM2ACT_SCENES_PER_WORKER) has the least recently used remade, not all held open
+        self._env = worker_env(tasks[0], render)
         self.observation_space = observation_space(render.image_size, len(next(iter(embeddings.values()))),
                                                    render.views)
         self.action_space = action_space(self.family)
@@ -61,19 +64,20 @@ class InstructedTasksEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         from envs.randomisation import sample_randomisation
+        from envs.rollout import worker_env
 
         super().reset(seed=seed)
         self._task = self.tasks[int(self.np_random.integers(len(self.tasks)))]
         instruction = self._task.instructions[int(self.np_random.integers(len(self._task.instructions)))]
         self._embedding = self.embeddings[instruction]
-        env = self.envs[self._task.env_name]
+        env = self._env = worker_env(self._task, self.render)
         episode_seed = int(self.np_random.integers(2**31))
         obs = env.reset(self._task, episode_seed, sample_randomisation(self.randomise, episode_seed, env.RANDOMISES))
         self._steps = 0
         return agent_observation(obs, self._embedding), {"task_id": self._task.task_id, "instruction": instruction}
 
     def step(self, action):
-        obs, reward, success = self.envs[self._task.env_name].step(adapter_action(action, self.family))
+        obs, reward, success = self._env.step(adapter_action(action, self.family))
         self._steps += 1
         truncated = not success and self._steps >= self._task.horizon
         if success or truncated:

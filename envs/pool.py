@@ -25,6 +25,7 @@ from multiprocessing.connection import Connection, wait
 from typing import Any, TypeVar
 
 from schemas.retry import retrying
+from schemas.settings import scenes_per_worker
 
 Unit = TypeVar("Unit")
 Result = TypeVar("Result")
@@ -214,6 +215,11 @@ class WorkerPool:
     blocks until its unit is done."""
 
     def __init__(self, workers: int):
+        """Raises:
+            SettingError: SIM2ACT_SCENES_PER_WORKER is not a whole number ≥ 1 (said here, before any
+                worker starts, rather than by each worker at its first unit).
+        """
+        scenes_per_worker()
         self.size = workers
         self._context = multiprocessing.get_context("spawn")
         self._idle: queue.Queue[_Worker] = queue.Queue()

@@ -114,8 +114,7 @@ def replay_render(episode: StoredEpisode, camera: str | None = None, size: int |
 
 def replay_frames(episode: StoredEpisode, render: RenderConfig) -> Iterator[np.ndarray]:
     """One frame per step: the episode reset as explored, then each step's state drawn."""
-    # explore's cache: one env per render settings per process, kept open (closing a MetaWorld
-    # env breaks the GL contexts of envs made after it in the process)
+    # explore's cache: one env per render settings per process, kept open between episodes
     from envs.rollout import worker_env
 
     env = worker_env(episode.task, render)

@@ -1,5 +1,6 @@
 """The rollout worker's library: one environment per (family, env, render settings) per worker process,
-reused across units, and one episode rolled out with whoever acts (and, for DAgger, whoever labels).
+reused across units (at most SIM2ACT_SCENES_PER_WORKER of them, the least recently used closed beyond),
+and one episode rolled out with whoever acts (and, for DAgger, whoever labels).
 The explore, evaluate, expert-table and replay stages and the gym adapter all run episodes through it.
 """
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import atexit
 import os
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -16,9 +18,10 @@ from envs.observation import Observation
 from envs.pool import at_worker_exit
 from envs.robosuite_control import STOCK_CONTROL
 from schemas.config import RenderConfig
+from schemas.settings import scenes_per_worker
 from schemas.tasks import TaskRecord
 
-_ENVS: dict[tuple[str, str, str, str], object] = {}
+_ENVS: OrderedDict[tuple[str, str, str, str], object] = OrderedDict()  # least recently used first
 
 
 def close_envs() -> None:
@@ -29,25 +32,35 @@ def close_envs() -> None:
     one registered at a later first draw (MuJoCo's EGL display, made when a MetaWorld environment
     first renders): then the contexts are gone with the display, and the process is ending anyway."""
     while _ENVS:
-        _, env = _ENVS.popitem()
-        try:
-            env.close()
-        except Exception:
-            pass
+        _close(_ENVS.popitem()[1])
+
+
+def _close(env) -> None:
+    try:
+        env.close()  # each adapter makes its own GL context current first (envs/gl.py)
+    except Exception:
+        pass
 
 
 def worker_env(task: TaskRecord, render: RenderConfig | None):
-    """One environment per (family, env, render settings) per worker process, reused across units."""
+    """One environment per (family, env, render settings) per worker process, reused across units.
+    Hold it for one unit or episode, not longer: a later call may close it to make room (the least
+    recently used beyond SIM2ACT_SCENES_PER_WORKER; a scene is 0.1–0.4 GB, remade in 1–3 s)."""
     from envs.registry import make_env
 
     # robosuite's controller path is chosen when an environment is made (envs/robosuite_control.py)
     key = (task.family, task.env_name, render.model_dump_json() if render else "no camera",
            os.environ.get(STOCK_CONTROL, ""))
-    if key not in _ENVS:
-        _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
-        if len(_ENVS) == 1:
-            atexit.register(close_envs)
-            at_worker_exit(close_envs)
+    if key in _ENVS:
+        _ENVS.move_to_end(key)
+        return _ENVS[key]
+    capacity = scenes_per_worker()
+    while len(_ENVS) >= capacity:
+        _close(_ENVS.popitem(last=False)[1])  # closing one leaves the others' frames as they were (tests/envs)
+    _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
+    if len(_ENVS) == 1:
+        atexit.register(close_envs)
+        at_worker_exit(close_envs)
     return _ENVS[key]
 
 

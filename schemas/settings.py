@@ -22,6 +22,10 @@ from schemas.workspace import Workspace
 
 SECRETS_FILE_ENV = "SIM2ACT_SECRETS_FILE"
 CACHE_DIR_ENV = "SIM2ACT_CACHE_DIR"
+# How many scenes (an environment per family, env and render settings) a rollout worker keeps open
+# between units; beyond it the least recently used is closed. A scene holds ~0.14 GB (MetaWorld) to
+# ~0.4 GB (robosuite) of the worker's memory (docs/evaluation.md); 16 keep a worker near 4 GB at most.
+SCENES_PER_WORKER_ENV, DEFAULT_SCENES_PER_WORKER = "SIM2ACT_SCENES_PER_WORKER", 16
 # MLflow's: where runs are logged (default: the workspace's SQLite file); an http(s) URL is an MLflow server.
 TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"
 # MLflow's, read by `sim2act up`'s MLflow server: its database (default: the workspace's SQLite file)
@@ -33,6 +37,10 @@ _KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 class SecretsFileError(Sim2ActError, ValueError):
+    pass
+
+
+class SettingError(Sim2ActError, ValueError):
     pass
 
 
@@ -89,6 +97,20 @@ def cache_dir() -> Path:
     if os.environ.get(CACHE_DIR_ENV):
         return Path(os.environ[CACHE_DIR_ENV])
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "sim2act"
+
+
+def scenes_per_worker() -> int:
+    """SIM2ACT_SCENES_PER_WORKER, else 16.
+
+    Raises:
+        SettingError: the variable is set to anything but a whole number ≥ 1.
+    """
+    raw = os.environ.get(SCENES_PER_WORKER_ENV, "").strip()
+    if not raw:
+        return DEFAULT_SCENES_PER_WORKER
+    if not raw.isdigit() or int(raw) < 1:
+        raise SettingError(f"{SCENES_PER_WORKER_ENV}: expected a whole number of scenes, at least 1, got {raw!r}")
+    return int(raw)
 
 
 def tracking_uri(workspace: Workspace) -> str:

@@ -52,3 +52,20 @@ def test_episodes_draw_tasks_and_end_at_the_horizon_counted():
     assert len(drawn) > 1
     assert steps == 6 * env.tasks[0].horizon
     assert (env.episodes_finished, env.successes) == (6, 0)
+
+
+def test_a_family_with_more_scenes_than_a_worker_keeps_still_runs_its_episodes(monkeypatch):
+    from envs.rollout import _ENVS, close_envs
+    from schemas.settings import SCENES_PER_WORKER_ENV
+
+    monkeypatch.setenv(SCENES_PER_WORKER_ENV, "1")
+    close_envs()  # none cached by other tests: each reset that changes scene must remake one
+    env = _env(["nav-room", "nav-ball"], ["red"])  # two env names, one scene at a time: remade as drawn
+    drawn = set()
+    for episode in range(6):
+        obs, info = env.reset(seed=episode)
+        drawn.add(info["task_id"])
+        for _ in range(3):
+            obs, *_ = env.step(np.int64(0))
+        assert obs["image"].std() > 0 and len(_ENVS) == 1
+    assert drawn == {"nav-room-red", "nav-ball-red"}

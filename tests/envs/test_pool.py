@@ -13,6 +13,7 @@ import pytest
 from pydantic import BaseModel
 
 from envs.pool import UnitFailed, WorkerLost, WorkerPool, interleaved, keep_workers, run_in_pool
+from schemas.settings import SCENES_PER_WORKER_ENV, SettingError
 
 
 class Job(BaseModel):
@@ -156,3 +157,11 @@ def test_closing_a_pool_with_busy_workers_abandons_their_units_without_an_error(
             thread.join(timeout=30)
         assert [type(o) for o in outcomes] == [PoolClosed, PoolClosed]
         assert all(w.connection.closed for w in pool._workers) and not any(w.process.is_alive() for w in pool._workers)
+
+
+def test_a_bad_scenes_per_worker_is_refused_before_any_worker_starts(monkeypatch):
+    monkeypatch.setenv(SCENES_PER_WORKER_ENV, "0")
+    children = len(psutil.Process().children())
+    with pytest.raises(SettingError, match="SIM2ACT_SCENES_PER_WORKER"):
+        WorkerPool(2)
+    assert len(psutil.Process().children()) == children

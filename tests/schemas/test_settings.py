@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from schemas.settings import SecretsFileError, apply_secrets_file, read_secrets_file, redacted, tracking_uri
+from schemas.settings import (
+    SCENES_PER_WORKER_ENV, SecretsFileError, SettingError, apply_secrets_file, read_secrets_file, redacted,
+    scenes_per_worker, tracking_uri,
+)
 from schemas.workspace import Workspace
 
 
@@ -105,3 +108,14 @@ def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stop
     client.log_metric(run.info.run_id, "loss", 0.5)
     assert client.get_run(run.info.run_id).data.metrics == {"loss": 0.5}
     assert tracking_uri(workspace) == uri  # made once: the next call finds it
+
+
+def test_scenes_per_worker_is_a_whole_number_of_at_least_one(monkeypatch):
+    monkeypatch.delenv(SCENES_PER_WORKER_ENV, raising=False)
+    assert scenes_per_worker() == 16
+    monkeypatch.setenv(SCENES_PER_WORKER_ENV, " 3 ")
+    assert scenes_per_worker() == 3
+    for bad in ["0", "-2", "two", "1.5"]:
+        monkeypatch.setenv(SCENES_PER_WORKER_ENV, bad)
+        with pytest.raises(SettingError, match=f"SIM2ACT_SCENES_PER_WORKER: expected a whole number of scenes, at least 1, got '{bad}'"):
+            scenes_per_worker()

@@ -1,0 +1,49 @@
+"""A rollout worker's memory as it asks for more scenes than it keeps (SIM2ACT_SCENES_PER_WORKER):
+one process resets each MetaWorld task of the generalist's specs in turn, `--rounds` times over, and
+prints its RSS every 8 scenes asked. From the repository root:
+
+    .venv/bin/python docs/quality/scene-memory.py                 # the default cap (16)
+    SIM2ACT_SCENES_PER_WORKER=64 .venv/bin/python docs/quality/scene-memory.py --rounds 1   # none closed
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from envs.rollout import _ENVS, close_envs, worker_env  # noqa: E402
+from envs.suite import generate_tasks  # noqa: E402
+from schemas.config import load_config  # noqa: E402
+
+
+def rss_mb() -> float:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=2, help="times over the MetaWorld tasks")
+    parser.add_argument("--mesh-detail", type=float, default=0.1, help="render.mesh_detail, as the generalist ran")
+    args = parser.parse_args()
+    config = load_config("generalist", overrides={"render": {"mesh_detail": args.mesh_detail}})
+    scenes = {}
+    for task in generate_tasks(config.tasks, seed=config.seed):
+        if task.family == "metaworld":
+            scenes.setdefault(task.env_name, task)
+    render, started = config.render, time.monotonic()
+    print(f"{len(scenes)} MetaWorld scenes, {args.rounds} round(s), RSS {rss_mb():.0f} MB at the start")
+    for asked, task in enumerate(list(scenes.values()) * args.rounds, 1):
+        worker_env(task, render).reset(task, asked)
+        if asked % 8 == 0:
+            print(f"{asked} scenes asked, {len(_ENVS)} open, RSS {rss_mb():.0f} MB, {time.monotonic() - started:.0f} s",
+                  flush=True)
+    close_envs()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,35 @@
+"""A worker's scenes (envs.rollout.worker_env): reused across units, at most SIM2ACT_SCENES_PER_WORKER
+of them, the least recently used closed to make room — without touching the others' frames."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envs.rollout import _ENVS, close_envs, worker_env
+from envs.suite import generate_tasks
+from schemas.config import RenderConfig, TasksConfig
+from schemas.settings import SCENES_PER_WORKER_ENV
+
+
+def test_beyond_its_scenes_a_worker_closes_the_least_recently_used_and_the_rest_draw_the_same(monkeypatch):
+    monkeypatch.setenv(SCENES_PER_WORKER_ENV, "2")
+    close_envs()  # from a known cache: the other tests' scenes are remade when they ask again
+    tasks = {t.task_id: t for t in generate_tasks(TasksConfig(specs=["nav-room", "nav-ball", "mw-reach"],
+                                                              colours=["red"]), seed=0)}
+    room, ball, reach = tasks["nav-room-red"], tasks["nav-ball-red"], next(t for t in tasks.values() if t.family == "metaworld")
+    render = RenderConfig(image_size=48)
+
+    def frame(task):
+        env = worker_env(task, render)
+        env.reset(task, 7)
+        return env, env.render_state(env.mujoco_state(), after_step=False).copy()
+
+    room_env, room_frame = frame(room)
+    reach_env, reach_frame = frame(reach)  # MetaWorld's GL context beside ours
+    assert worker_env(room, render) is room_env  # reused, and now the most recently used
+    ball_env, ball_frame = frame(ball)  # a third scene: MetaWorld's, the least recently used, is closed
+    assert len(_ENVS) == 2 and worker_env(room, render) is room_env
+    assert np.array_equal(frame(room)[1], room_frame) and np.array_equal(frame(ball)[1], ball_frame)
+    remade, remade_frame = frame(reach)  # made again, drawing what the closed one drew
+    assert remade is not reach_env and np.array_equal(remade_frame, reach_frame)
+    assert np.array_equal(frame(ball)[1], ball_frame) and len(_ENVS) == 2
