@@ -127,4 +127,10 @@ class MetaWorldEnv:
         return MujocoState.of(self.env.data)
 
     def close(self) -> None:
+        viewer = self.env.mujoco_renderer._viewers.get(self.env.render_mode) if self.render_config else None
+        if viewer is not None:  # made at the first frame, not before
+            # gymnasium frees only the GL context and leaves MuJoCo's GL objects to the garbage collector,
+            # which would delete them by name in whichever scene's context is current then
+            select_offscreen(viewer.opengl_context, viewer.con)
+            viewer.con.free()
         self.env.close()

@@ -254,6 +254,9 @@ class NavigationEnv:
 
     def close(self) -> None:
         if self.renderer is not None:
+            # its GL objects go with its own context: MuJoCo's Renderer frees them after the context,
+            # in whichever is current then (envs/gl.py)
+            select_offscreen(self.renderer._gl_context, self.renderer._mjr_context)
             self.renderer.close()
 
 

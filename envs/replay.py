@@ -114,7 +114,8 @@ def replay_render(episode: StoredEpisode, camera: str | None = None, size: int |
 
 def replay_frames(episode: StoredEpisode, render: RenderConfig) -> Iterator[np.ndarray]:
     """One frame per step: the episode reset as explored, then each step's state drawn."""
-    # explore's cache: one env per render settings per process, kept open between episodes
+    # explore's cache: one env per render settings per process, kept open between episodes (a scene
+    # takes 1–4 s to make: replaying an episode per command or per video would pay it each time)
     from envs.rollout import worker_env
 
     env = worker_env(episode.task, render)

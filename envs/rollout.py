@@ -37,7 +37,7 @@ def close_envs() -> None:
 
 def _close(env) -> None:
     try:
-        env.close()  # each adapter makes its own GL context current first (envs/gl.py)
+        env.close()  # each adapter frees its GL objects in its own context (envs/gl.py)
     except Exception:
         pass
 
@@ -45,7 +45,8 @@ def _close(env) -> None:
 def worker_env(task: TaskRecord, render: RenderConfig | None):
     """One environment per (family, env, render settings) per worker process, reused across units.
     Hold it for one unit or episode, not longer: a later call may close it to make room (the least
-    recently used beyond SIM2ACT_SCENES_PER_WORKER; a scene is 0.1–0.4 GB, remade in 1–3 s)."""
+    recently used beyond SIM2ACT_SCENES_PER_WORKER; a scene is 0.1–0.4 GB, remade in ~1 s (MetaWorld) to
+    2–4 s (robosuite))."""
     from envs.registry import make_env
 
     # robosuite's controller path is chosen when an environment is made (envs/robosuite_control.py)
@@ -58,10 +59,14 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     while len(_ENVS) >= capacity:
         _close(_ENVS.popitem(last=False)[1])  # closing one leaves the others' frames as they were (tests/envs)
     _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
-    if len(_ENVS) == 1:
+    if not _HOOKED:  # after them (atexit runs the last registered first), once per process
+        _HOOKED.append(True)
         atexit.register(close_envs)
         at_worker_exit(close_envs)
     return _ENVS[key]
+
+
+_HOOKED: list[bool] = []
 
 
 Act = Callable[[Observation], np.ndarray]

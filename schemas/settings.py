@@ -108,7 +108,7 @@ def scenes_per_worker() -> int:
     raw = os.environ.get(SCENES_PER_WORKER_ENV, "").strip()
     if not raw:
         return DEFAULT_SCENES_PER_WORKER
-    if not raw.isdigit() or int(raw) < 1:
+    if not raw.isdecimal() or not raw.isascii() or int(raw) < 1:
         raise SettingError(f"{SCENES_PER_WORKER_ENV}: expected a whole number of scenes, at least 1, got {raw!r}")
     return int(raw)
 

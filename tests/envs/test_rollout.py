@@ -3,8 +3,11 @@ of them, the least recently used closed to make room — without touching the ot
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 
+from envs import registry
 from envs.rollout import _ENVS, close_envs, worker_env
 from envs.suite import generate_tasks
 from schemas.config import RenderConfig, TasksConfig
@@ -18,6 +21,8 @@ def test_beyond_its_scenes_a_worker_closes_the_least_recently_used_and_the_rest_
                                                               colours=["red"]), seed=0)}
     room, ball, reach = tasks["nav-room-red"], tasks["nav-ball-red"], next(t for t in tasks.values() if t.family == "metaworld")
     render = RenderConfig(image_size=48)
+    made, make_env = [], registry.make_env
+    monkeypatch.setattr(registry, "make_env", lambda family, name, how: made.append(name) or make_env(family, name, how))
 
     def frame(task):
         env = worker_env(task, render)
@@ -25,11 +30,14 @@ def test_beyond_its_scenes_a_worker_closes_the_least_recently_used_and_the_rest_
         return env, env.render_state(env.mujoco_state(), after_step=False).copy()
 
     room_env, room_frame = frame(room)
-    reach_env, reach_frame = frame(reach)  # MetaWorld's GL context beside ours
+    reach_frame = frame(reach)[1]  # MetaWorld's GL context beside ours
     assert worker_env(room, render) is room_env  # reused, and now the most recently used
-    ball_env, ball_frame = frame(ball)  # a third scene: MetaWorld's, the least recently used, is closed
+    ball_frame = frame(ball)[1]  # a third scene: MetaWorld's, the least recently used, is closed ...
+    gc.collect()  # ... and collected while ball's context is current: nothing of it may be freed there
     assert len(_ENVS) == 2 and worker_env(room, render) is room_env
     assert np.array_equal(frame(room)[1], room_frame) and np.array_equal(frame(ball)[1], ball_frame)
-    remade, remade_frame = frame(reach)  # made again, drawing what the closed one drew
-    assert remade is not reach_env and np.array_equal(remade_frame, reach_frame)
+    assert np.array_equal(frame(reach)[1], reach_frame)  # made again, drawing what the closed one drew
+    del room_env
+    gc.collect()  # room, closed for it, collected likewise (in MetaWorld's context)
     assert np.array_equal(frame(ball)[1], ball_frame) and len(_ENVS) == 2
+    assert made == [t.env_name for t in (room, reach, ball, reach)]  # each scene made once while kept
