@@ -22,6 +22,7 @@ from schemas.settings import scenes_per_worker
 from schemas.tasks import TaskRecord
 
 _ENVS: OrderedDict[tuple[str, str, str, str], object] = OrderedDict()  # least recently used first
+_hooked = False  # close_envs registered to run at exit
 
 
 def close_envs() -> None:
@@ -59,14 +60,12 @@ def worker_env(task: TaskRecord, render: RenderConfig | None):
     while len(_ENVS) >= capacity:
         _close(_ENVS.popitem(last=False)[1])  # closing one leaves the others' frames as they were (tests/envs)
     _ENVS[key] = make_env(task.family, task.env_name, render)  # the GL libraries register their exit hooks
-    if not _HOOKED:  # after them (atexit runs the last registered first), once per process
-        _HOOKED.append(True)
+    global _hooked
+    if not _hooked:  # after them (atexit runs the last registered first), once per process
+        _hooked = True
         atexit.register(close_envs)
         at_worker_exit(close_envs)
     return _ENVS[key]
-
-
-_HOOKED: list[bool] = []
 
 
 Act = Callable[[Observation], np.ndarray]
