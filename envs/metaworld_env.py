@@ -13,7 +13,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from envs.gl import select_offscreen  # noqa: E402
+from envs.gl import select_offscreen, size_offscreen  # noqa: E402
 from envs.mesh_detail import apply_mesh_detail, renderer_meshes  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import VISUAL_ASPECTS, Randomisation, SceneRandomiser, free_bodies  # noqa: E402
@@ -58,11 +58,8 @@ class MetaWorldEnv:
                 render_mode="rgbd_tuple" if render.depth else "rgb_array", camera_name=CAMERAS[render.camera], width=render.image_size,
                 height=render.image_size,
             )
-            model = self.env.model
-            model.vis.quality.offsamples = render.multisamples  # read when the renderer is created
-            model.vis.global_.offwidth = render.image_size
-            model.vis.global_.offheight = render.image_size
-            apply_mesh_detail(model, render)  # before the first render uploads the meshes
+            size_offscreen(self.env.model, render)  # read when the renderer is created, at the first frame
+            apply_mesh_detail(self.env.model, render)  # before the first render uploads the meshes
             self._scene_configured = False
         self.randomiser = SceneRandomiser(self.env.model, CAMERAS[render.camera] if render else None,
                                           task_geoms=[], object_bodies=free_bodies(self.env.model))

@@ -24,7 +24,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 from envs.experts import horizontal  # noqa: E402
-from envs.gl import select_offscreen  # noqa: E402
+from envs.gl import select_offscreen, size_offscreen  # noqa: E402
 from envs.mesh_detail import apply_mesh_detail, renderer_meshes  # noqa: E402
 from envs.observation import NO_IMAGE, MujocoState, Observation, metric_depth  # noqa: E402
 from envs.randomisation import ASPECTS, Randomisation, SceneRandomiser, free_bodies, jitter_rgba  # noqa: E402
@@ -241,11 +241,8 @@ class RobosuiteEnv:
         )
 
     def _apply_render_settings(self) -> None:
-        model = self.env.sim.model
-        model.vis.quality.offsamples = self.render_config.multisamples
-        # A framebuffer the size of the image, not robosuite's 640x480 default.
-        model.vis.global_.offwidth = self.render_config.image_size
-        model.vis.global_.offheight = self.render_config.image_size
+        # a framebuffer the size of the image, not robosuite's 640x480 default; no shadow map unless drawn
+        size_offscreen(self.env.sim.model._model, self.render_config)
         context = self.env.sim._render_context_offscreen
         context.con.free()
         context._set_mujoco_context_and_buffers()

@@ -1,9 +1,10 @@
 """A rollout worker's memory as it asks for more scenes than it keeps (SIM2ACT_SCENES_PER_WORKER):
-one process resets each MetaWorld task of the generalist's specs in turn, `--rounds` times over, and
-prints its RSS every 8 scenes asked. From the repository root:
+one process resets one task of each of a family's scenes in the generalist's specs in turn, `--rounds`
+times over, and prints its RSS every `--every` scenes asked. From the repository root:
 
-    .venv/bin/python docs/quality/scene-memory.py                 # the default cap (16)
+    .venv/bin/python docs/quality/scene-memory.py                 # MetaWorld's 48, the default cap (16)
     SIM2ACT_SCENES_PER_WORKER=64 .venv/bin/python docs/quality/scene-memory.py --rounds 1   # none closed
+    .venv/bin/python docs/quality/scene-memory.py --family robosuite --rounds 1 --every 1   # its 8 scenes
 """
 
 from __future__ import annotations
@@ -29,17 +30,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2, help="times over the MetaWorld tasks")
     parser.add_argument("--mesh-detail", type=float, default=0.1, help="render.mesh_detail, as the generalist ran")
+    parser.add_argument("--family", default="metaworld", choices=["metaworld", "robosuite", "navigation"])
+    parser.add_argument("--every", type=int, default=8, help="print the RSS every this many scenes asked")
     args = parser.parse_args()
     config = load_config("generalist", overrides={"render": {"mesh_detail": args.mesh_detail}})
     scenes = {}
     for task in generate_tasks(config.tasks, seed=config.seed):
-        if task.family == "metaworld":
+        if task.family == args.family:
             scenes.setdefault(task.env_name, task)
     render, started = config.render, time.monotonic()
-    print(f"{len(scenes)} MetaWorld scenes, {args.rounds} round(s), RSS {rss_mb():.0f} MB at the start")
+    print(f"{len(scenes)} {args.family} scenes, {args.rounds} round(s), RSS {rss_mb():.0f} MB at the start")
     for asked, task in enumerate(list(scenes.values()) * args.rounds, 1):
         worker_env(task, render).reset(task, asked)
-        if asked % 8 == 0:
+        if asked % args.every == 0:
             print(f"{asked} scenes asked, {len(_ENVS)} open, RSS {rss_mb():.0f} MB, {time.monotonic() - started:.0f} s",
                   flush=True)
     close_envs()

@@ -144,3 +144,28 @@ def test_a_worker_that_drew_metaworld_scenes_stops_without_gl_errors(capfd):
     assert drawn >= 2
     err = capfd.readouterr().err
     assert "Exception ignored" not in err and "EGLError" not in err, err[-2000:]
+
+
+def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(pick_place, monkeypatch):
+    """The shadow map (shadowsize², 4096² in MetaWorld's models) is ~70 MB of a scene, never read with shadows off."""
+    import envs.metaworld_env as metaworld_env
+    from envs.gl import size_offscreen
+
+    env, task = pick_place
+    assert env.env.model.vis.quality.shadowsize == 0
+    shaded = MetaWorldEnv("reach-v3", RenderConfig(shadows=True))
+    assert shaded.env.model.vis.quality.shadowsize == 4096  # the model's own, when shadows are drawn
+    shaded.close()
+
+    def with_the_map(model, render):
+        size_offscreen(model, render)
+        model.vis.quality.shadowsize = 4096
+
+    monkeypatch.setattr(metaworld_env, "size_offscreen", with_the_map)
+    mapped = MetaWorldEnv("pick-place-v3", RenderConfig(depth=True))
+    try:
+        frames = [[r["image"] for r in rollout(e, task, 4, make_expert(task, 0.1, np.random.default_rng(4)))[0]]
+                  for e in (env, mapped)]
+    finally:
+        mapped.close()
+    assert len(frames[0]) > 10 and all(np.array_equal(a, b) for a, b in zip(*frames))
