@@ -10,8 +10,8 @@ import mujoco
 def size_offscreen(model: mujoco.MjModel, render) -> None:
     """A model's offscreen settings for `render` (a RenderConfig), set before its renderer's context is
     made: a framebuffer the size of the image, the multisamples asked for, and no shadow map when
-    shadows are off. MuJoCo allocates the map (shadowsize², 4096² in robosuite's and MetaWorld's models)
-    whether or not it draws shadows: ~70 MB of each MetaWorld scene, frames bit for bit the same
+    shadows are off. MuJoCo allocates the map (shadowsize²: 4096², 64 MiB, in MetaWorld's models and by
+    MuJoCo's default in robosuite's) whether or not it draws shadows; frames bit for bit the same
     without it (tests/envs)."""
     model.vis.quality.offsamples = render.multisamples
     model.vis.global_.offwidth = render.image_size

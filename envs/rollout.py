@@ -46,7 +46,7 @@ def _close(env) -> None:
 def worker_env(task: TaskRecord, render: RenderConfig | None):
     """One environment per (family, env, render settings) per worker process, reused across units.
     Hold it for one unit or episode, not longer: a later call may close it to make room (the least
-    recently used beyond SIM2ACT_SCENES_PER_WORKER; a scene is 0.1–0.4 GB, remade in ~1 s (MetaWorld) to
+    recently used beyond SIM2ACT_SCENES_PER_WORKER; a scene is ~0.1–0.3 GB, remade in ~1 s (MetaWorld) to
     2–4 s (robosuite))."""
     from envs.registry import make_env
 

@@ -23,8 +23,8 @@ from schemas.workspace import Workspace
 SECRETS_FILE_ENV = "SIM2ACT_SECRETS_FILE"
 CACHE_DIR_ENV = "SIM2ACT_CACHE_DIR"
 # How many scenes (an environment per family, env and render settings) a rollout worker keeps open
-# between units; beyond it the least recently used is closed. A scene holds ~0.14 GB (MetaWorld) to
-# ~0.4 GB (robosuite) of the worker's memory (docs/evaluation.md); 16 keep a worker near 4 GB at most.
+# between units; beyond it the least recently used is closed. A scene holds ~0.08 GB (MetaWorld) to
+# ~0.3 GB (robosuite) of the worker's memory (docs/evaluation.md); 16 keep a worker under ~3.5 GB.
 SCENES_PER_WORKER_ENV, DEFAULT_SCENES_PER_WORKER = "SIM2ACT_SCENES_PER_WORKER", 16
 # MLflow's: where runs are logged (default: the workspace's SQLite file); an http(s) URL is an MLflow server.
 TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"

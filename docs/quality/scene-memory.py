@@ -4,7 +4,7 @@ times over, and prints its RSS every `--every` scenes asked. From the repository
 
     .venv/bin/python docs/quality/scene-memory.py                 # MetaWorld's 48, the default cap (16)
     SIM2ACT_SCENES_PER_WORKER=64 .venv/bin/python docs/quality/scene-memory.py --rounds 1   # none closed
-    .venv/bin/python docs/quality/scene-memory.py --family robosuite --rounds 1 --every 1   # its 8 scenes
+    .venv/bin/python docs/quality/scene-memory.py --family robosuite --rounds 1 --every 1   # its 9 scenes
 """
 
 from __future__ import annotations
@@ -23,12 +23,13 @@ from schemas.config import load_config  # noqa: E402
 
 
 def rss_mb() -> float:
+    """Resident memory in MiB (the docs' "MB" and "GB" are MiB and GiB)."""
     return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rounds", type=int, default=2, help="times over the MetaWorld tasks")
+    parser.add_argument("--rounds", type=int, default=2, help="times over the family's scenes")
     parser.add_argument("--mesh-detail", type=float, default=0.1, help="render.mesh_detail, as the generalist ran")
     parser.add_argument("--family", default="metaworld", choices=["metaworld", "robosuite", "navigation"])
     parser.add_argument("--every", type=int, default=8, help="print the RSS every this many scenes asked")

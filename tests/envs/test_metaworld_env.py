@@ -147,7 +147,7 @@ def test_a_worker_that_drew_metaworld_scenes_stops_without_gl_errors(capfd):
 
 
 def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(pick_place, monkeypatch):
-    """The shadow map (shadowsize², 4096² in MetaWorld's models) is ~70 MB of a scene, never read with shadows off."""
+    """The shadow map (shadowsize², 4096² in MetaWorld's models: 64 MiB) is never read with shadows off."""
     import envs.metaworld_env as metaworld_env
     from envs.gl import size_offscreen
 
@@ -164,8 +164,10 @@ def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(pick_
     monkeypatch.setattr(metaworld_env, "size_offscreen", with_the_map)
     mapped = MetaWorldEnv("pick-place-v3", RenderConfig(depth=True))
     try:
-        frames = [[r["image"] for r in rollout(e, task, 4, make_expert(task, 0.1, np.random.default_rng(4)))[0]]
-                  for e in (env, mapped)]
+        assert mapped.env.model.vis.quality.shadowsize == 4096
+        episodes = [rollout(e, task, 4, make_expert(task, 0.1, np.random.default_rng(4)))[0] for e in (env, mapped)]
+        assert env._viewer().con.shadowFBO == 0 and mapped._viewer().con.shadowFBO != 0  # the map itself, made or not
     finally:
         mapped.close()
-    assert len(frames[0]) > 10 and all(np.array_equal(a, b) for a, b in zip(*frames))
+    assert len(episodes[0]) > 10 and all(np.array_equal(a["image"], b["image"]) and np.array_equal(a["depth"], b["depth"])
+                                         for a, b in zip(*episodes))

@@ -288,11 +288,12 @@ def test_a_stack_that_ended_the_other_way_round_did_the_reversed_task():
 
 
 def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(lift_env, monkeypatch):
-    """robosuite's models ask for a 4096² shadow map (64 MB a scene), never read with shadows off."""
+    """robosuite's models get MuJoCo's default 4096² shadow map (64 MiB a scene), never read with shadows off."""
     import envs.robosuite_env as robosuite_env
     from envs.gl import size_offscreen
 
     assert lift_env.env.sim.model._model.vis.quality.shadowsize == 0
+    assert lift_env.env.sim._render_context_offscreen.con.shadowFBO == 0  # the context was made after the setting
 
     def with_the_map(model, render):
         size_offscreen(model, render)
@@ -301,7 +302,7 @@ def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(lift_
     monkeypatch.setattr(robosuite_env, "size_offscreen", with_the_map)
     mapped = RobosuiteEnv("Lift", RenderConfig())
     try:
-        assert mapped.env.sim.model._model.vis.quality.shadowsize == 4096
+        assert mapped.env.sim._render_context_offscreen.con.shadowFBO != 0
         frames = [[r["image"] for r in rollout(e, _lift("green"), seed=3,
                                                 act=PickPlaceExpert(noise=0.1, rng=np.random.default_rng(3)).act)[0]]
                   for e in (lift_env, mapped)]
