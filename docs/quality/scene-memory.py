@@ -5,12 +5,14 @@ times over, and prints its RSS every `--every` scenes asked. From the repository
     .venv/bin/python docs/quality/scene-memory.py                 # MetaWorld's 48, the default cap (16)
     SIM2ACT_SCENES_PER_WORKER=64 .venv/bin/python docs/quality/scene-memory.py --rounds 1   # none closed
     .venv/bin/python docs/quality/scene-memory.py --family robosuite --rounds 1 --every 1   # its 9 scenes
+    .venv/bin/python docs/quality/scene-memory.py --family all --rounds 1                  # all 61, capped
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -31,14 +33,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=2, help="times over the family's scenes")
     parser.add_argument("--mesh-detail", type=float, default=0.1, help="render.mesh_detail, as the generalist ran")
-    parser.add_argument("--family", default="metaworld", choices=["metaworld", "robosuite", "navigation"])
+    parser.add_argument("--family", default="metaworld", choices=["metaworld", "robosuite", "navigation", "all"],
+                        help="all: every family's scenes, family after family (what a kept worker meets)")
     parser.add_argument("--every", type=int, default=8, help="print the RSS every this many scenes asked")
     args = parser.parse_args()
     config = load_config("generalist", overrides={"render": {"mesh_detail": args.mesh_detail}})
     scenes = {}
     for task in generate_tasks(config.tasks, seed=config.seed):
-        if task.family == args.family:
-            scenes.setdefault(task.env_name, task)
+        if args.family in (task.family, "all"):
+            scenes.setdefault((task.family, task.env_name), task)
     render, started = config.render, time.monotonic()
     print(f"{len(scenes)} {args.family} scenes, {args.rounds} round(s), RSS {rss_mb():.0f} MB at the start")
     for asked, task in enumerate(list(scenes.values()) * args.rounds, 1):
@@ -46,6 +49,8 @@ def main() -> None:
         if asked % args.every == 0:
             print(f"{asked} scenes asked, {len(_ENVS)} open, RSS {rss_mb():.0f} MB, {time.monotonic() - started:.0f} s",
                   flush=True)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    print(f"{asked} scenes asked, {len(_ENVS)} open, RSS {rss_mb():.0f} MB, peak {peak:.0f} MB")
     close_envs()
 
 
