@@ -195,8 +195,8 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
-    # fresh workers: the kept ones hold every scene the campaign's evaluation built, GBs an agent training
-    # for hours on one family's never uses (docs/evaluation.md)
+    # fresh workers: the kept ones hold up to SIM2ACT_SCENES_PER_WORKER scenes of the campaign's evaluation
+    # (~3 GB on the generalist), which an agent training for hours on one family's never uses (docs/evaluation.md)
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
         ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
