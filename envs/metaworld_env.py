@@ -128,6 +128,6 @@ class MetaWorldEnv:
         if viewer is not None:  # made at the first frame, not before
             # gymnasium frees only the GL context and leaves MuJoCo's GL objects to the garbage collector,
             # which would delete them by name in whichever scene's context is current then
-            select_offscreen(viewer.opengl_context, viewer.con)
+            self._make_context_current()
             viewer.con.free()
         self.env.close()
