@@ -9,13 +9,14 @@ import itertools
 import json
 import os
 import platform
+from pathlib import Path
 
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
-from stages.baselines import EXPERT, STAGE as BASELINES_STAGE
+from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
 
@@ -84,6 +85,31 @@ def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str
         grouped.setdefault((agent["algorithm"], agent["family"], agent["steps_taken"]), []).append(evaluation)
     order = list(AGENT_NAMES)
     return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
+
+
+def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path) -> list[str]:
+    """The RL baselines not in the success table yet: trained and not evaluated, training (at their last
+    checkpoint), or waiting for a worker; nothing when there are none."""
+    rows = []
+    for summary in catalog.query(
+            "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND NOT EXISTS ("
+            "SELECT 1 FROM evaluations v WHERE v.model_key = s.unit_key AND v.campaign = s.campaign AND v.suite = ?) "
+            "ORDER BY s.finished_at", [BASELINES_STAGE, campaign, CAMPAIGN_SUITE]):
+        trained = json.loads(summary[0])
+        rows.append([f"{AGENT_NAMES[trained['algorithm']]} ({trained['family']})", "trained, not evaluated yet",
+                     f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
+                     f"{trained['episodes']:,} ({trained['successes']:,})", "–"])
+    for agent in agents_in_training(models, catalog, campaign):
+        written = "–" if agent.checkpoint_at is None else datetime.datetime.fromtimestamp(
+            agent.checkpoint_at, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training" if agent.done else "waiting",
+                     f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
+                     f"{agent.episodes:,} ({agent.successes:,})" if agent.done else "–", written])
+    if not rows:
+        return []
+    return ["", "Baselines not in the table yet (the same `sim2act run` resumes them; a training from its last "
+            "checkpoint):", "",
+            *_table(["agent", "state", "env steps / budget", "training episodes (succeeded)", "last checkpoint"], rows)]
 
 
 def _reached(points: list[AdaptPoint], start: str, target: float) -> str:
@@ -310,7 +336,7 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
 
 
 def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
-                      steps_through: dict[int, int]) -> list[str]:
+                      steps_through: dict[int, int], models: Path | None) -> list[str]:
     """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation."""
     lines: list[str] = []
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
@@ -320,6 +346,8 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
         name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
         rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
+    if models is not None:
+        lines += pending_baselines_markdown(catalog, campaign, models)
 
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
@@ -334,9 +362,10 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     return lines
 
 
-def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
+def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None) -> str:
     """The report. A campaign whose latest dataset is indexed but not yet evaluated (the generalist's
-    million, before its training) gets its dataset and compute sections alone.
+    million, before its training) gets its dataset and compute sections alone. With `models` (the
+    workspace's), the RL baselines still training are listed at their last checkpoint.
 
     Raises:
         ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""
@@ -365,7 +394,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str) -> str:
     if not by_iteration:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
-        lines += _success_sections(catalog, campaign, by_iteration, steps_through)
+        lines += _success_sections(catalog, campaign, by_iteration, steps_through, models)
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(

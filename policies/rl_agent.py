@@ -66,6 +66,16 @@ def last_checkpoint(folder: Path) -> Path | None:
     return None
 
 
+def checkpoint_state(folder: Path) -> tuple[dict, float] | None:
+    """The last whole checkpoint's counters in `folder` ({"num_timesteps", "episodes", "successes"})
+    and when it was written (epoch seconds); None where the agent has none."""
+    last = last_checkpoint(folder)
+    if last is None:
+        return None
+    state = last / "state.json"
+    return json.loads(state.read_text()), state.stat().st_mtime
+
+
 def save_checkpoint(agent, env, folder: Path) -> None:
     """The agent (weights, optimisers, step count), SAC's replay buffer, and the environment's
     counters of training episodes, swapped in whole (`last_checkpoint`)."""

@@ -11,6 +11,7 @@ Each trained agent is a unit (models/<key>/agent.zip); evaluations go to the war
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -21,13 +22,14 @@ from envs.pool import run_in_pool
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
-from schemas.workspace import Workspace
+from schemas.workspace import Workspace, write_text_atomically
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import SPLITS, Agent, TaskEvaluation, evaluate_model, evaluation_cases, group_success
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
 EXPERT = "expert"
+PLAN = "plan.json"  # beside an agent's agent.zip: what it trains, for `sim2act report` while it does
 log = logging.getLogger("sim2act.stages.baselines")
 
 
@@ -65,6 +67,18 @@ class Baseline(BaseModel):
     family: str | None  # an RL agent serves one family
     env_steps: int  # its training budget; 0 for the expert
     evaluations: list[TaskEvaluation]
+
+
+class AgentInTraining(BaseModel):
+    """An RL agent of a campaign planned or training, not registered yet (`sim2act report` lists it)."""
+    model_key: str
+    algorithm: str
+    family: str
+    env_steps: int  # its budget
+    done: int  # environment steps at its last checkpoint; 0: none yet
+    episodes: int  # training episodes finished by then
+    successes: int
+    checkpoint_at: float | None  # when that checkpoint was written (epoch seconds)
 
 
 class BaselinesResult(StageResult):
@@ -166,6 +180,38 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
     return units
 
 
+def write_plans(units: list[RLUnit], campaign: str) -> None:
+    """Each agent's plan.json in its models/<key>/ before it trains: a report read mid-run names the
+    agents the checkpoints belong to (a key alone does not say its algorithm, family or budget)."""
+    for unit in units:
+        plan = Path(unit.path).with_name(PLAN)
+        plan.parent.mkdir(parents=True, exist_ok=True)
+        write_text_atomically(plan, json.dumps({"campaign": campaign, "algorithm": unit.algorithm,
+                                                "family": unit.family, "env_steps": unit.env_steps}))
+
+
+def agents_in_training(models: Path, catalog: Catalog, campaign: str) -> list[AgentInTraining]:
+    """The campaign's RL agents planned in `models` (a workspace's) and not registered: each at its
+    last checkpoint, SAC first, then by family."""
+    from policies.rl_agent import checkpoint_state
+
+    plans = {}
+    for path in sorted(models.glob(f"{STAGE}-*/{PLAN}")):
+        plan = json.loads(path.read_text())
+        if plan["campaign"] == campaign:
+            plans[path.parent.name] = plan
+    registered = catalog.registered_keys(list(plans))
+    agents = []
+    for key, plan in plans.items():
+        if key in registered:
+            continue
+        state, written = checkpoint_state(models / key) or ({"num_timesteps": 0, "episodes": 0, "successes": 0}, None)
+        agents.append(AgentInTraining(model_key=key, algorithm=plan["algorithm"], family=plan["family"],
+                                      env_steps=plan["env_steps"], done=state["num_timesteps"],
+                                      episodes=state["episodes"], successes=state["successes"], checkpoint_at=written))
+    return sorted(agents, key=lambda a: (a.algorithm != "sac", a.family))
+
+
 def longest_first(units: list[RLUnit]) -> list[RLUnit]:
     """The agents in the order the pool starts them: SAC before PPO, then the larger budgets.
 
@@ -178,9 +224,9 @@ def longest_first(units: list[RLUnit]) -> list[RLUnit]:
 
 def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks_key: str,
                   tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], explore_units: list[str]) -> BaselinesResult:
-    """Train the RL agents not trained yet, with the steps `explore_units` (the campaign's, every
-    iteration) took per family, then evaluate every configured baseline on the campaign's
-    evaluation cases (an RL agent on its family's), rows under `iteration`.
+    """Evaluate the experts on the campaign's evaluation cases, train the RL agents not trained yet
+    with the steps `explore_units` (the campaign's, every iteration) took per family, then evaluate
+    each on its family's cases; rows under `iteration`.
 
     Unit of work: one RL agent (an algorithm on a family), keyed by the render and randomise settings,
     the campaign seed, the algorithm, the family, its step budget (and SAC's replay where smaller
@@ -195,6 +241,12 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
+    write_plans(todo, config.name)
+    cases = evaluation_cases(tasks)
+    baselines = []
+    if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours
+        evaluations, _ = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
+        baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
     # fresh workers: the kept ones hold up to SIM2ACT_SCENES_PER_WORKER scenes of the campaign's evaluation
     # (~3 GB on the generalist), which an agent training for hours on one family's never uses (docs/evaluation.md)
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
@@ -203,11 +255,6 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
         remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints are spent
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
-    cases = evaluation_cases(tasks)
-    baselines = []
-    if EXPERT in config.baselines.agents:
-        evaluations, _ = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
-        baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
     for unit in units:
         family_cases = [case for case in cases if case[0].family == unit.family]
         evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,

@@ -305,9 +305,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     config = campaign_config(args)
     from dashboards.results import results_markdown
 
-    _, catalog = open_catalog(args)
+    workspace, catalog = open_catalog(args)
     try:
-        text = results_markdown(catalog, config.name, args.command_line)
+        text = results_markdown(catalog, config.name, args.command_line, workspace.models)
     except ValueError as exc:
         raise ConfigError(f"report: {exc}") from None
     if args.out is None:

@@ -276,3 +276,51 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
     assert ablations == [["3", "train.targets executed", "20% ± 10 (20, 10, 30) over 3 seeds, 6/30 pooled [10%, 37%]",
                           "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]", "-60.0",
                           "below the loop's: the pooled intervals are apart"]]
+
+
+def test_the_report_lists_the_baselines_still_training_at_their_last_checkpoint(tmp_path):
+    """The generalist's SACs train for ~15 h: a report read meanwhile names each agent planned and not evaluated
+    (waiting, training at its last checkpoint, trained and not evaluated) and drops it once its rows are in."""
+    from types import SimpleNamespace
+
+    from dashboards.results import pending_baselines_markdown
+    from policies.rl_agent import save_checkpoint
+    from schemas.config import RandomiseConfig, RenderConfig
+    from stages.baselines import RLTrained, RLUnit, write_plans
+
+    workspace = Workspace.at(tmp_path).create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+    units = {name: RLUnit(unit_key=f"baselines-{name}", algorithm=name.split("-")[0], family=name.split("-")[1],
+                          tasks=[], embeddings={}, render=RenderConfig(), randomise=RandomiseConfig(), env_steps=steps,
+                          replay_size=steps, checkpoint_every=5_000, seed=0,
+                          path=str(workspace.models / f"baselines-{name}" / "agent.zip"))
+             for name, steps in (("sac-robosuite", 455_956), ("ppo-navigation", 254_522), ("ppo-robosuite", 455_956))}
+    write_plans(list(units.values()), CAMPAIGN)
+    write_plans([units["ppo-robosuite"].model_copy(update={  # another campaign's agent in the same workspace
+        "unit_key": "baselines-other", "path": str(workspace.models / "baselines-other" / "agent.zip")})], "other")
+    assert pending_baselines_markdown(catalog, "nobody", workspace.models) == []
+
+    class Agent:  # what save_checkpoint asks of an SB3 agent: its step count and a save
+        num_timesteps = 120_000
+
+        def save(self, path):
+            path.write_bytes(b"weights")
+
+    counters = SimpleNamespace(episodes_finished=650, successes=3)  # the training env's
+    save_checkpoint(Agent(), counters, workspace.models / "baselines-sac-robosuite")
+    catalog.register_unit(unit_key="baselines-ppo-robosuite", stage="baselines", campaign=CAMPAIGN, iteration=0,
+                          summary=RLTrained(algorithm="ppo", family="robosuite", env_steps=455_956, steps_taken=456_192,
+                                            episodes=2_300, successes=41, resumed_at=0, path="x").model_dump())
+    lines = pending_baselines_markdown(catalog, CAMPAIGN, workspace.models)
+    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
+    assert [row[:4] for row in rows] == [
+        ["PPO from scratch (robosuite)", "trained, not evaluated yet", "456,192 / 455,956", "2,300 (41)"],
+        ["SAC from scratch (robosuite)", "training", "120,000 / 455,956 (26%)", "650 (3)"],
+        ["PPO from scratch (navigation)", "waiting", "0 / 254,522 (0%)", "–"]]
+    assert rows[1][4].endswith(" UTC") and rows[2][4] == "–"
+
+    _evaluated(catalog, "baselines-ppo-robosuite", 2, task=("lift-red", "robosuite"))  # its rows are in the table now
+    lines = pending_baselines_markdown(catalog, CAMPAIGN, workspace.models)
+    assert [line.split(" | ")[0] for line in lines if line.startswith("| ") and "from scratch" in line] == [
+        "| SAC from scratch (robosuite)", "| PPO from scratch (navigation)"]

@@ -387,6 +387,13 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
         assert RL_BUDGET <= summary["steps_taken"] <= RL_BUDGET + 2
         assert summary["episodes"] >= RL_BUDGET // 60  # episodes of at most the horizon, 60 steps
         assert (ws.models / key / "agent.zip").stat().st_size > 100_000
+        assert json.loads((ws.models / key / "plan.json").read_text()) == {  # what a report read mid-training names
+            "campaign": "smoke", "algorithm": summary["algorithm"], "family": "robosuite", "env_steps": RL_BUDGET}
+    # the experts' ceiling is measured before the trainings' hours, not after
+    [(expert_done,)] = catalog.query("SELECT max(s.finished_at) FROM stage_runs s JOIN evaluations v "
+                                     "ON v.unit_key = s.unit_key WHERE v.model_key = 'expert'")
+    [(first_trained,)] = catalog.query("SELECT min(finished_at) FROM stage_runs WHERE stage = 'baselines'")
+    assert expert_done < first_trained
     # every baseline meets the campaign's own evaluation cases, with the same seeds
     cases = catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
                           "WHERE model_key = (SELECT model_key FROM deployments WHERE iteration = 1) ORDER BY ALL")
@@ -421,6 +428,7 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
     for iteration, triplets in catalog.query("SELECT iteration, triplets FROM iterations ORDER BY 1"):
         assert re.search(rf"^\| {iteration} \|.* \| {triplets:,} \|$", table, re.MULTILINE), table
     assert "sim2act report --preset smoke" in table and "| train | 0 |" in table
+    assert "Baselines not in the table yet" not in table  # every agent trained and evaluated
     [(latest_triplets,)] = catalog.query("SELECT triplets FROM iterations ORDER BY iteration DESC LIMIT 1")
     [total] = [line for line in table.splitlines() if line.startswith("| all |")]  # the dataset per family and split
     assert total.split(" | ")[7] == f"{latest_triplets:,}", total
