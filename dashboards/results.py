@@ -87,9 +87,16 @@ def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str
     return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
 
 
+def _utc(seconds: float | None) -> str:
+    return "–" if seconds is None else datetime.datetime.fromtimestamp(
+        seconds, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
 def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path) -> list[str]:
-    """The RL baselines not in the success table yet: trained and not evaluated, training (at their last
-    checkpoint), or waiting for a worker; nothing when there are none."""
+    """The RL baselines not in the success table yet: trained and not evaluated, training (at their
+    latest progress, and where a restart resumes them), or waiting for a worker; nothing when there
+    are none."""
+    training = agents_in_training(models, catalog, campaign)  # first: one registering meanwhile shows twice, not never
     rows = []
     for summary in catalog.query(
             "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND NOT EXISTS ("
@@ -98,18 +105,23 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path) ->
         trained = json.loads(summary[0])
         rows.append([f"{AGENT_NAMES[trained['algorithm']]} ({trained['family']})", "trained, not evaluated yet",
                      f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
-                     f"{trained['episodes']:,} ({trained['successes']:,})", "–"])
-    for agent in agents_in_training(models, catalog, campaign):
-        written = "–" if agent.checkpoint_at is None else datetime.datetime.fromtimestamp(
-            agent.checkpoint_at, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training" if agent.done else "waiting",
+                     f"{trained['episodes']:,} ({trained['successes']:,})", "–", "–"])
+    for agent in training:
+        if not agent.started:
+            rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "waiting", f"0 / {agent.env_steps:,}",
+                         "–", "–", "–"])
+            continue
+        resumes = (f"{agent.checkpoint_steps:,} ({_utc(agent.checkpoint_at)})" if agent.checkpoint_at is not None
+                   else "0: no checkpoint yet")
+        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training",
                      f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
-                     f"{agent.episodes:,} ({agent.successes:,})" if agent.done else "–", written])
+                     f"{agent.episodes:,} ({agent.successes:,})", _utc(agent.as_of), resumes])
     if not rows:
         return []
-    return ["", "Baselines not in the table yet (the same `sim2act run` resumes them; a training from its last "
-            "checkpoint):", "",
-            *_table(["agent", "state", "env steps / budget", "training episodes (succeeded)", "last checkpoint"], rows)]
+    return ["", "Baselines not in the table yet (a `sim2act run` with the same settings resumes them; a training "
+            "from its last checkpoint; an old *as of* is a training not running now):", "",
+            *_table(["agent", "state", "env steps / budget", "training episodes (succeeded)", "as of",
+                     "a restart resumes at (checkpoint)"], rows)]
 
 
 def _reached(points: list[AdaptPoint], start: str, target: float) -> str:
@@ -365,7 +377,7 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
 def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None) -> str:
     """The report. A campaign whose latest dataset is indexed but not yet evaluated (the generalist's
     million, before its training) gets its dataset and compute sections alone. With `models` (the
-    workspace's), the RL baselines still training are listed at their last checkpoint.
+    workspace's), the RL baselines not evaluated yet are listed below the table, each as far as it got.
 
     Raises:
         ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""

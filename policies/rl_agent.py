@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -68,12 +69,18 @@ def last_checkpoint(folder: Path) -> Path | None:
 
 def checkpoint_state(folder: Path) -> tuple[dict, float] | None:
     """The last whole checkpoint's counters in `folder` ({"num_timesteps", "episodes", "successes"})
-    and when it was written (epoch seconds); None where the agent has none."""
-    last = last_checkpoint(folder)
-    if last is None:
-        return None
-    state = last / "state.json"
-    return json.loads(state.read_text()), state.stat().st_mtime
+    and when it was written (epoch seconds); None where the agent has none. Safe beside a training
+    saving its next one (another process: `sim2act report`)."""
+    for _ in range(3):
+        last = last_checkpoint(folder)
+        if last is None:
+            return None
+        try:
+            with (last / "state.json").open() as state:  # an open file outlives the save's renames and removals
+                return json.load(state), os.fstat(state.fileno()).st_mtime
+        except FileNotFoundError:  # swapped out between the look and the open: look again
+            continue
+    return None
 
 
 def save_checkpoint(agent, env, folder: Path) -> None:

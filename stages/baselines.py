@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,8 @@ from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
 EXPERT = "expert"
-PLAN = "plan.json"  # beside an agent's agent.zip: what it trains, for `sim2act report` while it does
+# beside an agent's agent.zip, for `sim2act report` while it trains: what it trains, and how far it got
+PLAN, PROGRESS = "plan.json", "progress.json"
 log = logging.getLogger("sim2act.stages.baselines")
 
 
@@ -75,10 +77,13 @@ class AgentInTraining(BaseModel):
     algorithm: str
     family: str
     env_steps: int  # its budget
-    done: int  # environment steps at its last checkpoint; 0: none yet
+    started: bool  # False: waiting for a worker (no progress, no checkpoint)
+    done: int  # environment steps at its latest progress or checkpoint
     episodes: int  # training episodes finished by then
     successes: int
-    checkpoint_at: float | None  # when that checkpoint was written (epoch seconds)
+    as_of: float | None  # when `done` was written (epoch seconds): an old one, a training not running
+    checkpoint_steps: int  # where a restart resumes it; 0: from scratch
+    checkpoint_at: float | None
 
 
 class BaselinesResult(StageResult):
@@ -117,12 +122,18 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     progress = Progress(log, f"baselines: {unit.algorithm} on {unit.family}", unit.env_steps, "env steps", "env steps")
     every_percent = max(1, unit.env_steps // 100)
 
+    written = []  # whether this start has written its progress yet
+
     def on_progress(done: int, resumed_at: int) -> None:
         if progress.done < resumed_at:
             progress.resume_at(resumed_at)
+        crossed = False
         if done > progress.done:
             crossed = done // every_percent > progress.done // every_percent
             progress.advance(done - progress.done, done - progress.done, log=crossed)
+        if crossed or not written:  # at the start too: a resumed agent's last progress ran past its checkpoint
+            write_progress(path.parent, done, env.episodes_finished, env.successes)
+            written.append(done)
 
     try:
         agent, resumed_at = learn_with_checkpoints(unit.algorithm, env, unit.env_steps, unit.seed, path.parent,
@@ -180,9 +191,23 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
     return units
 
 
-def write_plans(units: list[RLUnit], campaign: str) -> None:
-    """Each agent's plan.json in its models/<key>/ before it trains: a report read mid-run names the
-    agents the checkpoints belong to (a key alone does not say its algorithm, family or budget)."""
+def _campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
+    """model key -> plan, of the campaign's agents planned in `models` (a workspace's)."""
+    plans = {}
+    for path in sorted(models.glob(f"{STAGE}-*/{PLAN}")):
+        plan = json.loads(path.read_text())
+        if plan["campaign"] == campaign:
+            plans[path.parent.name] = plan
+    return plans
+
+
+def write_plans(models: Path, campaign: str, units: list[RLUnit], planned: set[str]) -> None:
+    """Each of `units`' plan.json in its models/<key>/ before it trains, so that a report read mid-run
+    names the agents the checkpoints belong to (a key alone does not say its algorithm, family or
+    budget); the campaign's plans of keys not in `planned` (settings since changed, agents since
+    dropped) are removed: no run resumes them."""
+    for key in set(_campaign_plans(models, campaign)) - planned:
+        (models / key / PLAN).unlink(missing_ok=True)
     for unit in units:
         plan = Path(unit.path).with_name(PLAN)
         plan.parent.mkdir(parents=True, exist_ok=True)
@@ -190,25 +215,39 @@ def write_plans(units: list[RLUnit], campaign: str) -> None:
                                                 "family": unit.family, "env_steps": unit.env_steps}))
 
 
+def write_progress(folder: Path, done: int, episodes: int, successes: int) -> None:
+    """A training's progress, between its checkpoints (the worker writes it at each 1% of its budget)."""
+    write_text_atomically(folder / PROGRESS, json.dumps({"num_timesteps": done, "episodes": episodes,
+                                                         "successes": successes}))
+
+
 def agents_in_training(models: Path, catalog: Catalog, campaign: str) -> list[AgentInTraining]:
     """The campaign's RL agents planned in `models` (a workspace's) and not registered: each at its
-    last checkpoint, SAC first, then by family."""
+    latest progress or checkpoint, whichever was written last; SAC first, then by family."""
     from policies.rl_agent import checkpoint_state
 
-    plans = {}
-    for path in sorted(models.glob(f"{STAGE}-*/{PLAN}")):
-        plan = json.loads(path.read_text())
-        if plan["campaign"] == campaign:
-            plans[path.parent.name] = plan
+    plans = _campaign_plans(models, campaign)
     registered = catalog.registered_keys(list(plans))
     agents = []
     for key, plan in plans.items():
         if key in registered:
             continue
-        state, written = checkpoint_state(models / key) or ({"num_timesteps": 0, "episodes": 0, "successes": 0}, None)
-        agents.append(AgentInTraining(model_key=key, algorithm=plan["algorithm"], family=plan["family"],
-                                      env_steps=plan["env_steps"], done=state["num_timesteps"],
-                                      episodes=state["episodes"], successes=state["successes"], checkpoint_at=written))
+        checkpoint = checkpoint_state(models / key)
+        latest = checkpoint
+        try:
+            with (models / key / PROGRESS).open() as file:
+                progress = json.load(file), os.fstat(file.fileno()).st_mtime
+            if checkpoint is None or progress[1] > checkpoint[1]:
+                latest = progress
+        except FileNotFoundError:
+            pass
+        state, as_of = latest or ({"num_timesteps": 0, "episodes": 0, "successes": 0}, None)
+        agents.append(AgentInTraining(
+            model_key=key, algorithm=plan["algorithm"], family=plan["family"], env_steps=plan["env_steps"],
+            started=latest is not None, done=state["num_timesteps"], episodes=state["episodes"],
+            successes=state["successes"], as_of=as_of,
+            checkpoint_steps=checkpoint[0]["num_timesteps"] if checkpoint else 0,
+            checkpoint_at=checkpoint[1] if checkpoint else None))
     return sorted(agents, key=lambda a: (a.algorithm != "sac", a.family))
 
 
@@ -241,7 +280,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
-    write_plans(todo, config.name)
+    write_plans(workspace.models, config.name, todo, {u.unit_key for u in units})
     cases = evaluation_cases(tasks)
     baselines = []
     if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours
@@ -252,7 +291,8 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
                                               lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
         ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
-        remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints are spent
+        remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints and progress are spent
+        Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
     for unit in units:

@@ -278,49 +278,85 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
                           "below the loop's: the pooled intervals are apart"]]
 
 
-def test_the_report_lists_the_baselines_still_training_at_their_last_checkpoint(tmp_path):
+def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp_path):
     """The generalist's SACs train for ~15 h: a report read meanwhile names each agent planned and not evaluated
-    (waiting, training at its last checkpoint, trained and not evaluated) and drops it once its rows are in."""
+    (waiting, training at its latest progress and where a restart resumes it, trained and not evaluated) and drops
+    it once its rows are in; plans no run resumes any more go."""
+    import os
     from types import SimpleNamespace
 
     from dashboards.results import pending_baselines_markdown
     from policies.rl_agent import save_checkpoint
     from schemas.config import RandomiseConfig, RenderConfig
-    from stages.baselines import RLTrained, RLUnit, write_plans
+    from stages.baselines import RLTrained, RLUnit, write_plans, write_progress
 
-    workspace = Workspace.at(tmp_path).create()
-    catalog = Catalog(workspace.catalog)
-    catalog.initialise()
+    catalog = _catalog_with_tasks(tmp_path)
+    models = Workspace.at(tmp_path).models
     units = {name: RLUnit(unit_key=f"baselines-{name}", algorithm=name.split("-")[0], family=name.split("-")[1],
                           tasks=[], embeddings={}, render=RenderConfig(), randomise=RandomiseConfig(), env_steps=steps,
                           replay_size=steps, checkpoint_every=5_000, seed=0,
-                          path=str(workspace.models / f"baselines-{name}" / "agent.zip"))
-             for name, steps in (("sac-robosuite", 455_956), ("ppo-navigation", 254_522), ("ppo-robosuite", 455_956))}
-    write_plans(list(units.values()), CAMPAIGN)
-    write_plans([units["ppo-robosuite"].model_copy(update={  # another campaign's agent in the same workspace
-        "unit_key": "baselines-other", "path": str(workspace.models / "baselines-other" / "agent.zip")})], "other")
-    assert pending_baselines_markdown(catalog, "nobody", workspace.models) == []
+                          path=str(models / f"baselines-{name}" / "agent.zip"))
+             for name, steps in (("sac-robosuite", 455_956), ("ppo-navigation", 254_522), ("ppo-robosuite", 455_956),
+                                 ("sac-metaworld", 382_023), ("ppo-metaworld", 1_000))}
+    keys = {unit.unit_key for unit in units.values()}
+    write_plans(models, CAMPAIGN, list(units.values()), keys)
+    other = units["ppo-robosuite"].model_copy(update={"unit_key": "baselines-other",
+                                                      "path": str(models / "baselines-other" / "agent.zip")})
+    write_plans(models, "other", [other], {"baselines-other"})  # another campaign's, in the same workspace
+    # a later run of this campaign plans the same agents but ppo on metaworld (its budget since changed: another key)
+    write_plans(models, CAMPAIGN, [], keys - {"baselines-ppo-metaworld"})
+    assert not (models / "baselines-ppo-metaworld" / "plan.json").exists()
+    assert (models / "baselines-other" / "plan.json").exists()
+    assert (models / "baselines-sac-robosuite" / "plan.json").exists()
 
     class Agent:  # what save_checkpoint asks of an SB3 agent: its step count and a save
-        num_timesteps = 120_000
+        def __init__(self, steps: int) -> None:
+            self.num_timesteps = steps
 
         def save(self, path):
             path.write_bytes(b"weights")
 
-    counters = SimpleNamespace(episodes_finished=650, successes=3)  # the training env's
-    save_checkpoint(Agent(), counters, workspace.models / "baselines-sac-robosuite")
-    catalog.register_unit(unit_key="baselines-ppo-robosuite", stage="baselines", campaign=CAMPAIGN, iteration=0,
-                          summary=RLTrained(algorithm="ppo", family="robosuite", env_steps=455_956, steps_taken=456_192,
-                                            episodes=2_300, successes=41, resumed_at=0, path="x").model_dump())
-    lines = pending_baselines_markdown(catalog, CAMPAIGN, workspace.models)
+    noon = 1_796_040_000  # 2026-11-30 12:00 UTC
+    save_checkpoint(Agent(120_000), SimpleNamespace(episodes_finished=650, successes=3),
+                    models / "baselines-sac-robosuite")
+    os.utime(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", (noon, noon))
+    write_progress(models / "baselines-sac-robosuite", 123_093, 667, 3)  # ran on past its checkpoint
+    os.utime(models / "baselines-sac-robosuite" / "progress.json", (noon + 600, noon + 600))
+    save_checkpoint(Agent(130_000), SimpleNamespace(episodes_finished=653, successes=6),
+                    models / "baselines-sac-metaworld")
+    os.utime(models / "baselines-sac-metaworld" / "checkpoint" / "state.json", (noon + 60, noon + 60))
+    write_progress(models / "baselines-sac-metaworld", 129_880, 652, 6)  # its last run's, older than the checkpoint
+    os.utime(models / "baselines-sac-metaworld" / "progress.json", (noon, noon))
+    (models / "baselines-sac-metaworld" / "checkpoint").rename(models / "baselines-sac-metaworld" / "checkpoint.old")
+    write_progress(models / "baselines-ppo-robosuite", 2_048, 20, 0)  # started, no checkpoint yet
+    os.utime(models / "baselines-ppo-robosuite" / "progress.json", (noon, noon))
+    for campaign in (CAMPAIGN, "other"):  # trained, not evaluated; the other campaign's is not this one's
+        catalog.register_unit(
+            unit_key=f"baselines-{campaign}-navigation", stage="baselines", campaign=campaign, iteration=0,
+            summary=RLTrained(algorithm="ppo", family="navigation", env_steps=254_522, steps_taken=254_976,
+                              episodes=2_300, successes=41, resumed_at=0, path="x").model_dump())
+    lines = pending_baselines_markdown(catalog, CAMPAIGN, models)
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
-    assert [row[:4] for row in rows] == [
-        ["PPO from scratch (robosuite)", "trained, not evaluated yet", "456,192 / 455,956", "2,300 (41)"],
-        ["SAC from scratch (robosuite)", "training", "120,000 / 455,956 (26%)", "650 (3)"],
-        ["PPO from scratch (navigation)", "waiting", "0 / 254,522 (0%)", "–"]]
-    assert rows[1][4].endswith(" UTC") and rows[2][4] == "–"
+    assert rows == [
+        ["PPO from scratch (navigation)", "trained, not evaluated yet", "254,976 / 254,522", "2,300 (41)", "–",
+         "–"],
+        ["SAC from scratch (metaworld)", "training", "130,000 / 382,023 (34%)", "653 (6)", "2026-11-30 12:01 UTC",
+         "130,000 (2026-11-30 12:01 UTC)"],
+        ["SAC from scratch (robosuite)", "training", "123,093 / 455,956 (27%)", "667 (3)", "2026-11-30 12:10 UTC",
+         "120,000 (2026-11-30 12:00 UTC)"],
+        ["PPO from scratch (navigation)", "waiting", "0 / 254,522", "–", "–", "–"],
+        ["PPO from scratch (robosuite)", "training", "2,048 / 455,956 (0%)", "20 (0)", "2026-11-30 12:00 UTC",
+         "0: no checkpoint yet"]]
 
-    _evaluated(catalog, "baselines-ppo-robosuite", 2, task=("lift-red", "robosuite"))  # its rows are in the table now
-    lines = pending_baselines_markdown(catalog, CAMPAIGN, workspace.models)
-    assert [line.split(" | ")[0] for line in lines if line.startswith("| ") and "from scratch" in line] == [
-        "| SAC from scratch (robosuite)", "| PPO from scratch (navigation)"]
+    _register(catalog, 0, {("nav-room-red", "seen"): 9})  # an evaluated iteration: the report's success table
+    assert "Baselines not in the table yet" in results_markdown(catalog, CAMPAIGN, "sim2act report", models)
+    assert "Baselines not in the table yet" not in results_markdown(catalog, CAMPAIGN, "sim2act report")
+    _evaluated(catalog, f"baselines-{CAMPAIGN}-navigation", 2)  # its rows are in the table now
+    catalog.register_unit(unit_key="baselines-sac-robosuite", stage="baselines", campaign=CAMPAIGN, iteration=0,
+                          summary=RLTrained(algorithm="sac", family="robosuite", env_steps=455_956, steps_taken=455_956,
+                                            episodes=2_600, successes=9, resumed_at=120_000, path="x").model_dump())
+    states = [line.split(" | ")[:2] for line in pending_baselines_markdown(catalog, CAMPAIGN, models)
+              if "from scratch" in line]
+    assert states == [["| SAC from scratch (robosuite)", "trained, not evaluated yet"],
+                      ["| SAC from scratch (metaworld)", "training"], ["| PPO from scratch (navigation)", "waiting"],
+                      ["| PPO from scratch (robosuite)", "training"]]

@@ -389,6 +389,8 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
         assert (ws.models / key / "agent.zip").stat().st_size > 100_000
         assert json.loads((ws.models / key / "plan.json").read_text()) == {  # what a report read mid-training names
             "campaign": "smoke", "algorithm": summary["algorithm"], "family": "robosuite", "env_steps": RL_BUDGET}
+        assert not (ws.models / key / "progress.json").exists()  # registered: spent, like its checkpoints
+        assert not (ws.models / key / "checkpoint").exists()
     # the experts' ceiling is measured before the trainings' hours, not after
     [(expert_done,)] = catalog.query("SELECT max(s.finished_at) FROM stage_runs s JOIN evaluations v "
                                      "ON v.unit_key = s.unit_key WHERE v.model_key = 'expert'")
