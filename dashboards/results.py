@@ -92,11 +92,13 @@ def _utc(seconds: float | None) -> str:
         seconds, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
-def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path) -> list[str]:
-    """The RL baselines not in the success table yet: trained and not evaluated, training (at their
-    latest progress, and where a restart resumes them), or waiting for a worker; nothing when there
-    are none."""
+def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, holder: dict | None) -> list[str]:
+    """The RL baselines not in the success table yet: trained and not evaluated, training or stopped
+    (at their latest progress, and where a restart resumes them), or waiting for a worker; nothing
+    when there are none. `holder`: the `sim2act run` holding the workspace now (flows/run_lock.py
+    `run_holder`), None when none does."""
     training = agents_in_training(models, catalog, campaign)  # first: one registering meanwhile shows twice, not never
+    running = holder is not None and holder.get("campaign") == campaign
     rows = []
     for summary in catalog.query(
             "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND NOT EXISTS ("
@@ -113,13 +115,21 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path) ->
             continue
         resumes = (f"{agent.checkpoint_steps:,} ({_utc(agent.checkpoint_at)})" if agent.checkpoint_at is not None
                    else "0: no checkpoint yet")
-        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training",
+        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training" if running else "stopped",
                      f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
                      f"{agent.episodes:,} ({agent.successes:,})", _utc(agent.as_of), resumes])
     if not rows:
         return []
-    return ["", "Baselines not in the table yet (a `sim2act run` with the same settings resumes them; a training "
-            "from its last checkpoint; an old *as of* is a training not running now):", "",
+    if running:
+        now = (f"A `sim2act run` of this campaign holds the workspace (pid {holder.get('pid')} on "
+               f"{holder.get('host')}, since {holder.get('since')}): the trainings below are in flight.")
+    elif holder is not None:
+        now = (f"A run of campaign `{holder.get('campaign')}` holds the workspace (since {holder.get('since')}): "
+               "these wait for a run of this one.")
+    else:
+        now = "No `sim2act run` holds the workspace now."
+    return ["", f"Baselines not in the table yet. {now} A `sim2act run` with the same settings resumes each from its "
+            "last checkpoint.", "",
             *_table(["agent", "state", "env steps / budget", "training episodes (succeeded)", "as of",
                      "a restart resumes at (checkpoint)"], rows)]
 
@@ -348,7 +358,7 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
 
 
 def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
-                      steps_through: dict[int, int], models: Path | None) -> list[str]:
+                      steps_through: dict[int, int], models: Path | None, holder: dict | None) -> list[str]:
     """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation."""
     lines: list[str] = []
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
@@ -359,7 +369,7 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
         rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
     if models is not None:
-        lines += pending_baselines_markdown(catalog, campaign, models)
+        lines += pending_baselines_markdown(catalog, campaign, models, holder)
 
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
@@ -374,10 +384,12 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     return lines
 
 
-def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None) -> str:
+def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None,
+                     holder: dict | None = None) -> str:
     """The report. A campaign whose latest dataset is indexed but not yet evaluated (the generalist's
     million, before its training) gets its dataset and compute sections alone. With `models` (the
-    workspace's), the RL baselines not evaluated yet are listed below the table, each as far as it got.
+    workspace's), the RL baselines not evaluated yet are listed below the table, each as far as it got,
+    and whether `holder` (the run holding the workspace now, or None) is training them.
 
     Raises:
         ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""
@@ -406,7 +418,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     if not by_iteration:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
-        lines += _success_sections(catalog, campaign, by_iteration, steps_through, models)
+        lines += _success_sections(catalog, campaign, by_iteration, steps_through, models, holder)
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(

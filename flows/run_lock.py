@@ -43,3 +43,23 @@ def exclusive_run(workspace: Workspace, campaign: str) -> Iterator[None]:
         finally:
             handle.truncate(0)
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def run_holder(workspace: Workspace) -> dict | None:
+    """The run holding the workspace now, as it wrote itself into the lock ({campaign, pid, host,
+    since}); None when none does. Read, not locked, so that a report never stands in a run's way:
+    a release empties the file, and a killed holder's words stay behind, so a holder on this host
+    must also be alive (one on another host is taken at its word)."""
+    try:
+        holder = json.loads(workspace.run_lock.read_text() or "null")
+    except (FileNotFoundError, json.JSONDecodeError):  # never run here, or caught mid-write
+        return None
+    if not holder or holder.get("host") != socket.gethostname():
+        return holder or None
+    try:
+        os.kill(holder["pid"], 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:  # alive, another user's
+        pass
+    return holder

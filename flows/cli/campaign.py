@@ -305,9 +305,11 @@ def cmd_report(args: argparse.Namespace) -> int:
     config = campaign_config(args)
     from dashboards.results import results_markdown
 
+    from flows.run_lock import run_holder
+
     workspace, catalog = open_catalog(args)
     try:
-        text = results_markdown(catalog, config.name, args.command_line, workspace.models)
+        text = results_markdown(catalog, config.name, args.command_line, workspace.models, run_holder(workspace))
     except ValueError as exc:
         raise ConfigError(f"report: {exc}") from None
     if args.out is None:

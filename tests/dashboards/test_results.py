@@ -335,7 +335,10 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
             unit_key=f"baselines-{campaign}-navigation", stage="baselines", campaign=campaign, iteration=0,
             summary=RLTrained(algorithm="ppo", family="navigation", env_steps=254_522, steps_taken=254_976,
                               episodes=2_300, successes=41, resumed_at=0, path="x").model_dump())
-    lines = pending_baselines_markdown(catalog, CAMPAIGN, models)
+    holder = {"campaign": CAMPAIGN, "pid": 4242, "host": "runner", "since": "2026-11-30 11:00:00"}  # run_holder's
+    lines = pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
+    assert "holds the workspace (pid 4242 on runner, since 2026-11-30 11:00:00): the trainings below are in flight" in \
+        lines[1]
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
     assert rows == [
         ["PPO from scratch (navigation)", "trained, not evaluated yet", "254,976 / 254,522", "2,300 (41)", "–",
@@ -349,14 +352,17 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
          "0: no checkpoint yet"]]
 
     _register(catalog, 0, {("nav-room-red", "seen"): 9})  # an evaluated iteration: the report's success table
-    assert "Baselines not in the table yet" in results_markdown(catalog, CAMPAIGN, "sim2act report", models)
+    assert "Baselines not in the table yet" in results_markdown(catalog, CAMPAIGN, "sim2act report", models, holder)
     assert "Baselines not in the table yet" not in results_markdown(catalog, CAMPAIGN, "sim2act report")
     _evaluated(catalog, f"baselines-{CAMPAIGN}-navigation", 2)  # its rows are in the table now
     catalog.register_unit(unit_key="baselines-sac-robosuite", stage="baselines", campaign=CAMPAIGN, iteration=0,
                           summary=RLTrained(algorithm="sac", family="robosuite", env_steps=455_956, steps_taken=455_956,
                                             episodes=2_600, successes=9, resumed_at=120_000, path="x").model_dump())
-    states = [line.split(" | ")[:2] for line in pending_baselines_markdown(catalog, CAMPAIGN, models)
-              if "from scratch" in line]
-    assert states == [["| SAC from scratch (robosuite)", "trained, not evaluated yet"],
-                      ["| SAC from scratch (metaworld)", "training"], ["| PPO from scratch (navigation)", "waiting"],
-                      ["| PPO from scratch (robosuite)", "training"]]
+    for held_by, said in ((None, "No `sim2act run` holds the workspace now."),  # stopped: the session's end, a kill
+                          ({**holder, "campaign": "other"}, "A run of campaign `other` holds the workspace")):
+        lines = pending_baselines_markdown(catalog, CAMPAIGN, models, held_by)
+        assert said in lines[1]
+        states = [line.split(" | ")[:2] for line in lines if "from scratch" in line]
+        assert states == [["| SAC from scratch (robosuite)", "trained, not evaluated yet"],
+                          ["| SAC from scratch (metaworld)", "stopped"], ["| PPO from scratch (navigation)", "waiting"],
+                          ["| PPO from scratch (robosuite)", "stopped"]]

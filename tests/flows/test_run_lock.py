@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from flows.run_lock import WorkspaceBusy, exclusive_run
+from flows.run_lock import WorkspaceBusy, exclusive_run, run_holder
 from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, sim2act_env
 
@@ -34,7 +34,10 @@ def test_a_second_run_on_a_busy_workspace_is_refused_and_writes_nothing(tmp_path
 
 
 def test_a_killed_holder_leaves_the_workspace_free(tmp_path):
+    """... and `run_holder` (what `sim2act report` says of the trainings it lists) names the holder while it lives,
+    none once it is killed (its words stay in the file) or has let go (the file emptied)."""
     workspace = Workspace.at(tmp_path / "workspace")
+    assert run_holder(workspace) is None  # never run here
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time\nfrom flows.run_lock import exclusive_run\n"
          "from schemas.workspace import Workspace\n"
@@ -45,7 +48,10 @@ def test_a_killed_holder_leaves_the_workspace_free(tmp_path):
     with pytest.raises(WorkspaceBusy, match="held"):
         with exclusive_run(workspace, "second"):
             pass
+    assert run_holder(workspace)["campaign"] == "held" and run_holder(workspace)["pid"] == holder.pid
     holder.kill()
     holder.wait()
+    assert json.loads(workspace.run_lock.read_text())["campaign"] == "held" and run_holder(workspace) is None
     with exclusive_run(workspace, "second"):
-        pass
+        assert run_holder(workspace)["pid"] == os.getpid()
+    assert run_holder(workspace) is None
