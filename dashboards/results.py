@@ -9,6 +9,8 @@ import itertools
 import json
 import os
 import platform
+import time
+from collections import Counter
 from pathlib import Path
 
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
@@ -16,9 +18,11 @@ from dashboards.report import evaluations_by_iteration, success_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
-from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training
-from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
+from stages.evaluate import (SPLITS, GroupSuccess, TaskEvaluation, evaluation_cases, group_success,
+                             read_evaluations)
 from warehouse.catalog import Catalog
+from warehouse.tasks import latest_tasks
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
 AGENT_NAMES = {EXPERT: "scripted expert, noiseless (ceiling)", "ppo": "PPO from scratch", "sac": "SAC from scratch"}
@@ -92,40 +96,57 @@ def _utc(seconds: float | None) -> str:
         seconds, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
 
 
+def _run_started(holder: dict) -> float | None:
+    """When the holding run started (epoch seconds): its `started`, or its `since` where a run of
+    older code wrote only that (local time, this machine's zone)."""
+    if isinstance(holder.get("started"), (int, float)):
+        return float(holder["started"])
+    try:
+        return time.mktime(time.strptime(str(holder.get("since")), "%Y-%m-%d %H:%M:%S"))
+    except ValueError:
+        return None
+
+
 def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, holder: dict | None) -> list[str]:
-    """The RL baselines not in the success table yet: trained and not evaluated, training or stopped
-    (at their latest progress, and where a restart resumes them), or waiting for a worker; nothing
-    when there are none. `holder`: the `sim2act run` holding the workspace now (flows/run_lock.py
-    `run_holder`), None when none does."""
+    """The RL baselines of the campaign's latest plan (stages/baselines.py `campaign_plans`) not in
+    the success table yet: trained and not evaluated; training, to resume or stopped (at their latest
+    progress, and where a restart resumes them); or waiting for a worker; nothing when there are
+    none. `holder`: the run holding the workspace now (flows/run_lock.py `run_holder`), or None."""
     training = agents_in_training(models, catalog, campaign)  # first: one registering meanwhile shows twice, not never
     running = holder is not None and holder.get("campaign") == campaign
+    started = _run_started(holder) if running else None
     rows = []
     for summary in catalog.query(
-            "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND NOT EXISTS ("
-            "SELECT 1 FROM evaluations v WHERE v.model_key = s.unit_key AND v.campaign = s.campaign AND v.suite = ?) "
-            "ORDER BY s.finished_at", [BASELINES_STAGE, campaign, CAMPAIGN_SUITE]):
+            "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND list_contains(?, s.unit_key) "
+            "AND NOT EXISTS (SELECT 1 FROM evaluations v "
+            "WHERE v.model_key = s.unit_key AND v.campaign = s.campaign AND v.suite = ?) ORDER BY s.finished_at",
+            [BASELINES_STAGE, campaign, list(campaign_plans(models, campaign)), CAMPAIGN_SUITE]):
         trained = json.loads(summary[0])
-        rows.append([f"{AGENT_NAMES[trained['algorithm']]} ({trained['family']})", "trained, not evaluated yet",
-                     f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
+        rows.append([f"{AGENT_NAMES.get(trained['algorithm'], trained['algorithm'])} ({trained['family']})",
+                     "trained, not evaluated yet", f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
                      f"{trained['episodes']:,} ({trained['successes']:,})", "–", "–"])
     for agent in training:
+        name = f"{AGENT_NAMES.get(agent.algorithm, agent.algorithm)} ({agent.family})"
         if not agent.started:
-            rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "waiting", f"0 / {agent.env_steps:,}",
-                         "–", "–", "–"])
+            rows.append([name, "waiting", f"0 / {agent.env_steps:,}", "–", "–", "–"])
             continue
+        if not running:
+            state = "stopped"
+        elif started is None or agent.as_of >= started:
+            state = "training"
+        else:
+            state = "to resume"  # this run has not reached it yet: an earlier stage, or no worker free
         resumes = (f"{agent.checkpoint_steps:,} ({_utc(agent.checkpoint_at)})" if agent.checkpoint_at is not None
                    else "0: no checkpoint yet")
-        rows.append([f"{AGENT_NAMES[agent.algorithm]} ({agent.family})", "training" if running else "stopped",
-                     f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
+        rows.append([name, state, f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
                      f"{agent.episodes:,} ({agent.successes:,})", _utc(agent.as_of), resumes])
     if not rows:
         return []
     if running:
         now = (f"A `sim2act run` of this campaign holds the workspace (pid {holder.get('pid')} on "
-               f"{holder.get('host')}, since {holder.get('since')}): the trainings below are in flight.")
+               f"{holder.get('host')}, since {_utc(started) if started is not None else holder.get('since')}).")
     elif holder is not None:
-        now = (f"A run of campaign `{holder.get('campaign')}` holds the workspace (since {holder.get('since')}): "
-               "these wait for a run of this one.")
+        now = f"Another run (`{holder.get('campaign')}`) holds the workspace; these wait for a run of this campaign."
     else:
         now = "No `sim2act run` holds the workspace now."
     return ["", f"Baselines not in the table yet. {now} A `sim2act run` with the same settings resumes each from its "
@@ -364,8 +385,12 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
+    cases = Counter(task.family for task, _, _ in evaluation_cases(latest_tasks(catalog, campaign)))
     for (agent, family, steps), evaluations in baseline_evaluations(catalog, campaign).items():
         name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
+        meets = cases[family] if family else sum(cases.values())  # an RL agent meets its family's cases
+        if len(evaluations) < meets:  # read mid-evaluation: the rows so far
+            name += f", evaluating: {len(evaluations)}/{meets} cases"
         rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
     if models is not None:

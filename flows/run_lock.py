@@ -13,6 +13,7 @@ import socket
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
@@ -36,7 +37,8 @@ def exclusive_run(workspace: Workspace, campaign: str) -> Iterator[None]:
         handle.seek(0)
         handle.truncate()
         handle.write(json.dumps({"campaign": campaign, "pid": os.getpid(), "host": socket.gethostname(),
-                                 "since": time.strftime("%Y-%m-%d %H:%M:%S")}))
+                                 "since": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+                                 "started": time.time()}))
         handle.flush()
         try:
             yield
@@ -47,19 +49,48 @@ def exclusive_run(workspace: Workspace, campaign: str) -> Iterator[None]:
 
 def run_holder(workspace: Workspace) -> dict | None:
     """The run holding the workspace now, as it wrote itself into the lock ({campaign, pid, host,
-    since}); None when none does. Read, not locked, so that a report never stands in a run's way:
-    a release empties the file, and a killed holder's words stay behind, so a holder on this host
-    must also be alive (one on another host is taken at its word)."""
+    since, started}); None when none does. Read, never locked, so that a report never stands in a
+    run's way. A release empties the file but a killed holder's words stay behind, so on this host
+    the lock itself must be held (Linux's /proc/locks; elsewhere, the holder's process alive); a
+    holder on another host (a shared folder) is taken at its word."""
     try:
         holder = json.loads(workspace.run_lock.read_text() or "null")
     except (FileNotFoundError, json.JSONDecodeError):  # never run here, or caught mid-write
         return None
-    if not holder or holder.get("host") != socket.gethostname():
-        return holder or None
-    try:
-        os.kill(holder["pid"], 0)
-    except ProcessLookupError:
+    if not isinstance(holder, dict) or not isinstance(holder.get("pid"), int) or holder["pid"] <= 0:
+        return None  # released, or not a run's words
+    if holder.get("host") != socket.gethostname():
+        return holder
+    held = _flock_held(workspace.run_lock)
+    if held is None:
+        held = _alive(holder["pid"])
+    return holder if held else None
+
+
+def _flock_held(path) -> bool | None:
+    """Whether a process holds a flock on `path`, as /proc/locks lists them; None where there is no
+    /proc/locks (a PID alone can be another process's after a restart)."""
+    proc_locks = Path("/proc/locks")
+    if not proc_locks.exists():
         return None
+    try:
+        found = os.stat(path)
+    except FileNotFoundError:  # no lock file: nothing holds it
+        return False
+    locks = proc_locks.read_text()
+    held = f"{os.major(found.st_dev):02x}:{os.minor(found.st_dev):02x}:{found.st_ino}"
+    for line in locks.splitlines():  # "1: FLOCK  ADVISORY  WRITE 30368 fe:00:5603613 0 EOF"; a waiter's has "->"
+        fields = line.replace("->", "").split()
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == held:
+            return True
+    return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
     except PermissionError:  # alive, another user's
-        pass
-    return holder
+        return True
+    return True

@@ -14,12 +14,13 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
 
-from envs.pool import run_in_pool
+from envs.pool import Progress, run_in_pool
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
@@ -107,11 +108,34 @@ def exploration_steps(catalog: Catalog, explore_units: list[str]) -> dict[str, i
     return {family: int(steps) for family, steps in rows}
 
 
+def progress_callback(progress: Progress, folder: Path, env) -> Callable[[int, int], None]:
+    """learn_with_checkpoints' `on_progress(done, resumed_at)` for a training in `folder`: the log line
+    (rate, ETA) and progress.json at each 1% of the budget, and progress.json at its first call too
+    (a resumed agent's last progress ran past the checkpoint it resumes at). `progress`: the bar
+    over the budget; `env`: the training env, counting its episodes."""
+    every_percent = max(1, progress.total // 100)
+    written = False
+
+    def on_progress(done: int, resumed_at: int) -> None:
+        nonlocal written
+        if progress.done < resumed_at:
+            progress.resume_at(resumed_at)
+        crossed = False
+        if done > progress.done:
+            crossed = done // every_percent > progress.done // every_percent
+            progress.advance(done - progress.done, done - progress.done, log=crossed)
+        if crossed or not written:
+            write_progress(folder, done, env.episodes_finished, env.successes)
+            written = True
+
+    return on_progress
+
+
 def train_rl_agent(unit: RLUnit) -> RLTrained:
     """Worker: train one agent from scratch for its budget of environment steps (from its last
     checkpoint where a kill interrupted it) and save it."""
     from envs.gym_env import InstructedTasksEnv
-    from envs.pool import Progress, log_stages_to_stderr
+    from envs.pool import log_stages_to_stderr
     from policies.rl_agent import learn_with_checkpoints
 
     log_stages_to_stderr()  # a worker has no Prefect handler, and an agent trains for hours: its progress on stderr
@@ -120,24 +144,10 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     path = Path(unit.path)
     path.parent.mkdir(parents=True, exist_ok=True)
     progress = Progress(log, f"baselines: {unit.algorithm} on {unit.family}", unit.env_steps, "env steps", "env steps")
-    every_percent = max(1, unit.env_steps // 100)
-
-    written = []  # whether this start has written its progress yet
-
-    def on_progress(done: int, resumed_at: int) -> None:
-        if progress.done < resumed_at:
-            progress.resume_at(resumed_at)
-        crossed = False
-        if done > progress.done:
-            crossed = done // every_percent > progress.done // every_percent
-            progress.advance(done - progress.done, done - progress.done, log=crossed)
-        if crossed or not written:  # at the start too: a resumed agent's last progress ran past its checkpoint
-            write_progress(path.parent, done, env.episodes_finished, env.successes)
-            written.append(done)
-
     try:
         agent, resumed_at = learn_with_checkpoints(unit.algorithm, env, unit.env_steps, unit.seed, path.parent,
-                                                   unit.checkpoint_every, unit.replay_size, on_progress,
+                                                   unit.checkpoint_every, unit.replay_size,
+                                                   progress_callback(progress, path.parent, env),
                                                    Path(unit.precision_cache) if unit.precision_cache else None)
     finally:
         progress.close()
@@ -191,28 +201,30 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
     return units
 
 
-def _campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
-    """model key -> plan, of the campaign's agents planned in `models` (a workspace's)."""
+def campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
+    """model key -> plan, of the campaign's agents planned in `models` (a workspace's): those its
+    latest run of the stage made, trained or not."""
     plans = {}
     for path in sorted(models.glob(f"{STAGE}-*/{PLAN}")):
-        plan = json.loads(path.read_text())
+        try:
+            plan = json.loads(path.read_text())
+        except FileNotFoundError:  # a run dropped it meanwhile
+            continue
         if plan["campaign"] == campaign:
             plans[path.parent.name] = plan
     return plans
 
 
-def write_plans(models: Path, campaign: str, units: list[RLUnit], planned: set[str]) -> None:
-    """Each of `units`' plan.json in its models/<key>/ before it trains, so that a report read mid-run
-    names the agents the checkpoints belong to (a key alone does not say its algorithm, family or
-    budget); the campaign's plans of keys not in `planned` (settings since changed, agents since
-    dropped) are removed: no run resumes them."""
-    for key in set(_campaign_plans(models, campaign)) - planned:
+def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:
+    """Each of `units`' plan.json in its models/<key>/ before any trains, so that a report read
+    mid-run names the agents the checkpoints belong to (a key alone does not say its algorithm,
+    family or budget); the campaign's other plans (settings since changed, agents since dropped) are
+    removed: no run trains or evaluates them."""
+    for key in set(campaign_plans(models, campaign)) - {unit.unit_key for unit in units}:
         (models / key / PLAN).unlink(missing_ok=True)
     for unit in units:
-        plan = Path(unit.path).with_name(PLAN)
-        plan.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomically(plan, json.dumps({"campaign": campaign, "algorithm": unit.algorithm,
-                                                "family": unit.family, "env_steps": unit.env_steps}))
+        write_text_atomically(Path(unit.path).with_name(PLAN), json.dumps({
+            "campaign": campaign, "algorithm": unit.algorithm, "family": unit.family, "env_steps": unit.env_steps}))
 
 
 def write_progress(folder: Path, done: int, episodes: int, successes: int) -> None:
@@ -226,7 +238,7 @@ def agents_in_training(models: Path, catalog: Catalog, campaign: str) -> list[Ag
     latest progress or checkpoint, whichever was written last; SAC first, then by family."""
     from policies.rl_agent import checkpoint_state
 
-    plans = _campaign_plans(models, campaign)
+    plans = campaign_plans(models, campaign)
     registered = catalog.registered_keys(list(plans))
     agents = []
     for key, plan in plans.items():
@@ -280,7 +292,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = longest_first([u for u in units if u.unit_key in pending])
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
-    write_plans(workspace.models, config.name, todo, {u.unit_key for u in units})
+    write_plans(workspace.models, config.name, units)
     cases = evaluation_cases(tasks)
     baselines = []
     if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours

@@ -46,7 +46,8 @@ def _catalog_with_tasks(folder) -> Catalog:
     catalog = Catalog(Workspace.at(folder).create().catalog)
     catalog.initialise()
     tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": "navigation", "env_name": "GoToRoom",
-              "instruction": t, "instructions": [t], "unseen_instructions": [], "object_colours": json.dumps({}),
+              "instruction": t, "instructions": [t, f"{t} now", f"do {t}"], "unseen_instructions": [],
+              "object_colours": json.dumps({}),
               "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
     catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": tasks})
@@ -279,10 +280,11 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
 
 
 def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp_path):
-    """The generalist's SACs train for ~15 h: a report read meanwhile names each agent planned and not evaluated
-    (waiting, training at its latest progress and where a restart resumes it, trained and not evaluated) and drops
-    it once its rows are in; plans no run resumes any more go."""
+    """The generalist's SACs train for ~15 h: a report read meanwhile names each agent of the campaign's latest plan
+    not evaluated yet (waiting; training, to resume or stopped, at its latest progress and where a restart resumes
+    it; trained and not evaluated) and drops it once its rows are in; plans no run makes any more go."""
     import os
+    import time
     from types import SimpleNamespace
 
     from dashboards.results import pending_baselines_markdown
@@ -292,22 +294,28 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
 
     catalog = _catalog_with_tasks(tmp_path)
     models = Workspace.at(tmp_path).models
-    units = {name: RLUnit(unit_key=f"baselines-{name}", algorithm=name.split("-")[0], family=name.split("-")[1],
-                          tasks=[], embeddings={}, render=RenderConfig(), randomise=RandomiseConfig(), env_steps=steps,
-                          replay_size=steps, checkpoint_every=5_000, seed=0,
-                          path=str(models / f"baselines-{name}" / "agent.zip"))
-             for name, steps in (("sac-robosuite", 455_956), ("ppo-navigation", 254_522), ("ppo-robosuite", 455_956),
-                                 ("sac-metaworld", 382_023), ("ppo-metaworld", 1_000))}
-    keys = {unit.unit_key for unit in units.values()}
-    write_plans(models, CAMPAIGN, list(units.values()), keys)
-    other = units["ppo-robosuite"].model_copy(update={"unit_key": "baselines-other",
-                                                      "path": str(models / "baselines-other" / "agent.zip")})
-    write_plans(models, "other", [other], {"baselines-other"})  # another campaign's, in the same workspace
-    # a later run of this campaign plans the same agents but ppo on metaworld (its budget since changed: another key)
-    write_plans(models, CAMPAIGN, [], keys - {"baselines-ppo-metaworld"})
+
+    def unit(name: str, algorithm: str, family: str, steps: int) -> RLUnit:
+        return RLUnit(unit_key=f"baselines-{name}", algorithm=algorithm, family=family, tasks=[], embeddings={},
+                      render=RenderConfig(), randomise=RandomiseConfig(), env_steps=steps, replay_size=steps,
+                      checkpoint_every=5_000, seed=0, path=str(models / f"baselines-{name}" / "agent.zip"))
+
+    def trained(key: str, campaign: str = CAMPAIGN) -> None:
+        catalog.register_unit(unit_key=key, stage="baselines", campaign=campaign, iteration=0, summary=RLTrained(
+            algorithm="ppo", family="navigation", env_steps=254_522, steps_taken=254_976, episodes=2_300, successes=41,
+            resumed_at=0, path="x").model_dump())
+
+    units = [unit("trained", "ppo", "navigation", 254_522), unit("sac-metaworld", "sac", "metaworld", 382_023),
+             unit("sac-robosuite", "sac", "robosuite", 455_956), unit("ppo-navigation", "ppo", "navigation", 254_522),
+             unit("ppo-robosuite", "ppo", "robosuite", 455_956), unit("ppo-metaworld", "ppo", "metaworld", 1_000)]
+    write_plans(models, CAMPAIGN, units)
+    write_plans(models, "other", [unit("other", "ppo", "robosuite", 9)])  # another campaign's, in the same workspace
+    write_plans(models, CAMPAIGN, units[:-1])  # a later run: ppo on metaworld has another budget since (another key)
     assert not (models / "baselines-ppo-metaworld" / "plan.json").exists()
-    assert (models / "baselines-other" / "plan.json").exists()
-    assert (models / "baselines-sac-robosuite" / "plan.json").exists()
+    assert (models / "baselines-other" / "plan.json").exists() and (models / "baselines-trained" / "plan.json").exists()
+    trained("baselines-trained")  # trained, not evaluated
+    trained("baselines-other", "other")  # another campaign's
+    trained("baselines-ppo-metaworld")  # of a plan since dropped: no run evaluates it
 
     class Agent:  # what save_checkpoint asks of an SB3 agent: its step count and a save
         def __init__(self, steps: int) -> None:
@@ -316,53 +324,70 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
         def save(self, path):
             path.write_bytes(b"weights")
 
+    def written(path, at: int) -> None:
+        os.utime(path, (at, at))
+
     noon = 1_796_040_000  # 2026-11-30 12:00 UTC
     save_checkpoint(Agent(120_000), SimpleNamespace(episodes_finished=650, successes=3),
                     models / "baselines-sac-robosuite")
-    os.utime(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", (noon, noon))
+    written(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", noon)
     write_progress(models / "baselines-sac-robosuite", 123_093, 667, 3)  # ran on past its checkpoint
-    os.utime(models / "baselines-sac-robosuite" / "progress.json", (noon + 600, noon + 600))
+    written(models / "baselines-sac-robosuite" / "progress.json", noon + 600)
     save_checkpoint(Agent(130_000), SimpleNamespace(episodes_finished=653, successes=6),
                     models / "baselines-sac-metaworld")
-    os.utime(models / "baselines-sac-metaworld" / "checkpoint" / "state.json", (noon + 60, noon + 60))
+    written(models / "baselines-sac-metaworld" / "checkpoint" / "state.json", noon + 60)
     write_progress(models / "baselines-sac-metaworld", 129_880, 652, 6)  # its last run's, older than the checkpoint
-    os.utime(models / "baselines-sac-metaworld" / "progress.json", (noon, noon))
+    written(models / "baselines-sac-metaworld" / "progress.json", noon)
     (models / "baselines-sac-metaworld" / "checkpoint").rename(models / "baselines-sac-metaworld" / "checkpoint.old")
     write_progress(models / "baselines-ppo-robosuite", 2_048, 20, 0)  # started, no checkpoint yet
-    os.utime(models / "baselines-ppo-robosuite" / "progress.json", (noon, noon))
-    for campaign in (CAMPAIGN, "other"):  # trained, not evaluated; the other campaign's is not this one's
-        catalog.register_unit(
-            unit_key=f"baselines-{campaign}-navigation", stage="baselines", campaign=campaign, iteration=0,
-            summary=RLTrained(algorithm="ppo", family="navigation", env_steps=254_522, steps_taken=254_976,
-                              episodes=2_300, successes=41, resumed_at=0, path="x").model_dump())
-    holder = {"campaign": CAMPAIGN, "pid": 4242, "host": "runner", "since": "2026-11-30 11:00:00"}  # run_holder's
+    written(models / "baselines-ppo-robosuite" / "progress.json", noon)
+    # run_holder's: a run of this campaign that started at 12:05 (robosuite's SAC has run in it since; the others not)
+    holder = {"campaign": CAMPAIGN, "pid": 4242, "host": "runner", "since": "2026-11-30 12:05:00 UTC",
+              "started": noon + 300}
     lines = pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
-    assert "holds the workspace (pid 4242 on runner, since 2026-11-30 11:00:00): the trainings below are in flight" in \
-        lines[1]
+    assert "A `sim2act run` of this campaign holds the workspace (pid 4242 on runner, since 2026-11-30 12:05 UTC)" \
+        in lines[1]
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
     assert rows == [
         ["PPO from scratch (navigation)", "trained, not evaluated yet", "254,976 / 254,522", "2,300 (41)", "–",
          "–"],
-        ["SAC from scratch (metaworld)", "training", "130,000 / 382,023 (34%)", "653 (6)", "2026-11-30 12:01 UTC",
+        ["SAC from scratch (metaworld)", "to resume", "130,000 / 382,023 (34%)", "653 (6)", "2026-11-30 12:01 UTC",
          "130,000 (2026-11-30 12:01 UTC)"],
         ["SAC from scratch (robosuite)", "training", "123,093 / 455,956 (27%)", "667 (3)", "2026-11-30 12:10 UTC",
          "120,000 (2026-11-30 12:00 UTC)"],
         ["PPO from scratch (navigation)", "waiting", "0 / 254,522", "–", "–", "–"],
-        ["PPO from scratch (robosuite)", "training", "2,048 / 455,956 (0%)", "20 (0)", "2026-11-30 12:00 UTC",
+        ["PPO from scratch (robosuite)", "to resume", "2,048 / 455,956 (0%)", "20 (0)", "2026-11-30 12:00 UTC",
          "0: no checkpoint yet"]]
+    older_code = {**holder, "since": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(noon + 300))}
+    del older_code["started"]  # a run of code before `started`: its local `since` read instead
+    assert pending_baselines_markdown(catalog, CAMPAIGN, models, older_code) == lines
 
     _register(catalog, 0, {("nav-room-red", "seen"): 9})  # an evaluated iteration: the report's success table
     assert "Baselines not in the table yet" in results_markdown(catalog, CAMPAIGN, "sim2act report", models, holder)
     assert "Baselines not in the table yet" not in results_markdown(catalog, CAMPAIGN, "sim2act report")
-    _evaluated(catalog, f"baselines-{CAMPAIGN}-navigation", 2)  # its rows are in the table now
-    catalog.register_unit(unit_key="baselines-sac-robosuite", stage="baselines", campaign=CAMPAIGN, iteration=0,
-                          summary=RLTrained(algorithm="sac", family="robosuite", env_steps=455_956, steps_taken=455_956,
-                                            episodes=2_600, successes=9, resumed_at=120_000, path="x").model_dump())
-    for held_by, said in ((None, "No `sim2act run` holds the workspace now."),  # stopped: the session's end, a kill
-                          ({**holder, "campaign": "other"}, "A run of campaign `other` holds the workspace")):
+    _evaluated(catalog, "baselines-trained", 2)  # its rows are in the table now
+    trained("baselines-sac-robosuite")
+    for held_by, said in ((None, "No `sim2act run` holds the workspace now."),  # the session's end, a kill
+                          ({**holder, "campaign": "warehouse compact"}, "Another run (`warehouse compact`) holds")):
         lines = pending_baselines_markdown(catalog, CAMPAIGN, models, held_by)
         assert said in lines[1]
         states = [line.split(" | ")[:2] for line in lines if "from scratch" in line]
-        assert states == [["| SAC from scratch (robosuite)", "trained, not evaluated yet"],
+        assert states == [["| PPO from scratch (navigation)", "trained, not evaluated yet"],  # sac-robosuite's summary
                           ["| SAC from scratch (metaworld)", "stopped"], ["| PPO from scratch (navigation)", "waiting"],
                           ["| PPO from scratch (robosuite)", "stopped"]]
+
+
+def test_a_baseline_read_mid_evaluation_says_how_many_of_its_cases_are_in(tmp_path):
+    """The experts' ceiling is in the report from its first case on: pooled over the cases so far, it says so (the
+    campaign's cases: its latest tasks unit's, as the evaluate stage makes them)."""
+    catalog = _catalog_with_tasks(tmp_path)
+    _register(catalog, 0, {("nav-room-red", "seen"): 9})
+    for task_id in ("nav-room-red", "nav-room-sequence-red-green"):
+        _evaluated(catalog, "expert", 10, task=(task_id, "navigation"))
+    [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+             if line.startswith("| scripted expert")]
+    assert row.startswith("| scripted expert, noiseless (ceiling), evaluating: 2/3 cases | – | 20/20 = 100%"), row
+    _evaluated(catalog, "expert", 10, task=("nav-room-sequence-purple-red", "navigation"))
+    [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+             if line.startswith("| scripted expert")]
+    assert row.startswith("| scripted expert, noiseless (ceiling) | – | 30/30 = 100%"), row

@@ -55,3 +55,23 @@ def test_a_killed_holder_leaves_the_workspace_free(tmp_path):
     with exclusive_run(workspace, "second"):
         assert run_holder(workspace)["pid"] == os.getpid()
     assert run_holder(workspace) is None
+
+
+def test_run_holder_takes_the_lock_not_the_words_on_this_host(tmp_path):
+    """A lock file's words without the lock (a killed run whose PID a later process reuses: here this very process)
+    name no holder; a holder on another host (a shared folder) is taken at its word; a file that is not a run's
+    words is none."""
+    import socket
+    import time
+
+    workspace = Workspace.at(tmp_path / "workspace")
+    workspace.root.mkdir(parents=True)
+    words = {"campaign": "gone", "pid": os.getpid(), "host": socket.gethostname(), "since": "", "started": time.time()}
+    workspace.run_lock.write_text(json.dumps(words))
+    assert os.path.exists("/proc/locks") and run_holder(workspace) is None  # the PID is alive; nothing holds the lock
+    workspace.run_lock.write_text(json.dumps({**words, "host": "elsewhere"}))
+    assert run_holder(workspace)["host"] == "elsewhere"
+    for junk in ("[1]", '{"campaign": "x"}', '{"pid": "12", "host": "elsewhere"}', '{"pid": 0, "host": "elsewhere"}',
+                 '{"pid": -1, "host": "elsewhere"}', '{"pid": 1', ""):
+        workspace.run_lock.write_text(junk)
+        assert run_holder(workspace) is None, junk

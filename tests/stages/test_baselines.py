@@ -19,3 +19,33 @@ def test_sac_and_the_larger_budgets_start_first():
     assert order == [("sac", "robosuite"), ("sac", "metaworld"), ("ppo", "robosuite"), ("ppo", "metaworld"),
                      ("ppo", "navigation")]
     assert [u.unit_key for u in planned][0] == "baselines-ppo-metaworld"  # a new list; the caller's unchanged
+
+
+def test_a_training_writes_its_progress_at_its_start_and_at_each_percent(tmp_path, caplog):
+    """What `sim2act report` reads between checkpoints: a resumed agent's stale progress (it ran past its checkpoint
+    before the kill) is replaced at the start; then a log line and progress.json at each 1% of the budget only."""
+    import json
+    import logging
+    from types import SimpleNamespace
+
+    from envs.pool import Progress
+    from stages.baselines import progress_callback, write_progress
+
+    write_progress(tmp_path, 132_211, 715, 0)  # the killed run's last
+    env = SimpleNamespace(episodes_finished=703, successes=0)  # as the checkpoint at 130,000 restored them
+    log = logging.getLogger("test.baselines")
+    on_progress = progress_callback(Progress(log, "sac on robosuite", 455_956, "env steps", "env steps"), tmp_path, env)
+
+    def written() -> dict:
+        return json.loads((tmp_path / "progress.json").read_text())
+
+    with caplog.at_level(logging.INFO, logger="test.baselines"):
+        on_progress(130_000, 130_000)  # the first rollout of the resumed run
+        assert written() == {"num_timesteps": 130_000, "episodes": 703, "successes": 0}
+        env.episodes_finished = 704
+        on_progress(131_000, 130_000)  # within the same percent (4,559 steps): nothing written
+        assert written()["num_timesteps"] == 130_000 and not caplog.records
+        env.episodes_finished, env.successes = 720, 1
+        on_progress(132_231, 130_000)  # 29% of the budget crossed
+        assert written() == {"num_timesteps": 132_231, "episodes": 720, "successes": 1}
+        assert [r.getMessage().split(",")[0] for r in caplog.records] == ["sac on robosuite: 132231/455956 env steps"]
