@@ -61,27 +61,27 @@ def run_holder(workspace: Workspace) -> dict | None:
         return None  # released, or not a run's words
     if holder.get("host") != socket.gethostname():
         return holder
-    held = _flock_held(workspace.run_lock)
+    held = _flock_held(workspace.run_lock, holder["pid"])
     if held is None:
         held = _alive(holder["pid"])
     return holder if held else None
 
 
-def _flock_held(path) -> bool | None:
-    """Whether a process holds a flock on `path`, as /proc/locks lists them; None where there is no
-    /proc/locks (a PID alone can be another process's after a restart)."""
+def _flock_held(path: Path, pid: int) -> bool | None:
+    """Whether process `pid` holds a flock on `path`, as /proc/locks lists them; None where there is
+    no /proc/locks (a PID alone can be another process's after a restart). Matched on the PID and the
+    inode: the device /proc/locks prints is the superblock's, which stat() does not give on btrfs
+    subvolumes or an overlay over several filesystems."""
     proc_locks = Path("/proc/locks")
     if not proc_locks.exists():
         return None
     try:
-        found = os.stat(path)
+        inode = str(os.stat(path).st_ino)
     except FileNotFoundError:  # no lock file: nothing holds it
         return False
-    locks = proc_locks.read_text()
-    held = f"{os.major(found.st_dev):02x}:{os.minor(found.st_dev):02x}:{found.st_ino}"
-    for line in locks.splitlines():  # "1: FLOCK  ADVISORY  WRITE 30368 fe:00:5603613 0 EOF"; a waiter's has "->"
-        fields = line.replace("->", "").split()
-        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == held:
+    for line in proc_locks.read_text().splitlines():  # "1: FLOCK  ADVISORY  WRITE 30368 fe:00:5603613 0 EOF"
+        fields = line.replace("->", "").split()  # a waiter's line has "->"
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[4] == str(pid) and fields[5].rsplit(":", 1)[-1] == inode:
             return True
     return False
 

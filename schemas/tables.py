@@ -282,12 +282,13 @@ ITERATION_TABLES = ("stage_runs", "shards", "compacted", "quarantine", "iteratio
 
 # Views over the tables above, ready for `sim2act sql` and the dashboards.
 VIEWS = {
-    # One row per evaluation case (model, suite, task, split, wording): the one of most episodes, then the
-    # latest. A case evaluated again (a new evaluate stage version, `sim2act eval --episodes`) keeps its
-    # earlier rows, on the same episode seeds: summing them all would count those episodes twice.
+    # One row per evaluation case (campaign, model, suite, task, split, wording): the one of most episodes, then
+    # the latest. A case evaluated again (a new evaluate stage version, `sim2act eval --episodes`) keeps its
+    # earlier rows, on the same episode seeds: summing them all would count those episodes twice. The campaign:
+    # its seeds are another's episodes, and the expert's model key is every campaign's.
     "current_evaluations": """
         SELECT e.* FROM evaluations e LEFT JOIN stage_runs r ON r.unit_key = e.unit_key
-        QUALIFY row_number() OVER (PARTITION BY e.model_key, e.suite, e.task_id, e.split, e.instruction
+        QUALIFY row_number() OVER (PARTITION BY e.campaign, e.model_key, e.suite, e.task_id, e.split, e.instruction
                                    ORDER BY e.episodes DESC, r.finished_at DESC NULLS LAST, e.unit_key) = 1
     """,
     "triplets": """

@@ -197,8 +197,8 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
         return Promotion(promote=True, reason="no champion yet", success=success, champion_success=None)
     rows = dict(
         ((task_id, split), rate) for task_id, split, rate in catalog.query(
-            "SELECT task_id, split, success_rate FROM current_evaluations WHERE model_key = ? AND suite = ?",
-            [champion[0][0], CAMPAIGN_SUITE])
+            "SELECT task_id, split, success_rate FROM current_evaluations WHERE campaign = ? AND model_key = ? "
+            "AND suite = ?", [campaign, champion[0][0], CAMPAIGN_SUITE])
     )
     shared = [t for t in evaluations if (t.task_id, t.split) in rows]
     if not shared:

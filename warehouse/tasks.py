@@ -50,16 +50,6 @@ def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:
     return [_task_record(r) for r in rows]
 
 
-def latest_tasks(catalog: Catalog, campaign: str) -> list[TaskRecord]:
-    """The tasks of the campaign's latest tasks unit (its latest generate_tasks run); [] if none."""
-    rows = catalog.query(
-        f"SELECT {_TASK_COLUMNS} FROM tasks WHERE unit_key = (SELECT unit_key FROM stage_runs "
-        "WHERE stage = 'generate_tasks' AND campaign = ? ORDER BY finished_at DESC LIMIT 1) ORDER BY task_id",
-        [campaign],
-    )
-    return [_task_record(r) for r in rows]
-
-
 def find_task(catalog: Catalog, campaign: str, task_id: str) -> TaskRecord | None:
     """A campaign's task by id (the lowest unit key's, should several tasks units name it), or None."""
     rows = catalog.query(

@@ -91,18 +91,20 @@ def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "
                                             "final_loss": 0.0, "unit_key": key}]})
 
 
-def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None) -> None:
+def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None,
+               campaign: str = CAMPAIGN) -> None:
     """`model`'s evaluation on one case: nav-room-red seen, or `task` (task id, family), seen."""
     task_id, family = task or ("nav-room-red", "navigation")
     low, high = wilson_interval(won, episodes)
-    row = {"unit_key": f"evaluate-{model}-{task_id}", "campaign": CAMPAIGN, "iteration": 0, "suite": CAMPAIGN_SUITE,
+    key = f"evaluate-{model}-{task_id}" + ("" if campaign == CAMPAIGN else f"-{campaign}")
+    row = {"unit_key": key, "campaign": campaign, "iteration": 0, "suite": CAMPAIGN_SUITE,
            "model_key": model, "task_id": task_id, "family": family, "split": "seen",
            "instruction": task_id, "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
            "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
            "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
            "failure_video": None, "episode_achieved": None, "success_rate": won / episodes}
-    catalog.register_unit(unit_key=f"evaluate-{model}-{task_id}", stage="evaluate", campaign=CAMPAIGN, iteration=0,
-                          summary={}, rows={"evaluations": [row]})
+    catalog.register_unit(unit_key=key, stage="evaluate", campaign=campaign, iteration=0, summary={},
+                          rows={"evaluations": [row]})
 
 
 def test_the_seeds_are_pooled_per_family_where_the_trainings_met_several(tmp_path):
@@ -379,15 +381,17 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
 
 def test_a_baseline_read_mid_evaluation_says_how_many_of_its_cases_are_in(tmp_path):
     """The experts' ceiling is in the report from its first case on: pooled over the cases so far, it says so (the
-    campaign's cases: its latest tasks unit's, as the evaluate stage makes them)."""
+    cases the last iteration's model met); another campaign's expert on the same task is not this one's."""
     catalog = _catalog_with_tasks(tmp_path)
-    _register(catalog, 0, {("nav-room-red", "seen"): 9})
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-red-green", "seen"): 5,
+                           ("nav-room-sequence-purple-red", "unseen"): 1})  # the last iteration's model: 3 cases
     for task_id in ("nav-room-red", "nav-room-sequence-red-green"):
         _evaluated(catalog, "expert", 10, task=(task_id, "navigation"))
     [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
              if line.startswith("| scripted expert")]
     assert row.startswith("| scripted expert, noiseless (ceiling), evaluating: 2/3 cases | – | 20/20 = 100%"), row
     _evaluated(catalog, "expert", 10, task=("nav-room-sequence-purple-red", "navigation"))
+    _evaluated(catalog, "expert", 4, task=("nav-room-red", "navigation"), campaign="other")  # later, another's
     [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
              if line.startswith("| scripted expert")]
     assert row.startswith("| scripted expert, noiseless (ceiling) | – | 30/30 = 100%"), row
