@@ -82,7 +82,7 @@ class AgentInTraining(BaseModel):
     done: int  # environment steps at its latest progress or checkpoint
     episodes: int  # training episodes finished by then
     successes: int
-    as_of: float | None  # when `done` was written (epoch seconds): an old one, a training not running
+    as_of: float | None  # when `done` was written (epoch seconds)
     checkpoint_steps: int  # where a restart resumes it; 0: from scratch
     checkpoint_at: float | None
 
@@ -228,7 +228,7 @@ def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:
 
 
 def write_progress(folder: Path, done: int, episodes: int, successes: int) -> None:
-    """A training's progress, between its checkpoints (the worker writes it at each 1% of its budget)."""
+    """A training's progress between its checkpoints (`progress_callback`: at its start and each 1%)."""
     write_text_atomically(folder / PROGRESS, json.dumps({"num_timesteps": done, "episodes": episodes,
                                                          "successes": successes}))
 
