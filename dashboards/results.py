@@ -14,7 +14,7 @@ from collections import Counter
 from pathlib import Path
 
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
-from dashboards.report import evaluations_by_iteration, success_by_iteration
+from dashboards.report import evaluations_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
@@ -110,7 +110,8 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
     the success table yet: trained and not evaluated; training, to resume or stopped (at their latest
     progress, and where a restart resumes them); or waiting for a worker; nothing when there are
     none. `holder`: the run holding the workspace now (flows/run_lock.py `run_holder`), or None."""
-    training = agents_in_training(models, catalog, campaign)  # first: one registering meanwhile shows twice, not never
+    plans = campaign_plans(models, campaign)
+    training = agents_in_training(models, catalog, plans)  # first: one registering meanwhile shows twice, not never
     running = holder is not None and holder.get("campaign") == campaign
     started = _run_started(holder) if running else None
     rows = []
@@ -118,7 +119,7 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
             "SELECT s.summary FROM stage_runs s WHERE s.stage = ? AND s.campaign = ? AND list_contains(?, s.unit_key) "
             "AND NOT EXISTS (SELECT 1 FROM evaluations v "
             "WHERE v.model_key = s.unit_key AND v.campaign = s.campaign AND v.suite = ?) ORDER BY s.finished_at",
-            [BASELINES_STAGE, campaign, list(campaign_plans(models, campaign)), CAMPAIGN_SUITE]):
+            [BASELINES_STAGE, campaign, list(plans), CAMPAIGN_SUITE]):
         trained = json.loads(summary[0])
         rows.append([f"{AGENT_NAMES.get(trained['algorithm'], trained['algorithm'])} ({trained['family']})",
                      "trained, not evaluated yet", f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
@@ -377,14 +378,15 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
 
 
 def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
-                      steps_through: dict[int, int], models: Path | None, holder: dict | None) -> list[str]:
-    """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation."""
+                      steps_through: dict[int, int], cases: Counter, models: Path | None,
+                      holder: dict | None) -> list[str]:
+    """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation.
+    `cases`: family -> the cases the last iteration's model met, which every baseline meets (an RL
+    agent: its family's)."""
     lines: list[str] = []
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
-    # every baseline meets the cases the last iteration's model met (an RL agent: its family's)
-    cases = Counter(e.family for e in evaluations_by_iteration(catalog, campaign).get(max(by_iteration), []))
     for (agent, family, steps), evaluations in baseline_evaluations(catalog, campaign).items():
         name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
         met = len({(e.task_id, e.split, e.instruction) for e in evaluations})
@@ -418,7 +420,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
 
     Raises:
         ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""
-    by_iteration = success_by_iteration(catalog, campaign)
+    evaluations = evaluations_by_iteration(catalog, campaign)
+    by_iteration = {iteration: group_success(found) for iteration, found in evaluations.items()}
     latest = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
         "SELECT explore_units, filter_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
         [campaign])
@@ -443,7 +446,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     if not by_iteration:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
-        lines += _success_sections(catalog, campaign, by_iteration, steps_through, models, holder)
+        cases = Counter(e.family for e in evaluations[max(evaluations)])
+        lines += _success_sections(catalog, campaign, by_iteration, steps_through, cases, models, holder)
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(

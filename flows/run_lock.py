@@ -62,8 +62,10 @@ def run_holder(workspace: Workspace) -> dict | None:
     if holder.get("host") != socket.gethostname():
         return holder
     held = _flock_held(workspace.run_lock, holder["pid"])
-    if held is None:
-        held = _alive(holder["pid"])
+    if held is None:  # no /proc/locks: the holder's process alive or not
+        from flows.service import is_alive  # the stack's module: not on every run's import path
+
+        held = is_alive(holder["pid"])
     return holder if held else None
 
 
@@ -85,12 +87,3 @@ def _flock_held(path: Path, pid: int) -> bool | None:
             return True
     return False
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, another user's
-        return True
-    return True

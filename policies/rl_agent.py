@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -16,6 +15,7 @@ import numpy as np
 
 from envs.gym_env import adapter_action, agent_observation
 from envs.observation import DISCRETE_FAMILIES, Observation
+from schemas.workspace import read_json_written
 
 RL_ALGORITHMS = ("ppo", "sac")
 log = logging.getLogger("sim2act.policies.rl_agent")
@@ -75,11 +75,10 @@ def checkpoint_state(folder: Path) -> tuple[dict, float] | None:
         last = last_checkpoint(folder)
         if last is None:
             return None
-        try:
-            with (last / "state.json").open() as state:  # an open file outlives the save's renames and removals
-                return json.load(state), os.fstat(state.fileno()).st_mtime
-        except FileNotFoundError:  # swapped out between the look and the open: look again
-            continue
+        state = read_json_written(last / "state.json")  # an open file outlives the save's renames and removals
+        if state is not None:
+            return state
+        # swapped out between the look and the open: look again
     return None
 
 

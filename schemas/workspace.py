@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,3 +108,13 @@ def write_text_atomically(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     tmp.replace(path)
+
+
+def read_json_written(path: Path) -> tuple[object, float] | None:
+    """A JSON record and when it was written (epoch seconds), read from one open file (so a writer
+    swapping it meanwhile cannot pair one version's words with another's time); None if absent."""
+    try:
+        with path.open() as file:
+            return json.load(file), os.fstat(file.fileno()).st_mtime
+    except FileNotFoundError:
+        return None

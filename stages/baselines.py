@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from envs.pool import Progress, run_in_pool
 from schemas.config import CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
-from schemas.workspace import Workspace, write_text_atomically
+from schemas.workspace import Workspace, read_json_written, write_text_atomically
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import SPLITS, Agent, TaskEvaluation, evaluate_model, evaluation_cases, group_success
 from warehouse.catalog import Catalog
@@ -233,26 +232,19 @@ def write_progress(folder: Path, done: int, episodes: int, successes: int) -> No
                                                          "successes": successes}))
 
 
-def agents_in_training(models: Path, catalog: Catalog, campaign: str) -> list[AgentInTraining]:
-    """The campaign's RL agents planned in `models` (a workspace's) and not registered: each at its
+def agents_in_training(models: Path, catalog: Catalog, plans: dict[str, dict]) -> list[AgentInTraining]:
+    """The agents of `plans` (`campaign_plans` of `models`, a workspace's) not registered: each at its
     latest progress or checkpoint, whichever was written last; SAC first, then by family."""
     from policies.rl_agent import checkpoint_state
 
-    plans = campaign_plans(models, campaign)
     registered = catalog.registered_keys(list(plans))
     agents = []
     for key, plan in plans.items():
         if key in registered:
             continue
         checkpoint = checkpoint_state(models / key)
-        latest = checkpoint
-        try:
-            with (models / key / PROGRESS).open() as file:
-                progress = json.load(file), os.fstat(file.fileno()).st_mtime
-            if checkpoint is None or progress[1] > checkpoint[1]:
-                latest = progress
-        except FileNotFoundError:
-            pass
+        progress = read_json_written(models / key / PROGRESS)
+        latest = max((found for found in (checkpoint, progress) if found), key=lambda found: found[1], default=None)
         state, as_of = latest or ({"num_timesteps": 0, "episodes": 0, "successes": 0}, None)
         agents.append(AgentInTraining(
             model_key=key, algorithm=plan["algorithm"], family=plan["family"], env_steps=plan["env_steps"],
