@@ -123,6 +123,7 @@ def learn_with_checkpoints(
         (agent, the step it resumed at: 0 when it started afresh)."""
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
 
     last = last_checkpoint(folder)
     if last is None:
@@ -156,6 +157,8 @@ def learn_with_checkpoints(
         def _on_step(self) -> bool:
             return True
 
+    # A logger of our own: SB3's default makes an empty folder /tmp/SB3-<time> at every learn() (every resume).
+    agent.set_logger(Logger(folder=None, output_formats=[]))
     agent.learn(total_timesteps=env_steps - resumed, reset_num_timesteps=resumed == 0, callback=Checkpoints())
     return agent, resumed
 

@@ -2,6 +2,7 @@
 SAC's replay buffer included, and a kill during a checkpoint's swap leaves the one before."""
 
 import json
+import tempfile
 
 import numpy as np
 import pytest
@@ -39,7 +40,11 @@ def _killed_after(env: InstructedTasksEnv, steps: int) -> InstructedTasksEnv:
     ("ppo", "nav-room", 600, 200, 450, 300),  # rollouts of 300 steps: the checkpoint at the second's start
     ("sac", "lift", 240, 100, 180, 100),  # one-step rollouts: a checkpoint at 100, the next due at 200
 ])
-def test_a_killed_training_resumes_from_its_last_checkpoint(tmp_path, algorithm, spec, budget, every, kill, saved_at):
+def test_a_killed_training_resumes_from_its_last_checkpoint(tmp_path, monkeypatch, algorithm, spec, budget, every, kill,
+                                                           saved_at):
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))
     env = _killed_after(_env(spec), kill)
     with pytest.raises(Killed):
         learn_with_checkpoints(algorithm, env, budget, 0, tmp_path, every)
@@ -59,6 +64,7 @@ def test_a_killed_training_resumes_from_its_last_checkpoint(tmp_path, algorithm,
     assert again.episodes_finished >= state["episodes"]  # counted on from the checkpoint's
     if algorithm == "sac":  # the replay buffer came back: the transitions before the checkpoint and the ones after
         assert agent.replay_buffer.size() == budget
+    assert not list(temp.glob("SB3-*"))  # no log folder per start in the machine's /tmp
 
 
 def test_a_kill_during_the_swap_leaves_the_checkpoint_before(tmp_path):
