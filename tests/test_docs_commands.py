@@ -2,6 +2,7 @@
 the CLI's own parser, and its campaign options (preset, config file, every --set) by the config loader,
 without running anything. A renamed flag or config field fails here, not in a reader's terminal."""
 
+import argparse
 import re
 import shlex
 from pathlib import Path
@@ -70,6 +71,30 @@ def test_the_docs_hold_enough_commands_to_check():
     commands = [argv for _, argv in doc_commands()]
     assert len(commands) >= 50
     assert {"run", "report", "sql", "export", "bench"} <= {argv[0] for argv in commands if argv}
+
+
+def _command_parser(parser: argparse.ArgumentParser, words: list[str]) -> argparse.ArgumentParser:
+    """The (sub)command's own parser the words name: `bench rl ...` -> bench's rl."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and words and words[0] in action.choices:
+            return _command_parser(action.choices[words[0]], words[1:])
+    return parser
+
+
+def test_every_flag_the_prose_names_exists():
+    """Inline commands in the prose (`sim2act shadow --execution receding`) are fragments, not whole
+    commands: each --flag they name is checked against its command's options."""
+    parser, unknown, checked = build_parser(), [], 0
+    for doc in DOCS:
+        prose = FENCED_BLOCK.sub("", doc.read_text()).replace("\n", " ")
+        for span in re.findall(r"`(sim2act [^`]+)`", prose):
+            words = span.split()[1:]
+            options = {option for action in _command_parser(parser, words)._actions for option in action.option_strings}
+            for flag in (word.split("=")[0].rstrip(".,;:)") for word in words if word.startswith("--")):
+                checked += 1
+                if flag not in options:
+                    unknown.append(f"{doc.relative_to(ROOT)}: {flag} in `{span}`")
+    assert checked >= 50 and not unknown, unknown
 
 
 @pytest.mark.parametrize("where, argv", doc_commands(), ids=lambda value: value if isinstance(value, str) else "")
