@@ -107,9 +107,9 @@ def _run_started(holder: dict) -> float | None:
 
 def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, holder: dict | None) -> list[str]:
     """The RL baselines of the campaign's latest plan (stages/baselines.py `campaign_plans`) not in
-    the success table yet: trained and not evaluated; training, to resume or stopped (at their latest
-    progress, and where a restart resumes them); or waiting for a worker; nothing when there are
-    none. `holder`: the run holding the workspace now (flows/run_lock.py `run_holder`), or None."""
+    the success table yet: trained and not evaluated; training (its pace, and when it ends at that
+    pace), to resume or stopped (at their latest progress, and where a restart resumes them); or
+    waiting for a worker; nothing when there are none. `holder`: the run holding the workspace now (flows/run_lock.py `run_holder`), or None."""
     plans = campaign_plans(models, campaign)
     training = agents_in_training(models, catalog, plans)  # first: one registering meanwhile shows twice, not never
     running = holder is not None and holder.get("campaign") == campaign
@@ -123,11 +123,11 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
         trained = json.loads(summary[0])
         rows.append([f"{AGENT_NAMES.get(trained['algorithm'], trained['algorithm'])} ({trained['family']})",
                      "trained, not evaluated yet", f"{trained['steps_taken']:,} / {trained['env_steps']:,}",
-                     f"{trained['episodes']:,} ({trained['successes']:,})", "–", "–"])
+                     f"{trained['episodes']:,} ({trained['successes']:,})", "–", "–", "–"])
     for agent in training:
         name = f"{AGENT_NAMES.get(agent.algorithm, agent.algorithm)} ({agent.family})"
         if not agent.started:
-            rows.append([name, "waiting", f"0 / {agent.env_steps:,}", "–", "–", "–"])
+            rows.append([name, "waiting", f"0 / {agent.env_steps:,}", "–", "–", "–", "–"])
             continue
         if not running:
             state = "stopped"
@@ -137,8 +137,11 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
             state = "to resume"  # this run has not reached it yet: an earlier stage, or no worker free
         resumes = (f"{agent.checkpoint_steps:,} ({_utc(agent.checkpoint_at)})" if agent.checkpoint_at is not None
                    else "0: no checkpoint yet")
+        pace = "–"
+        if state == "training" and agent.rate and agent.as_of is not None:  # at its own run's pace from then on
+            pace = f"{agent.rate:.1f}/s, ends ~{_utc(agent.as_of + (agent.env_steps - agent.done) / agent.rate)}"
         rows.append([name, state, f"{agent.done:,} / {agent.env_steps:,} ({agent.done / agent.env_steps:.0%})",
-                     f"{agent.episodes:,} ({agent.successes:,})", _utc(agent.as_of), resumes])
+                     f"{agent.episodes:,} ({agent.successes:,})", _utc(agent.as_of), pace, resumes])
     if not rows:
         return []
     if running:
@@ -151,7 +154,7 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
     return ["", f"Baselines not in the table yet. {now} A `sim2act run` with the same settings resumes each from its "
             "last checkpoint.", "",
             *_table(["agent", "state", "env steps / budget", "training episodes (succeeded)", "as of",
-                     "a restart resumes at (checkpoint)"], rows)]
+                     "env steps/s, end (ETA)", "a restart resumes at (checkpoint)"], rows)]
 
 
 def _reached(points: list[AdaptPoint], start: str, target: float) -> str:

@@ -81,6 +81,10 @@ class Progress:
         if self.on_update is not None:
             self.on_update(self.done / max(self.total, 1))
 
+    def pace(self) -> float:
+        """Units per second this run did itself (an earlier run's, resumed, not counted); 0 before any."""
+        return (self.done - self.done_before) / max(time.monotonic() - self.started, 1e-6)
+
     def resume_at(self, done: int) -> None:
         """Move to `done`, the units between finished by an earlier run (a resumed checkpoint): the
         ETA paces the rest on what this run did itself."""

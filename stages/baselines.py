@@ -82,6 +82,7 @@ class AgentInTraining(BaseModel):
     episodes: int  # training episodes finished by then
     successes: int
     as_of: float | None  # when `done` was written (epoch seconds)
+    rate: float | None  # env steps/s of the run that wrote `done` (progress.json); None: a checkpoint's, or older code
     checkpoint_steps: int  # where a restart resumes it; 0: from scratch
     checkpoint_at: float | None
 
@@ -124,7 +125,7 @@ def progress_callback(progress: Progress, folder: Path, env) -> Callable[[int, i
             crossed = done // every_percent > progress.done // every_percent
             progress.advance(done - progress.done, done - progress.done, log=crossed)
         if crossed or not written:
-            write_progress(folder, done, env.episodes_finished, env.successes)
+            write_progress(folder, done, env.episodes_finished, env.successes, progress.pace() or None)
             written = True
 
     return on_progress
@@ -226,10 +227,11 @@ def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:
             "campaign": campaign, "algorithm": unit.algorithm, "family": unit.family, "env_steps": unit.env_steps}))
 
 
-def write_progress(folder: Path, done: int, episodes: int, successes: int) -> None:
-    """A training's progress between its checkpoints (`progress_callback`: at its start and each 1%)."""
+def write_progress(folder: Path, done: int, episodes: int, successes: int, rate: float | None = None) -> None:
+    """A training's progress between its checkpoints (`progress_callback`: at its start and each 1%);
+    `rate`: this run's env steps/s so far (None at its start), which `sim2act report` turns into an ETA."""
     write_text_atomically(folder / PROGRESS, json.dumps({"num_timesteps": done, "episodes": episodes,
-                                                         "successes": successes}))
+                                                         "successes": successes, "rate": rate}))
 
 
 def agents_in_training(models: Path, catalog: Catalog, plans: dict[str, dict]) -> list[AgentInTraining]:
@@ -249,7 +251,7 @@ def agents_in_training(models: Path, catalog: Catalog, plans: dict[str, dict]) -
         agents.append(AgentInTraining(
             model_key=key, algorithm=plan["algorithm"], family=plan["family"], env_steps=plan["env_steps"],
             started=latest is not None, done=state["num_timesteps"], episodes=state["episodes"],
-            successes=state["successes"], as_of=as_of,
+            successes=state["successes"], as_of=as_of, rate=state.get("rate"),
             checkpoint_steps=checkpoint[0]["num_timesteps"] if checkpoint else 0,
             checkpoint_at=checkpoint[1] if checkpoint else None))
     return sorted(agents, key=lambda a: (a.algorithm != "sac", a.family))

@@ -333,7 +333,7 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     save_checkpoint(Agent(120_000), SimpleNamespace(episodes_finished=650, successes=3),
                     models / "baselines-sac-robosuite")
     written(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", noon)
-    write_progress(models / "baselines-sac-robosuite", 123_093, 667, 3)  # ran on past its checkpoint
+    write_progress(models / "baselines-sac-robosuite", 123_093, 667, 3, 7.0)  # ran on past its checkpoint, 7 steps/s
     written(models / "baselines-sac-robosuite" / "progress.json", noon + 600)
     save_checkpoint(Agent(130_000), SimpleNamespace(episodes_finished=653, successes=6),
                     models / "baselines-sac-metaworld")
@@ -341,7 +341,7 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     write_progress(models / "baselines-sac-metaworld", 129_880, 652, 6)  # its last run's, older than the checkpoint
     written(models / "baselines-sac-metaworld" / "progress.json", noon)
     (models / "baselines-sac-metaworld" / "checkpoint").rename(models / "baselines-sac-metaworld" / "checkpoint.old")
-    write_progress(models / "baselines-ppo-robosuite", 2_048, 20, 0)  # started, no checkpoint yet
+    write_progress(models / "baselines-ppo-robosuite", 2_048, 20, 0, 40.0)  # started, no checkpoint yet; not now
     written(models / "baselines-ppo-robosuite" / "progress.json", noon)
     # run_holder's: a run of this campaign that started at 12:05 (robosuite's SAC has run in it since; the others not)
     holder = {"campaign": CAMPAIGN, "pid": 4242, "host": "runner", "since": "2026-11-30 12:05:00 UTC",
@@ -352,14 +352,15 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
     assert rows == [
         ["PPO from scratch (navigation)", "trained, not evaluated yet", "254,976 / 254,522", "2,300 (41)", "–",
-         "–"],
+         "–", "–"],
         ["SAC from scratch (metaworld)", "to resume", "130,000 / 382,023 (34%)", "653 (6)", "2026-11-30 12:01 UTC",
-         "130,000 (2026-11-30 12:01 UTC)"],
+         "–", "130,000 (2026-11-30 12:01 UTC)"],
+        # 332,863 steps to go at 7.0/s from 12:10: 13.2 h
         ["SAC from scratch (robosuite)", "training", "123,093 / 455,956 (27%)", "667 (3)", "2026-11-30 12:10 UTC",
-         "120,000 (2026-11-30 12:00 UTC)"],
-        ["PPO from scratch (navigation)", "waiting", "0 / 254,522", "–", "–", "–"],
+         "7.0/s, ends ~2026-12-01 01:22 UTC", "120,000 (2026-11-30 12:00 UTC)"],
+        ["PPO from scratch (navigation)", "waiting", "0 / 254,522", "–", "–", "–", "–"],
         ["PPO from scratch (robosuite)", "to resume", "2,048 / 455,956 (0%)", "20 (0)", "2026-11-30 12:00 UTC",
-         "0: no checkpoint yet"]]
+         "–", "0: no checkpoint yet"]]
     older_code = {**holder, "since": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(noon + 300))}
     del older_code["started"]  # a run of code before `started`: its local `since` read instead
     assert pending_baselines_markdown(catalog, CAMPAIGN, models, older_code) == lines

@@ -41,11 +41,13 @@ def test_a_training_writes_its_progress_at_its_start_and_at_each_percent(tmp_pat
 
     with caplog.at_level(logging.INFO, logger="test.baselines"):
         on_progress(130_000, 130_000)  # the first rollout of the resumed run
-        assert written() == {"num_timesteps": 130_000, "episodes": 703, "successes": 0}
+        assert written() == {"num_timesteps": 130_000, "episodes": 703, "successes": 0, "rate": None}  # none run yet
         env.episodes_finished = 704
         on_progress(131_000, 130_000)  # within the same percent (4,559 steps): nothing written
         assert written()["num_timesteps"] == 130_000 and not caplog.records
         env.episodes_finished, env.successes = 720, 1
         on_progress(132_231, 130_000)  # 29% of the budget crossed
-        assert written() == {"num_timesteps": 132_231, "episodes": 720, "successes": 1}
+        latest = written()
+        assert latest.pop("rate") > 0  # this run's pace, the checkpoint's 130,000 steps not counted
+        assert latest == {"num_timesteps": 132_231, "episodes": 720, "successes": 1}
         assert [r.getMessage().split(",")[0] for r in caplog.records] == ["sac on robosuite: 132231/455956 env steps"]
