@@ -109,7 +109,8 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
     """The RL baselines of the campaign's latest plan (stages/baselines.py `campaign_plans`) not in
     the success table yet: trained and not evaluated; training (its pace, and when it ends at that
     pace), to resume or stopped (at their latest progress, and where a restart resumes them); or
-    waiting for a worker; nothing when there are none. `holder`: the run holding the workspace now (flows/run_lock.py `run_holder`), or None."""
+    waiting for a worker; nothing when there are none. `holder`: the run holding the workspace now
+    (flows/run_lock.py `run_holder`), or None."""
     plans = campaign_plans(models, campaign)
     training = agents_in_training(models, catalog, plans)  # first: one registering meanwhile shows twice, not never
     running = holder is not None and holder.get("campaign") == campaign
