@@ -1,6 +1,7 @@
 """The docs' `sim2act` commands still parse: every one in a shell block of README.md and docs/ is read by
 the CLI's own parser, and its campaign options (preset, config file, every --set) by the config loader,
-without running anything. A renamed flag or config field fails here, not in a reader's terminal."""
+without running anything; the prose's inline commands have each --flag checked. A renamed flag or config
+field fails here, not in a reader's terminal."""
 
 import argparse
 import re
