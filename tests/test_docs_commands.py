@@ -67,9 +67,12 @@ def doc_commands() -> list[tuple[str, list[str]]]:
             for line in shell_lines(block) for argv in sim2act_argv(line)]
 
 
+DOC_COMMANDS = doc_commands()  # read once: the cases below and the check that there are enough of them
+
+
 def test_the_docs_hold_enough_commands_to_check():
     """The extraction itself works: the docs show dozens of commands, `run` and `report` among them."""
-    commands = [argv for _, argv in doc_commands()]
+    commands = [argv for _, argv in DOC_COMMANDS]
     assert len(commands) >= 50
     assert {"run", "report", "sql", "export", "bench"} <= {argv[0] for argv in commands if argv}
 
@@ -98,7 +101,7 @@ def test_every_flag_the_prose_names_exists():
     assert checked >= 50 and not unknown, unknown
 
 
-@pytest.mark.parametrize("where, argv", doc_commands(), ids=lambda value: value if isinstance(value, str) else "")
+@pytest.mark.parametrize("where, argv", DOC_COMMANDS, ids=lambda value: value if isinstance(value, str) else "")
 def test_a_documented_command_parses(where, argv, monkeypatch):
     monkeypatch.chdir(ROOT)  # the docs' paths (docs/quality/*.yaml) are from the repository's root
     try:
