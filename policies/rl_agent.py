@@ -46,10 +46,20 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     if algorithm == "ppo":
         rollouts = math.ceil(env_steps / 512)
         n_steps = math.ceil(env_steps / rollouts)
-        return PPO(n_steps=n_steps, batch_size=min(64, n_steps), **common)
+        return without_log_folder(PPO(n_steps=n_steps, batch_size=min(64, n_steps), **common))
     agent = SAC(buffer_size=replay_buffer_size(env_steps, replay_size), learning_starts=min(1000, env_steps // 10),
                 batch_size=64, **common)
     skip_critic_encoder_in_actor_loss(agent)
+    return without_log_folder(agent)
+
+
+def without_log_folder(agent):
+    """`agent` with a logger of our own that writes nothing: SB3's default (`configure()` with no
+    folder) makes an empty folder /tmp/SB3-<time> at every `learn()`, i.e. at every start, resume and
+    benchmark. A loaded agent needs it again (SB3 does not save its logger)."""
+    from stable_baselines3.common.logger import Logger
+
+    agent.set_logger(Logger(folder=None, output_formats=[]))
     return agent
 
 
@@ -123,13 +133,12 @@ def learn_with_checkpoints(
         (agent, the step it resumed at: 0 when it started afresh)."""
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
-    from stable_baselines3.common.logger import Logger
 
     last = last_checkpoint(folder)
     if last is None:
         agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size), 0
     else:
-        agent = {"ppo": PPO, "sac": SAC}[algorithm].load(last / "agent.zip", env=env, device="cpu")
+        agent = without_log_folder({"ppo": PPO, "sac": SAC}[algorithm].load(last / "agent.zip", env=env, device="cpu"))
         if algorithm == "sac":
             from policies.rl_encoder import skip_critic_encoder_in_actor_loss
 
@@ -157,8 +166,6 @@ def learn_with_checkpoints(
         def _on_step(self) -> bool:
             return True
 
-    # A logger of our own: SB3's default makes an empty folder /tmp/SB3-<time> at every learn() (every resume).
-    agent.set_logger(Logger(folder=None, output_formats=[]))
     agent.learn(total_timesteps=env_steps - resumed, reset_num_timesteps=resumed == 0, callback=Checkpoints())
     return agent, resumed
 
