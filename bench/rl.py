@@ -47,6 +47,11 @@ class RLStepCost(BaseModel):
     wall_ms: float
     budget: int | None
     precision: str  # its encoder's during updates (train.amp: policies/rl_encoder.py)
+    sac_encoder: str | None = None  # SAC's: the critic's shared, or one each (baselines.sac_encoder); PPO: None
+
+    @property
+    def agent(self) -> str:
+        return self.algorithm if self.sac_encoder is None else f"{self.algorithm} ({self.sac_encoder} encoder)"
 
     @property
     def budget_hours(self) -> float | None:
@@ -75,7 +80,8 @@ def measure_agent(case: RLCase) -> RLStepCost:
         if terminated or truncated:
             env.reset()
     env_ms = (time.process_time() - started) / env_steps * 1e3
-    agent = new_agent(case.algorithm, env, case.budget or 400_000, case.config.seed, case.config.baselines.replay_size)
+    agent = new_agent(case.algorithm, env, case.budget or 400_000, case.config.seed, case.config.baselines.replay_size,
+                      case.config.baselines.sac_encoder)
     precision = "fp32"
     if case.config.train.amp:  # as the stage decides it, measured afresh (a throwaway cache)
         with tempfile.TemporaryDirectory() as scratch:
@@ -90,18 +96,25 @@ def measure_agent(case: RLCase) -> RLStepCost:
     env.close()
     return RLStepCost(algorithm=case.algorithm, family=case.family, tasks=len(case.tasks), steps=taken, env_ms=env_ms,
                       cpu_ms=(time.process_time() - cpu) / taken * 1e3, wall_ms=(time.monotonic() - wall) / taken * 1e3,
-                      budget=case.budget, precision=precision)
+                      budget=case.budget, precision=precision,
+                      sac_encoder=case.config.baselines.sac_encoder if case.algorithm == "sac" else None)
 
 
-def rl_cases(config: CampaignConfig, tasks: list[TaskRecord], steps: int, budgets: dict[str, int]) -> list[RLCase]:
+def rl_cases(config: CampaignConfig, tasks: list[TaskRecord], steps: int, budgets: dict[str, int],
+             sac_encoders: list[str] | None = None) -> list[RLCase]:
     """One case per RL agent the campaign's baselines stage would train (an algorithm on a family it
-    acts in)."""
+    acts in); SAC's once per `sac_encoders` (baselines.sac_encoder's values; default: the config's),
+    side by side."""
     from stages.baselines import planned_agents
 
     cases = []
     for algorithm, family, seen in planned_agents(config, tasks):
         budget = config.baselines.env_steps or budgets.get(family)
-        cases.append(RLCase(algorithm=algorithm, family=family, tasks=seen, config=config, steps=steps, budget=budget))
+        for encoder in (sac_encoders or [config.baselines.sac_encoder]) if algorithm == "sac" else [None]:
+            variant = config if encoder is None else config.model_copy(
+                update={"baselines": config.baselines.model_copy(update={"sac_encoder": encoder})})
+            cases.append(RLCase(algorithm=algorithm, family=family, tasks=seen, config=variant, steps=steps,
+                                budget=budget))
     return cases
 
 
@@ -116,7 +129,7 @@ def bench_rl(cases: list[RLCase]) -> list[RLStepCost]:
 
 
 def markdown(costs: list[RLStepCost], campaign: str, command: str) -> str:
-    rows = [[c.algorithm, c.family, c.tasks, f"{c.env_ms:.1f}", f"{c.cpu_ms:.1f}", f"{c.wall_ms:.1f}",
+    rows = [[c.agent, c.family, c.tasks, f"{c.env_ms:.1f}", f"{c.cpu_ms:.1f}", f"{c.wall_ms:.1f}",
              f"{1e3 / c.cpu_ms:,.0f}", "–" if c.budget is None else f"{c.budget:,}",
              "–" if c.budget_hours is None else f"{c.budget_hours:.1f}", c.precision] for c in costs]
     lines = [

@@ -29,16 +29,27 @@ def supports(algorithm: str, family: str) -> bool:
 CHECKPOINT, PREVIOUS, WRITING = "checkpoint", "checkpoint.old", "checkpoint.tmp"  # folders beside agent.zip
 
 
-def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int | None = None):
+def agent_class(algorithm: str, sac_encoder: str = "separate"):
+    """SB3's PPO; SAC with the critic's encoder shared (policies/rl_sac.py) or SB3's own, an encoder each."""
+    from stable_baselines3 import PPO, SAC
+
+    from policies.rl_sac import CriticEncoderSAC
+
+    if algorithm == "ppo":
+        return PPO
+    return {"critic": CriticEncoderSAC, "separate": SAC}[sac_encoder]
+
+
+def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int | None = None,
+              sac_encoder: str = "separate"):
     """An untrained agent, SB3's defaults but for the sizes a small budget needs: PPO collects
     rollouts of at most 512 steps (its default 2,048 would be a whole small budget), sized so that
     whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
     holds the budget (at most `replay_size` transitions: each keeps two frames), learning starts
     after a tenth of it (at most 1,000 steps), batches of 64. The encoder is SB3's own
     (policies/rl_encoder.py: in bf16 during updates once `encoder_precision` says so); SAC's actor
-    loss skips the critic's encoder (`skip_critic_encoder_in_actor_loss`: the same updates, less work)."""
-    from stable_baselines3 import PPO, SAC
-
+    loss skips the critic's encoder (`skip_critic_encoder_in_actor_loss`: the same updates, less work), or,
+    with `sac_encoder="critic"`, the actor reads the critic's one encoder (`policies.rl_sac`: less still)."""
     from policies.rl_encoder import AutocastExtractor, skip_critic_encoder_in_actor_loss
 
     common = {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu",
@@ -46,9 +57,9 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     if algorithm == "ppo":
         rollouts = math.ceil(env_steps / 512)
         n_steps = math.ceil(env_steps / rollouts)
-        return without_log_folder(PPO(n_steps=n_steps, batch_size=min(64, n_steps), **common))
-    agent = SAC(buffer_size=replay_buffer_size(env_steps, replay_size), learning_starts=min(1000, env_steps // 10),
-                batch_size=64, **common)
+        return without_log_folder(agent_class("ppo")(n_steps=n_steps, batch_size=min(64, n_steps), **common))
+    agent = agent_class("sac", sac_encoder)(buffer_size=replay_buffer_size(env_steps, replay_size),
+                                            learning_starts=min(1000, env_steps // 10), batch_size=64, **common)
     skip_critic_encoder_in_actor_loss(agent)
     return without_log_folder(agent)
 
@@ -118,6 +129,7 @@ def remove_checkpoints(folder: Path) -> None:
 def learn_with_checkpoints(
     algorithm: str, env, env_steps: int, seed: int, folder: Path, every: int, replay_size: int | None = None,
     on_progress: Callable[[int, int], None] | None = None, precision_cache: Path | None = None,
+    sac_encoder: str = "separate",
 ):
     """Train an agent to `env_steps` environment steps, from the last checkpoint in `folder` where a
     kill interrupted an earlier run, saving one every `every` steps at the start of a rollout (after
@@ -127,18 +139,17 @@ def learn_with_checkpoints(
     the same steps repeats itself, though not the unbroken run's episodes. `on_progress(done,
     resumed_at)` is called at every rollout's start. With `precision_cache` (the workspace's precision
     choices) the encoder's updates take bf16 where it pays on this CPU (policies/rl_encoder.py), decided
-    anew at every start; without it, fp32.
+    anew at every start; without it, fp32. `sac_encoder`: `agent_class`'s.
 
     Returns:
         (agent, the step it resumed at: 0 when it started afresh)."""
-    from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
 
     last = last_checkpoint(folder)
     if last is None:
-        agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size), 0
+        agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size, sac_encoder), 0
     else:
-        agent = without_log_folder({"ppo": PPO, "sac": SAC}[algorithm].load(last / "agent.zip", env=env, device="cpu"))
+        agent = without_log_folder(agent_class(algorithm, sac_encoder).load(last / "agent.zip", env=env, device="cpu"))
         if algorithm == "sac":
             from policies.rl_encoder import skip_critic_encoder_in_actor_loss
 

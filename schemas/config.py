@@ -466,6 +466,11 @@ class BaselinesConfig(_Strict):
     checkpoint_every: PositiveInt = Field(
         default=25_000, description="environment steps between an RL agent's resumable checkpoints: a kill loses "
         "at most these (SAC's checkpoint holds its replay buffer)")
+    sac_encoder: Literal["critic", "separate"] = Field(
+        default="separate", description="critic: one encoder, trained by the critic's loss and read by the actor with "
+        "its gradients stopped (SAC-AE, DrQ; three encoder passes an update); separate: SB3's default, an encoder "
+        "each (five passes and two backward ones). critic: 1.4-1.5x faster a step at 84 px but it learned less per "
+        "environment step on a pixel probe (docs/bench-rl.md), so SB3's stays the default")
 
 
 SHIFTED_DOMAIN = RandomiseConfig(

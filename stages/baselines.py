@@ -46,6 +46,7 @@ class RLUnit(BaseModel):
     env_steps: int
     replay_size: int  # SAC's replay buffer, transitions
     checkpoint_every: int  # environment steps between resumable checkpoints
+    sac_encoder: str = "separate"  # SAC's: the critic's, shared with the actor (policies/rl_sac.py), or one each
     seed: int
     path: str  # where the trained agent is saved; its checkpoints beside it
     # train.amp's rule for its encoder's updates: the workspace's measured precision choices; None: fp32
@@ -148,7 +149,8 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
         agent, resumed_at = learn_with_checkpoints(unit.algorithm, env, unit.env_steps, unit.seed, path.parent,
                                                    unit.checkpoint_every, unit.replay_size,
                                                    progress_callback(progress, path.parent, env),
-                                                   Path(unit.precision_cache) if unit.precision_cache else None)
+                                                   Path(unit.precision_cache) if unit.precision_cache else None,
+                                                   unit.sac_encoder)
     finally:
         progress.close()
     tmp = path.with_name(path.stem + ".tmp.zip")
@@ -190,12 +192,15 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
             replay = replay_buffer_size(steps, config.baselines.replay_size)
             # a replay smaller than the budget changes the agent (keys of agents whose replay held it stay as they were)
             smaller_replay = [f"replay {replay}"] if algorithm == "sac" and replay < steps else []
+            # likewise the critic's shared encoder: SAC agents trained with an encoder each keep their keys
+            shared_encoder = ["encoder critic"] if algorithm == "sac" and config.baselines.sac_encoder == "critic" else []
             key = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
                                             "seed": config.seed},
-                           [tasks_key, algorithm, family, str(steps), *smaller_replay])  # tasks key: campaign, tasks, encoder
+                           [tasks_key, algorithm, family, str(steps), *smaller_replay, *shared_encoder])  # tasks key: campaign, tasks, encoder
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, replay_size=replay,
                                 checkpoint_every=config.baselines.checkpoint_every, seed=config.seed,
+                                sac_encoder=config.baselines.sac_encoder,
                                 path=str(workspace.models / key / "agent.zip"),
                                 precision_cache=str(workspace.precision_choices) if config.train.amp else None))
     return units

@@ -74,7 +74,7 @@ def cmd_bench_rl(args: argparse.Namespace) -> int:
     if args.agent:
         config = config.model_copy(update={"baselines": config.baselines.model_copy(update={"agents": args.agent})})
     tasks = [t for t in generate_tasks(config.tasks, config.seed) if not args.family or t.family in args.family]
-    cases = rl_cases(config, tasks, args.steps, _explored_steps(args, config.name))
+    cases = rl_cases(config, tasks, args.steps, _explored_steps(args, config.name), args.sac_encoder)
     if not cases:
         raise ConfigError(f"bench rl: expected an RL agent (baselines.agents: ppo, sac) and a family with seen tasks "
                           f"it acts in, got agents {config.baselines.agents} over {sorted({t.family for t in tasks})}")
@@ -187,6 +187,8 @@ def register(commands: Commands) -> None:
     rl.add_argument("--steps", type=int, default=400, help="timed training steps per agent")
     rl.add_argument("--agent", choices=["ppo", "sac"], action="append", help="default: the campaign's baselines.agents")
     rl.add_argument("--family", choices=FAMILIES, action="append", help="default: every family with seen tasks")
+    rl.add_argument("--sac-encoder", choices=["critic", "separate"], action="append",
+                    help="SAC's encoder, each one given side by side (baselines.sac_encoder); default: the campaign's")
     rl.add_argument("--json", action="store_true", help="print the figures as JSON")
     rl.add_argument("--out", type=Path, help="also write the table as markdown here")
     rl.set_defaults(handler=cmd_bench_rl)

@@ -2,6 +2,8 @@
 
 import tempfile
 
+import numpy as np
+
 from flows.cli import main
 
 
@@ -28,3 +30,35 @@ def test_bench_rl_refuses_bad_input_before_any_work(capsys):
     assert "--steps must be at least 1" in capsys.readouterr().err
     assert main(["bench", "rl", "--preset", "smoke", "--set", "baselines.agents=[expert]"]) == 2
     assert "expected an RL agent" in capsys.readouterr().err
+
+
+def test_sacs_encoders_side_by_side_and_in_the_agents_key(tmp_path):
+    """`--sac-encoder critic --sac-encoder separate`: SAC once per encoder in one run, PPO once; the stage keys
+    the critic's shared encoder apart, and SB3's layout keeps the key it had before the option."""
+    from bench.rl import RLStepCost, rl_cases
+    from envs.suite import generate_tasks
+    from schemas.config import CampaignConfig, TasksConfig
+    from schemas.workspace import Workspace
+    from stages.baselines import rl_units
+
+    config = CampaignConfig(name="t", tasks=TasksConfig(specs=["lift", "nav-room"], colours=["red", "green"]),
+                            baselines={"agents": ["ppo", "sac"]})
+    tasks = generate_tasks(config.tasks, config.seed)
+    cases = rl_cases(config, tasks, 10, {}, ["critic", "separate"])
+    assert [(c.algorithm, c.family, c.config.baselines.sac_encoder) for c in cases if c.algorithm == "sac"] == [
+        ("sac", "robosuite", "critic"), ("sac", "robosuite", "separate")]
+    assert [c.family for c in cases if c.algorithm == "ppo"] == ["navigation", "robosuite"]
+    cost = RLStepCost(algorithm="sac", family="robosuite", tasks=2, steps=1, env_ms=1, cpu_ms=2, wall_ms=2, budget=None,
+                      precision="fp32", sac_encoder="critic")
+    assert cost.agent == "sac (critic encoder)"
+
+    said = {text: np.zeros(4, dtype=np.float32) for t in tasks for text in t.instructions}
+
+    def keys(encoder: str) -> dict[str, str]:
+        variant = config.model_copy(update={"baselines": config.baselines.model_copy(update={"sac_encoder": encoder})})
+        units = rl_units(Workspace.at(tmp_path), variant, "tasks", tasks, said, {"robosuite": 500, "navigation": 500})
+        return {u.algorithm: u.unit_key for u in units if u.family == "robosuite"}
+
+    critic, separate = keys("critic"), keys("separate")
+    assert critic["ppo"] == separate["ppo"] and critic["sac"] != separate["sac"]
+    assert separate["sac"] == "baselines-76879ac549ae2f08"  # SB3's layout: its key from before the option

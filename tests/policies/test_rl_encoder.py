@@ -81,14 +81,6 @@ def test_a_training_with_the_cache_learns_and_saves_an_agent_that_loads(env, tmp
     assert extractors(loaded) and not any(e.bf16 for e in extractors(loaded))  # an execution choice, not saved
 
 
-@pytest.fixture(scope="module")
-def lift() -> InstructedTasksEnv:
-    tasks = generate_tasks(TasksConfig(specs=["lift"], colours=["red"], horizon={"lift": 40}), seed=0)
-    said = sorted({text for task in tasks for text in task.instructions})
-    return InstructedTasksEnv(tasks, {text: np.full(8, i, dtype=np.float32) for i, text in enumerate(said)},
-                              RenderConfig(image_size=48), RandomiseConfig())
-
-
 def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift):
     """SB3's SAC with its actor loss's wasted backward pass through the critic's encoder, against ours: the
     same parameters after the same updates, bit for bit; ours builds a graph through that encoder once an
@@ -96,7 +88,7 @@ def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift)
     from stable_baselines3 import SAC
 
     def trained(skip: bool) -> tuple[SAC, list[bool]]:
-        agent = new_agent("sac", lift, 1_000, 3)
+        agent = new_agent("sac", lift, 1_000, 3, sac_encoder="separate")
         if not skip:  # SB3's own update: the hooks new_agent put on the optimisers removed
             for optimizer in (agent.critic.optimizer, agent.actor.optimizer):
                 optimizer._optimizer_step_post_hooks.clear()
