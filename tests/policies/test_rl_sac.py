@@ -1,10 +1,10 @@
 """SAC with the critic's encoder (policies/rl_sac.py): one encoder, which acting reads, only the critic's
 loss trains (one backward pass through it an update, none from the actor's loss), three passes an update
-against SB3's five; saved and resumed as itself."""
+against SB3's five; saved and loaded back as itself."""
 
 import torch
 
-from policies.rl_agent import learn_with_checkpoints, new_agent
+from policies.rl_agent import agent_class, new_agent
 from policies.rl_sac import CriticEncoderSAC
 
 
@@ -22,7 +22,7 @@ def _encoder_passes(agent, updates: int = 3) -> tuple[list[bool], int, int]:
     return graphs, len(target_passes), len(backward)
 
 
-def test_one_encoder_that_the_critic_trains_and_the_actor_reads(lift):
+def test_one_encoder_that_the_critic_trains_and_the_actor_reads(lift, tmp_path):
     agent = new_agent("sac", lift, 1_000, 3, sac_encoder="critic")
     assert isinstance(agent, CriticEncoderSAC)
     encoder = agent.critic.features_extractor
@@ -41,6 +41,13 @@ def test_one_encoder_that_the_critic_trains_and_the_actor_reads(lift):
     assert any(not torch.equal(a, b) for a, b in zip(before, encoder.parameters()))
     assert any(not torch.equal(a, b) for a, b in zip(actor_before, agent.actor.mu.parameters()))
 
+    agent.save(tmp_path / "agent.zip")  # a checkpoint's agent, as learn_with_checkpoints loads it to resume
+    loaded = agent_class("sac", "critic").load(tmp_path / "agent.zip", env=lift, device="cpu")
+    assert isinstance(loaded, CriticEncoderSAC)
+    assert loaded.actor.features_extractor is loaded.critic.features_extractor  # shared again
+    assert len(loaded.critic.optimizer.state) == len(list(loaded.critic.parameters()))  # Adam's moments, encoder's too
+    assert torch.equal(next(loaded.critic.features_extractor.parameters()), next(encoder.parameters()))
+
 
 def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     """The same count on SB3's own layout (an encoder each, the actor's loss through the critic's encoder
@@ -52,12 +59,3 @@ def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     critic_graphs, target_passes, critic_backward = _encoder_passes(agent)
     assert len(actor_graphs) + len(critic_graphs) + target_passes == 5 * 3
     assert critic_backward == 3 and sum(actor_graphs) == 3  # and the actor's own backward: two an update
-
-
-def test_a_resumed_agent_is_itself_with_its_optimisers(lift, tmp_path):
-    learn_with_checkpoints("sac", lift, 110, 0, tmp_path / "agent", 100, sac_encoder="critic")
-    agent, resumed_at = learn_with_checkpoints("sac", lift, 120, 0, tmp_path / "agent", 100,
-                                                 sac_encoder="critic")
-    assert resumed_at == 100 and isinstance(agent, CriticEncoderSAC)
-    assert agent.actor.features_extractor is agent.critic.features_extractor  # shared again after loading
-    assert len(agent.critic.optimizer.state) == len(list(agent.critic.parameters()))  # Adam's moments came back
