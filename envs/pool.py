@@ -360,15 +360,22 @@ def borrowed_pool(workers: int, fresh: bool = False) -> Iterator[WorkerPool]:
     """A pool of at least `workers` processes: the kept one (grown if it is smaller) or, outside
     keep_workers, a fresh one closed on return. A borrower that leaves early (an error, or its caller
     stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one.
-    `fresh` retires the kept pool first, and with it the scenes earlier stages built in its workers:
-    the new pool is kept for the stages after."""
+    `fresh` retires the kept pool first, and with it the scenes earlier stages built in its workers,
+    then runs on processes of its own, closed on return: a stage that its caller runs between the
+    fresh one's units (the baselines' evaluation of each agent trained) gets another pool, kept for the
+    stages after, instead of waiting for a worker the long units hold."""
     global _kept
-    if not _keeping:
+    if fresh and _keeping:
+        with _kept_lock:
+            if _kept is not None:
+                _kept.close()
+                _kept = None
+    if fresh or not _keeping:
         with WorkerPool(workers) as pool:
             yield pool
         return
     with _kept_lock:
-        if _kept is not None and (fresh or _kept.size < workers):
+        if _kept is not None and _kept.size < workers:
             _kept.close()
             _kept = None
         if _kept is None:
@@ -390,8 +397,8 @@ def run_in_pool(
 ) -> Iterator[tuple[Unit, Result, float]]:
     """Yield (unit, result, seconds in the worker) in completion order; the caller registers
     each before the next. Stopping early (an error, or the caller's) abandons the rest.
-    `fresh_workers`: on processes that hold nothing from earlier stages (`borrowed_pool`'s `fresh`),
-    for units that run for hours on a few scenes of their own."""
+    `fresh_workers`: on processes that hold nothing from earlier stages, closed after this one
+    (`borrowed_pool`'s `fresh`), for units that run for hours on a few scenes of their own."""
     if not units:
         return
     count = min(workers, len(units))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
+import time
 from pathlib import Path
 
 import psutil
@@ -20,6 +21,7 @@ class Job(BaseModel):
     n: int
     attempts_dir: str
     dies: str | None = None  # "sigkill" or "segfault" on the first attempt
+    seconds: float = 0.0  # how long it takes
 
 
 def attempt(job: Job) -> tuple[int, int]:
@@ -33,6 +35,7 @@ def attempt(job: Job) -> tuple[int, int]:
         ctypes.string_at(0)  # reads address 0: SIGSEGV
     if job.n < 0:
         raise ValueError(f"negative job {job.n}")
+    time.sleep(job.seconds)
     return job.n * job.n, os.getpid()
 
 
@@ -68,9 +71,9 @@ def test_a_unit_that_raises_is_not_retried_and_says_why(tmp_path):
 
 def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path):
     """Two stages in a campaign run on the same two processes, which stay up between them; a stage
-    that asks for fresh workers retires them, and its own are kept for the next; a stage that fails
-    closes the pool (its units may still run), the next gets fresh workers; leaving keep_workers
-    closes the last."""
+    that asks for fresh workers retires them and closes its own when it ends, the next gets new ones,
+    kept again; a stage that fails closes the pool (its units may still run), the next gets fresh
+    workers; leaving keep_workers closes the last."""
 
     def stage(first: int, fresh_workers: bool = False) -> set[int]:
         jobs = [Job(n=n, attempts_dir=str(tmp_path)) for n in range(first, first + 4)]
@@ -92,16 +95,35 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
         assert len(kept) == 2 and explore <= kept
         assert stage(10) <= kept and workers() == kept
         trained = stage(30, fresh_workers=True)
-        retrained = workers()
-        assert len(retrained) == 2 and trained <= retrained and not retrained & kept  # the old ones gone
-        assert stage(40) <= retrained and workers() == retrained
-        kept = retrained
+        assert len(trained) <= 2 and not trained & kept and not workers()  # the old ones gone, its own closed
+        after_training = stage(40)
+        kept = workers()
+        assert len(kept) == 2 and after_training <= kept and not kept & trained
         with pytest.raises(UnitFailed):
             list(run_in_pool(attempt, [Job(n=-1, attempts_dir=str(tmp_path))], workers=2))
         after = stage(20)
         fresh = workers()
         assert after <= fresh and not fresh & kept
     assert not workers()  # closed on leaving, none left behind
+
+
+def test_a_stage_run_between_a_fresh_stages_units_does_not_wait_for_its_long_ones(tmp_path):
+    """The baselines evaluate each agent as it finishes while the others train: a stage the caller runs
+    between a fresh stage's units gets processes of its own at once (kept for later), not a worker the
+    long unit holds."""
+    with keep_workers():
+        # three on two workers: the one that frees first would take the third at once
+        long_ones = [Job(n=n, attempts_dir=str(tmp_path), seconds=seconds) for n, seconds in ((1, 0.1), (2, 15), (3, 15))]
+        finished = []
+        for job, (_, trainer), _ in run_in_pool(attempt, long_ones, workers=2, fresh_workers=True):
+            finished.append((job.n, time.monotonic()))
+            if job.n == 1:
+                between = [Job(n=n, attempts_dir=str(tmp_path)) for n in range(10, 14)]
+                used = {pid for _, (_, pid), _ in run_in_pool(attempt, between, workers=2)}
+                finished.append(("between", time.monotonic()))
+                assert trainer not in used
+        assert [n for n, _ in finished][:2] == [1, "between"] and len(finished) == 4
+        assert finished[2][1] - finished[1][1] > 5  # done long before the long units, not after one of them
 
 
 def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
