@@ -41,10 +41,12 @@ def campaign_settings(config: CampaignConfig) -> dict:
     and the adaptation after its iterations (asking for more iterations, or for an adaptation, continues the
     same run), without the fields added since that hold their legacy values, as unit keys leave them out — so
     a campaign resumed by newer code continues its run instead of opening another."""
+    from stages.baselines import LEGACY_VALUES as BASELINES_LEGACY_VALUES
     from stages.explore import LEGACY_VALUES as EXPLORE_LEGACY_VALUES
     from stages.train import LEGACY_VALUES as TRAIN_LEGACY_VALUES
 
-    legacy = {"render": RENDER_LEGACY_VALUES, "explore": EXPLORE_LEGACY_VALUES, "train": TRAIN_LEGACY_VALUES}
+    legacy = {"render": RENDER_LEGACY_VALUES, "explore": EXPLORE_LEGACY_VALUES, "train": TRAIN_LEGACY_VALUES,
+              "baselines": BASELINES_LEGACY_VALUES}
     return key_fields(config, {"iterations", "adapt"}, legacy)
 
 

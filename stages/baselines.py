@@ -29,6 +29,7 @@ from stages.evaluate import SPLITS, Agent, TaskEvaluation, evaluate_model, evalu
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
+LEGACY_VALUES = {"sac_encoder": "separate"}  # fields added since version 1, at the values that did what it did
 EXPERT = "expert"
 # beside an agent's agent.zip, for `sim2act report` while it trains: what it trains, and how far it got
 PLAN, PROGRESS = "plan.json", "progress.json"

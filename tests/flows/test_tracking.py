@@ -42,9 +42,10 @@ def test_a_campaign_keeps_its_mlflow_run_when_newer_code_adds_config_fields():
     for section, added in (("render", "wrist_camera"), ("render", "mesh_detail"), ("render", "decimate_colliding"),
                            ("explore", "expert_takeover"), ("train", "language_augment"),
                            ("train", "proprio_dropout"), ("explore", "policy_steps"),
-                           ("explore", "first_episodes_per_task")):
+                           ("explore", "first_episodes_per_task"), ("baselines", "sac_encoder")):
         assert added not in settings[section]  # as code from before the field existed hashed the campaign
     assert campaign_settings(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))["render"]["wrist_camera"]
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"explore": {"expert_takeover": 0.5}}))
     assert campaign_hash(config) != campaign_hash(config.model_copy(update={"name": "other"}))
+    assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"baselines": {"sac_encoder": "critic"}}))
