@@ -276,8 +276,8 @@ def longest_first(units: list[RLUnit]) -> list[RLUnit]:
 def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks_key: str,
                   tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], explore_units: list[str]) -> BaselinesResult:
     """Evaluate the experts on the campaign's evaluation cases, train the RL agents not trained yet
-    with the steps `explore_units` (the campaign's, every iteration) took per family, and evaluate
-    each on its family's cases as it finishes, beside those still training; rows under `iteration`.
+    with the steps `explore_units` (the campaign's, every iteration) took per family, then evaluate
+    each on its family's cases; rows under `iteration`.
 
     Unit of work: one RL agent (an algorithm on a family), keyed by the render and randomise settings,
     the campaign seed, the algorithm, the family, its step budget (and SAC's replay where smaller
@@ -295,13 +295,6 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     write_plans(workspace.models, config.name, units)
     cases = evaluation_cases(tasks)
     baselines = []
-
-    def evaluate_agent(unit: RLUnit) -> list[TaskEvaluation]:
-        """The agent on its family's cases: the evaluate stage's units, so stored ones are read, not run again."""
-        family_cases = [case for case in cases if case[0].family == unit.family]
-        return evaluate_model(workspace, config, iteration, unit.unit_key, Agent(kind=unit.algorithm, path=unit.path),
-                              family_cases, embeddings)[0]
-
     if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours
         evaluations, _ = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
         baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
@@ -314,11 +307,13 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
         Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
-        # now, on other processes, beside the trainings still running (run_in_pool's fresh workers are their own):
-        # its rows are in the warehouse and `sim2act report` hours before the last agent ends, and stay if the run
-        # is cut later
-        evaluate_agent(unit)
-    for unit in units:  # evaluated already, but for an agent an earlier run trained and was cut before evaluating
+    # after the last training, not beside the others: an evaluation's two workers build their family's scenes
+    # (MetaWorld's ~6 GB each) while the training workers hold theirs and the replays (~15 GB for the generalist's
+    # two SACs), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
+    for unit in units:
+        family_cases = [case for case in cases if case[0].family == unit.family]
+        evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,
+                                        Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings)
         baselines.append(Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
-                                  env_steps=unit.env_steps, evaluations=evaluate_agent(unit)))
+                                  env_steps=unit.env_steps, evaluations=evaluations))
     return BaselinesResult(baselines=baselines)

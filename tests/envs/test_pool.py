@@ -108,9 +108,8 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
 
 
 def test_a_stage_run_between_a_fresh_stages_units_does_not_wait_for_its_long_ones(tmp_path):
-    """The baselines evaluate each agent as it finishes while the others train: a stage the caller runs
-    between a fresh stage's units gets processes of its own at once (kept for later), not a worker the
-    long unit holds."""
+    """A stage the caller runs between a fresh stage's units gets processes of its own at once (kept for
+    later), not a worker the fresh stage's long units hold."""
     with keep_workers():
         # three on two workers: the one that frees first would take the third at once
         long_ones = [Job(n=n, attempts_dir=str(tmp_path), seconds=seconds) for n, seconds in ((1, 0.1), (2, 15), (3, 15))]
