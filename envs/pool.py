@@ -361,9 +361,8 @@ def borrowed_pool(workers: int, fresh: bool = False) -> Iterator[WorkerPool]:
     keep_workers, a fresh one closed on return. A borrower that leaves early (an error, or its caller
     stopped) may leave units running: the pool is closed then, and the next borrower gets a fresh one.
     `fresh` retires the kept pool first, and with it the scenes earlier stages built in its workers,
-    then runs on processes of its own, closed on return (with what its long units left in them): the
-    stages after, or one its caller runs between its units, get another pool, kept, instead of a
-    worker the long units hold."""
+    then runs on processes of its own, closed on return with what its long units left in them (the
+    RL baselines' replays and scenes): the stages after get a new pool, kept."""
     global _kept
     if fresh and _keeping:
         with _kept_lock:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
-import time
 from pathlib import Path
 
 import psutil
@@ -21,7 +20,6 @@ class Job(BaseModel):
     n: int
     attempts_dir: str
     dies: str | None = None  # "sigkill" or "segfault" on the first attempt
-    seconds: float = 0.0  # how long it takes
 
 
 def attempt(job: Job) -> tuple[int, int]:
@@ -35,7 +33,6 @@ def attempt(job: Job) -> tuple[int, int]:
         ctypes.string_at(0)  # reads address 0: SIGSEGV
     if job.n < 0:
         raise ValueError(f"negative job {job.n}")
-    time.sleep(job.seconds)
     return job.n * job.n, os.getpid()
 
 
@@ -105,24 +102,6 @@ def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path
         fresh = workers()
         assert after <= fresh and not fresh & kept
     assert not workers()  # closed on leaving, none left behind
-
-
-def test_a_stage_run_between_a_fresh_stages_units_does_not_wait_for_its_long_ones(tmp_path):
-    """A stage the caller runs between a fresh stage's units gets processes of its own at once (kept for
-    later), not a worker the fresh stage's long units hold."""
-    with keep_workers():
-        # three on two workers: the one that frees first would take the third at once
-        long_ones = [Job(n=n, attempts_dir=str(tmp_path), seconds=seconds) for n, seconds in ((1, 0.1), (2, 15), (3, 15))]
-        finished = []
-        for job, (_, trainer), _ in run_in_pool(attempt, long_ones, workers=2, fresh_workers=True):
-            finished.append((job.n, time.monotonic()))
-            if job.n == 1:
-                between = [Job(n=n, attempts_dir=str(tmp_path)) for n in range(10, 14)]
-                used = {pid for _, (_, pid), _ in run_in_pool(attempt, between, workers=2)}
-                finished.append(("between", time.monotonic()))
-                assert trainer not in used
-        assert [n for n, _ in finished][:2] == [1, "between"] and len(finished) == 4
-        assert finished[2][1] - finished[1][1] > 5  # done long before the long units, not after one of them
 
 
 def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
