@@ -7,11 +7,11 @@ already saves a third): ~100 ms of a core at 84 px, so the generalist's SACs tra
 SAC-AE found to hurt on pixels. Here, as in SAC-AE and DrQ, the actor reads the critic's encoder with its
 gradients stopped, and only the critic's loss trains it:
 
-1. the batch's frames through the encoder once, with gradients: the critic's Q-values, its loss, its step
-   (encoder included);
-2. the next frames through the encoder and through the target's copy, without gradients: the actor's next
+1. the next frames through the encoder and through the target's copy, without gradients: the actor's next
    action and the target Q-values (SB3's, as it computes them);
-3. the actor and the entropy temperature on the features of step 1, detached: no encoder pass at all (SAC-AE
+2. the batch's frames through the encoder once, with gradients: the critic's Q-values, its loss, its step
+   (encoder included);
+3. the actor and the entropy temperature on the features of step 2, detached: no encoder pass at all (SAC-AE
    and DrQ encode the frames once more after the critic's step; the features one step older save that pass).
 
 Three passes and one backward a update, SB3's losses, optimisers, targets and schedules otherwise. Acting
@@ -85,7 +85,7 @@ class CriticEncoderSAC(SAC):
                 else self.ent_coef_tensor
             ent_coefs.append(ent_coef.item())
 
-            # 2. the TD target, without gradients: the actor's next action through the online encoder, Q through the target's
+            # 1. the TD target, without gradients: the actor's next action through the online encoder, Q through the target's
             with torch.no_grad():
                 next_actions, next_log_prob = self._actor_on(critic.extract_features(batch.next_observations, encoder))
                 target_features = target.extract_features(batch.next_observations, target.features_extractor)
@@ -93,7 +93,7 @@ class CriticEncoderSAC(SAC):
                                    dim=1, keepdim=True)[0] - ent_coef * next_log_prob
                 target_q = batch.rewards + (1 - batch.dones) * discounts * next_q
 
-            # 1. the critic, encoder included, from one pass over the batch's frames
+            # 2. the critic, encoder included, from one pass over the batch's frames
             features = critic.extract_features(batch.observations, encoder)
             critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in self._q_values(critic, features, batch.actions))
             critic_losses.append(critic_loss.item())
