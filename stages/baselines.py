@@ -84,7 +84,7 @@ class AgentInTraining(BaseModel):
     episodes: int  # training episodes finished by then
     successes: int
     as_of: float | None  # when `done` was written (epoch seconds)
-    rate: float | None  # env steps/s of the run that wrote `done` (progress.json); None: a checkpoint's, or older code
+    rate: float | None  # env steps/s of the agent's latest run (progress.json); None: none yet, or older code
     checkpoint_steps: int  # where a restart resumes it; 0: from scratch
     checkpoint_at: float | None
 
@@ -257,7 +257,10 @@ def agents_in_training(models: Path, catalog: Catalog, plans: dict[str, dict]) -
         agents.append(AgentInTraining(
             model_key=key, algorithm=plan["algorithm"], family=plan["family"], env_steps=plan["env_steps"],
             started=latest is not None, done=state["num_timesteps"], episodes=state["episodes"],
-            successes=state["successes"], as_of=as_of, rate=state.get("rate"),
+            successes=state["successes"], as_of=as_of,
+            # the pace of the run that wrote progress.json: a checkpoint written since (by that run: each run
+            # writes progress.json at its start) has no pace of its own and does not change it
+            rate=progress[0].get("rate") if progress else None,
             checkpoint_steps=checkpoint[0]["num_timesteps"] if checkpoint else 0,
             checkpoint_at=checkpoint[1] if checkpoint else None))
     return sorted(agents, key=lambda a: (a.algorithm != "sac", a.family))

@@ -364,6 +364,16 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     older_code = {**holder, "since": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(noon + 300))}
     del older_code["started"]  # a run of code before `started`: its local `since` read instead
     assert pending_baselines_markdown(catalog, CAMPAIGN, models, older_code) == lines
+    # robosuite's SAC checkpointed since (12:11:40): the row reads the checkpoint, at the pace its run logged last
+    save_checkpoint(Agent(125_000), SimpleNamespace(episodes_finished=680, successes=3),
+                    models / "baselines-sac-robosuite")
+    written(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", noon + 700)
+    [row] = [[cell.strip() for cell in line.strip("|").split("|")]
+             for line in pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
+             if "SAC from scratch (robosuite)" in line]
+    # 330,956 steps to go at 7.0/s from 12:11:40: 13.1 h
+    assert row == ["SAC from scratch (robosuite)", "training", "125,000 / 455,956 (27%)", "680 (3)",
+                   "2026-11-30 12:11 UTC", "7.0/s, ends ~2026-12-01 01:19 UTC", "125,000 (2026-11-30 12:11 UTC)"]
 
     _register(catalog, 0, {("nav-room-red", "seen"): 9})  # an evaluated iteration: the report's success table
     assert "Baselines not in the table yet" in results_markdown(catalog, CAMPAIGN, "sim2act report", models, holder)
