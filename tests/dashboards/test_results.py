@@ -18,6 +18,11 @@ TASKS = {"nav-room-red": ("nav-room", "seen"), "nav-room-sequence-red-green": ("
          "nav-room-sequence-purple-red": ("nav-room-sequence", "unseen")}
 
 
+def _cells(line: str) -> list[str]:
+    """A markdown table row's cells, stripped."""
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
 def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10) -> None:
     """successes: (task, split) -> successful episodes of `episodes`."""
     model = f"train-{iteration}"
@@ -64,13 +69,13 @@ def test_success_per_spec_and_split_per_iteration(tmp_path, monkeypatch):
     lines = spec_markdown(catalog, CAMPAIGN)
     assert ("| iteration | nav-room/seen | nav-room/unseen | nav-room/unseen_paraphrase | nav-room-sequence/seen "
             "| nav-room-sequence/unseen | nav-room-sequence/unseen_paraphrase |") in lines
-    row0, row1 = ([cell.strip() for cell in line.strip("|").split("|")] for line in lines[-2:])
+    row0, row1 = (_cells(line) for line in lines[-2:])
     assert row0 == ["0", "9/10 = 90% (60%–98%)", "–", "–", "0/10 = 0% (0%–28%)", "0/10 = 0% (0%–28%)", "–"]
     assert [cell.split(" ")[0] for cell in row1] == ["1", "8/10", "–", "–", "4/10", "1/10", "3/10"]
     monkeypatch.setattr(results, "WIDE_TABLE_NAMES", 1)  # more specs than fit side by side: a row per spec and iteration
     long = spec_markdown(catalog, CAMPAIGN)
     assert "|  | iteration | seen | unseen | unseen paraphrase |" in long
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in long[-4:]]
+    rows = [_cells(line) for line in long[-4:]]
     assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
         ["nav-room", "0", "9/10", "–", "–"], ["nav-room", "1", "8/10", "–", "–"],
         ["nav-room-sequence", "0", "0/10", "0/10", "–"], ["nav-room-sequence", "1", "4/10", "1/10", "3/10"]]
@@ -117,7 +122,7 @@ def test_the_seeds_are_pooled_per_family_where_the_trainings_met_several(tmp_pat
         _evaluated(catalog, f"train-s{seed}", navigated)
         _evaluated(catalog, f"train-s{seed}", lifted, task=("lift-red", "robosuite"))
     lines = protocol_markdown(catalog, CAMPAIGN)
-    rows = {row[1]: row for row in ([cell.strip() for cell in line.strip("|").split("|")] for line in lines)
+    rows = {row[1]: row for row in (_cells(line) for line in lines)
             if len(row) > 1 and row[1] in ("navigation", "robosuite")}
     assert rows["navigation"] == ["0", "navigation", "registered", "0, 1, 2",
                                   "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"]
@@ -148,7 +153,7 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
     _evaluated(catalog, "train-c1-s0", 10)
     _training(catalog, "train-c8-s1-other-data", 1, 8, digest="d1")  # another dataset: no row
     lines = protocol_markdown(catalog, CAMPAIGN)
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if "| chunk" in line]
+    rows = [_cells(line) for line in lines if "| chunk" in line]
     assert rows == [  # the dataset's iteration first: iteration 0 and 3 of one loop are told apart at a glance
         ["3", "chunk 8, members 1, steps 2400, weights ema 0.999", "registered", "0, 1, 2",
          "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"],
@@ -237,7 +242,7 @@ def test_the_report_sets_the_loops_last_iteration_over_seeds_against_its_first(t
         _evaluated(catalog, f"train-it5-s{seed}", won, episodes=50)
     lines = protocol_markdown(catalog, CAMPAIGN)
     assert "### The loop over seeds: iteration 0 against iteration 3" in lines
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| seen |")]
+    rows = [_cells(line) for line in lines if line.startswith("| seen |")]
     assert rows == [["seen", "20% ± 10 (10, 20, 30) over 3 seeds, 30/150 pooled [14%, 27%]",
                      "70% ± 10 (60, 70, 80) over 3 seeds, 105/150 pooled [62%, 77%]", "+50.0",
                      "above iteration 0's: the pooled intervals are apart"]]
@@ -264,7 +269,7 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
             _training(catalog, f"train-{arm}-s{seed}", seed, 8, iteration=3, recipe=recipe, precision=precision)
             _evaluated(catalog, f"train-{arm}-s{seed}", won)
     lines = protocol_markdown(catalog, CAMPAIGN)
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if "| chunk" in line]
+    rows = [_cells(line) for line in lines if "| chunk" in line]
     assert [row[1] for row in rows] == [
         "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets executed, bf16",
         "chunk 8, members 1, steps 2400, weights ema 0.999, train.targets expert"]
@@ -274,7 +279,7 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
 
     _deployed(catalog, 3, "train-expert-s0")  # the loop's seed: the other recipe at iteration 3 is its ablation
     lines = protocol_markdown(catalog, CAMPAIGN)
-    ablations = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines[lines.index(
+    ablations = [_cells(line) for line in lines[lines.index(
         "### Ablations: each recipe against the loop's own"):] if line.startswith("| 3")]
     assert ablations == [["3", "train.targets executed", "20% ± 10 (20, 10, 30) over 3 seeds, 6/30 pooled [10%, 37%]",
                           "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]", "-60.0",
@@ -349,7 +354,7 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     lines = pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
     assert "A `sim2act run` of this campaign holds the workspace (pid 4242 on runner, since 2026-11-30 12:05 UTC)" \
         in lines[1]
-    rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines if line.startswith("| ")][1:]
+    rows = [_cells(line) for line in lines if line.startswith("| ")][1:]
     assert rows == [
         ["PPO from scratch (navigation)", "trained, not evaluated yet", "254,976 / 254,522", "2,300 (41)", "–",
          "–", "–"],
@@ -368,8 +373,7 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     save_checkpoint(Agent(125_000), SimpleNamespace(episodes_finished=680, successes=3),
                     models / "baselines-sac-robosuite")
     written(models / "baselines-sac-robosuite" / "checkpoint" / "state.json", noon + 700)
-    [row] = [[cell.strip() for cell in line.strip("|").split("|")]
-             for line in pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
+    [row] = [_cells(line) for line in pending_baselines_markdown(catalog, CAMPAIGN, models, holder)
              if "SAC from scratch (robosuite)" in line]
     # 330,956 steps to go at 7.0/s from 12:11:40: 13.1 h
     assert row == ["SAC from scratch (robosuite)", "training", "125,000 / 455,956 (27%)", "680 (3)",
