@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
+import sqlite3
 import stat
-from collections.abc import MutableMapping
+from collections.abc import Iterator, MutableMapping
+from contextlib import closing, contextmanager
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
@@ -129,28 +132,65 @@ def whole_sqlite_store(workspace: Workspace) -> None:
     MLflow creates its store on first use through ~100 schema migrations, and SQLite commits each
     statement on its own: a run killed among them (a soak's kill, Ctrl-C in a run's first seconds) left a
     store that no later run could open ("table _alembic_tmp_experiments already exists"). So the store
-    is made and migrated under a name of this process's, then linked into place, which fails if another
-    process was first (its store, maybe with runs already, is kept). A kill leaves a temporary file,
-    removed by the next process that makes the store.
+    is made under a name of this process's, then linked into place, which fails if another process was
+    first (its store, maybe with runs already, is kept). A kill leaves a temporary file, removed by the
+    next process that makes the store. The migrations run once per host and MLflow version
+    (`_migrated_store`, ~3 s); a workspace's store is a copy of that one, given its Default experiment.
     """
     path = workspace.tracking_db
     if path.exists():
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    # a killed maker's store and its SQLite journal (`.making-<pid>-journal`); a live one's is still being made
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    with _made_aside(path) as making:
+        template = _migrated_store()
+        if template is not None:
+            shutil.copyfile(template, making)
+        # on the copy: MLflow's check of the schema, and the Default experiment under this workspace's folder
+        SqlAlchemyStore(f"sqlite:///{making}", workspace.artifact_root.as_uri()).engine.dispose()
+
+
+def _migrated_store() -> Path | None:
+    """An MLflow SQLite store migrated to this MLflow's schema, with no experiment in it, kept in the cache
+    folder (`cache_dir`) for every workspace of this host; None where that folder cannot be written (each
+    workspace's store is then migrated on its own)."""
+    import mlflow
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    path = cache_dir() / "mlflow" / f"empty-store-{mlflow.__version__}.db"
+    if path.exists():
+        return path
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with _made_aside(path) as making:
+            SqlAlchemyStore(f"sqlite:///{making}", (path.parent / "unused-artifacts").as_uri()).engine.dispose()
+            # the Default experiment names an artifact folder: each workspace's copy makes its own
+            with closing(sqlite3.connect(making)) as db, db:
+                db.execute("DELETE FROM experiments")
+    except OSError:
+        return None
+    return path
+
+
+@contextmanager
+def _made_aside(path: Path) -> Iterator[Path]:
+    """Yield a temporary name beside `path` to make a SQLite file under; then link it into place, unless
+    another process was first (its file is kept). Temporary files of killed makers are removed first; every
+    connection to the file must be closed on return (so that no journal is left beside it)."""
+    # a killed maker's file and its SQLite journal (`.making-<pid>-journal`); a live one's is still being made
     for stale in path.parent.glob(f"{path.name}.making-*"):
         pid = stale.name.removeprefix(f"{path.name}.making-").split("-")[0]
         if not (pid.isdigit() and _alive(int(pid))):
             stale.unlink(missing_ok=True)
     making = path.with_name(f"{path.name}.making-{os.getpid()}")
-    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
-
-    store = SqlAlchemyStore(f"sqlite:///{making}", workspace.artifact_root.as_uri())
-    store.engine.dispose()  # every connection closed: the file is whole, and no journal is left beside it
+    making.unlink(missing_ok=True)  # this process's own, left by an attempt that raised
     try:
-        os.link(making, path)
-    except FileExistsError:
-        pass
+        yield making
+        try:
+            os.link(making, path)
+        except FileExistsError:
+            pass
     finally:
         making.unlink(missing_ok=True)
 

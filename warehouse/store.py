@@ -32,6 +32,7 @@ import pyarrow as pa
 
 from schemas.errors import Sim2ActError
 from schemas.retry import retrying
+from schemas.settings import cache_dir
 
 SHARD_STORE_ENV = "SIM2ACT_SHARD_STORE"
 FOLDER = "folder"  # the recorded name of the default store: the warehouse folder itself
@@ -264,9 +265,9 @@ class S3Store(ShardStore):
         return location.removeprefix(f"{self.url}/")
 
     def fetch(self, location: str) -> Path:
-        """Downloaded once per host into ~/.cache/sim2act/objects (locations name immutable objects:
-        a model version's checkpoint), through a temporary name."""
-        cache = Path.home() / ".cache" / "sim2act" / "objects" / hashlib.sha256(location.encode()).hexdigest()[:32]
+        """Downloaded once per host into the cache folder's objects/ (`cache_dir`; locations name immutable
+        objects: a model version's checkpoint), through a temporary name."""
+        cache = cache_dir() / "objects" / hashlib.sha256(location.encode()).hexdigest()[:32]
         local = cache / location.rsplit("/", 1)[-1]
         if not local.exists():
             cache.mkdir(parents=True, exist_ok=True)

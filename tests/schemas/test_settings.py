@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from schemas.settings import (
-    SCENES_PER_WORKER_ENV, SecretsFileError, SettingError, apply_secrets_file, read_secrets_file, redacted,
+    CACHE_DIR_ENV, SCENES_PER_WORKER_ENV, SecretsFileError, SettingError, apply_secrets_file, read_secrets_file, redacted,
     scenes_per_worker, tracking_uri,
 )
 from schemas.workspace import Workspace
@@ -80,7 +80,8 @@ def test_a_url_is_shown_without_its_password():
 
 def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stops_the_next(tmp_path, monkeypatch):
     """MLflow makes its SQLite store through ~100 migrations; a run killed among them once left a store no later
-    run could open. Now it is made aside and linked into place whole: killed mid-way, the next process makes it."""
+    run could open. Now the migrated store is made aside, once per host (the cache folder), and linked into place
+    whole: killed mid-way, the next process makes it."""
     import os
     import signal
     import subprocess
@@ -90,24 +91,36 @@ def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stop
     from mlflow import MlflowClient
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    cache = tmp_path / "cache"
+    monkeypatch.setenv(CACHE_DIR_ENV, str(cache))
     workspace = Workspace.at(tmp_path / "workspace")
     maker = subprocess.Popen([sys.executable, "-c", "import sys; from schemas.settings import tracking_uri; "
                               "from schemas.workspace import Workspace; tracking_uri(Workspace.at(sys.argv[1]))",
                               str(workspace.root)], env={**os.environ, "PYTHONPATH": os.getcwd()})
     deadline = time.monotonic() + 120
-    while not list(workspace.mlflow.glob("mlflow.db.making-*")) and time.monotonic() < deadline:
+    while not list(cache.glob("mlflow/*.db.making-*")) and time.monotonic() < deadline:
         time.sleep(0.02)
     time.sleep(0.5)  # among the migrations (they take seconds)
     maker.send_signal(signal.SIGKILL)
     maker.wait()
-    assert not (workspace.mlflow / "mlflow.db").exists() and list(workspace.mlflow.glob("mlflow.db.making-*"))
+    assert not (workspace.mlflow / "mlflow.db").exists() and not list(cache.glob("mlflow/*.db"))
+    assert list(cache.glob("mlflow/*.db.making-*"))
     uri = tracking_uri(workspace)
-    assert sorted(p.name for p in workspace.mlflow.iterdir()) == ["mlflow.db"]  # the killed one's file removed
+    assert sorted(p.name for p in workspace.mlflow.iterdir()) == ["mlflow.db"]
+    [template] = (cache / "mlflow").iterdir()  # the killed one's file removed
+    assert template.name.startswith("empty-store-") and template.suffix == ".db"
     client = MlflowClient(tracking_uri=uri, registry_uri=uri)
     run = client.create_run(client.create_experiment("after-the-kill"))
     client.log_metric(run.info.run_id, "loss", 0.5)
     assert client.get_run(run.info.run_id).data.metrics == {"loss": 0.5}
     assert tracking_uri(workspace) == uri  # made once: the next call finds it
+
+    # the next workspace's store is a copy of the migrated one: its own Default experiment, under its own folder
+    other = Workspace.at(tmp_path / "other")
+    copied = MlflowClient(tracking_uri=tracking_uri(other))
+    assert [e.name for e in copied.search_experiments()] == ["Default"]
+    assert copied.get_experiment("0").artifact_location == (other.artifact_root / "0").as_uri()
+    assert client.get_experiment("0").artifact_location == (workspace.artifact_root / "0").as_uri()
 
 
 def test_scenes_per_worker_is_a_whole_number_of_at_least_one(monkeypatch):
