@@ -163,6 +163,8 @@ def _migrated_store() -> Path | None:
         return path
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            return None
         with _made_aside(path) as making:
             SqlAlchemyStore(f"sqlite:///{making}", (path.parent / "unused-artifacts").as_uri()).engine.dispose()
             # the Default experiment names an artifact folder: each workspace's copy makes its own

@@ -123,6 +123,18 @@ def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stop
     assert client.get_experiment("0").artifact_location == (workspace.artifact_root / "0").as_uri()
 
 
+def test_without_a_cache_folder_to_write_each_workspace_migrates_its_own_store(tmp_path, monkeypatch):
+    from mlflow import MlflowClient
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    (tmp_path / "a-file").write_text("not a folder")
+    monkeypatch.setenv(CACHE_DIR_ENV, str(tmp_path / "a-file" / "cache"))
+    workspace = Workspace.at(tmp_path / "workspace")
+    client = MlflowClient(tracking_uri=tracking_uri(workspace))
+    assert client.get_experiment("0").artifact_location == (workspace.artifact_root / "0").as_uri()
+    assert sorted(p.name for p in workspace.mlflow.iterdir()) == ["mlflow.db"]
+
+
 def test_scenes_per_worker_is_a_whole_number_of_at_least_one(monkeypatch):
     monkeypatch.delenv(SCENES_PER_WORKER_ENV, raising=False)
     assert scenes_per_worker() == 16
