@@ -14,9 +14,11 @@ from tests.conftest import SIM2ACT
 def test_a_soaked_campaign_keeps_its_finished_parts_and_a_run_ends_with_its_server(tmp_path):
     workspace = tmp_path / "workspace"
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}  # each run its own temporary server
+    # each kill 12-16 s into a start: its server is up by then (~9 s, its database made), and the start after the
+    # first kill still has ~20 s of iteration 0 ahead of it, so the second kill cannot miss (a third start would)
     done = subprocess.run(
         [SIM2ACT, "bench", "soak", "--preset", "smoke", "--iterations", "1", "--workspace", str(workspace),
-         "--kills", "2", "--kinds", "server,flow", "--wait", "10", "20", "--out", str(tmp_path / "soak.md")],
+         "--kills", "2", "--kinds", "server,flow", "--wait", "12", "16", "--out", str(tmp_path / "soak.md")],
         env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     result = json.loads((tmp_path / "soak.json").read_text())
