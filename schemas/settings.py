@@ -143,8 +143,8 @@ def whole_sqlite_store(workspace: Workspace) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 
+    template = _migrated_store()
     with _made_aside(path) as making:
-        template = _migrated_store()
         if template is not None:
             shutil.copyfile(template, making)
         # on the copy: MLflow's check of the schema, and the Default experiment under this workspace's folder
