@@ -13,8 +13,9 @@ $(STAMP): pyproject.toml scripts/setup.sh
 run: $(STAMP)
 	$(VENV)/bin/sim2act run --preset $(PRESET)
 
+# 2 workers, a whole test module each at a time (tests/conftest.py: torch threads and the modules' order)
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 # the fast tier for the inner loop: everything but the end-to-end tests (see tests/conftest.py)
 check: $(STAMP)

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import urllib.request
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,6 +30,15 @@ QUIET_ENV = {
 FAST_POLLING_ENV = {"PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_RUNNER_POLL_FREQUENCY": "2"}
 os.environ.update(QUIET_ENV)
 os.environ.update(FAST_POLLING_ENV)
+# `make test` runs the suite on 2 pytest-xdist workers, each a process that may run torch beside the other's.
+# torch's OpenMP threads spin while they wait at each op's end, as if they had the cores to themselves. Measured
+# here (tests/policies/test_model.py's training, 7-10 s alone on 2 threads): two at once took 52-56 s each on 2
+# threads, 155 s with GOMP_SPINCOUNT=30000, 24 s with 1000, 11 s on one thread each. So a worker's processes
+# default to one torch thread (a training's `train.threads` still sets its own), and a thread that waits spins
+# GOMP's throttled 1,000 turns before it sleeps. Set before anything imports torch; inherited by every process
+# the tests start.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.update({"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "GOMP_SPINCOUNT": "1000"})
 SIM2ACT = str(Path(sys.executable).with_name("sim2act"))
 CHROMIUM = "/usr/bin/chromium"  # Debian's (scripts/setup.sh installs it)
 
@@ -46,6 +56,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if E2E_FIXTURES & set(getattr(item, "fixturenames", ())) or item.module.__name__ in E2E_MODULES:
             item.add_marker(pytest.mark.e2e)
+    # Modules with the most end-to-end tests first, each module's tests together and in their order: `make test`
+    # hands whole modules to its 2 workers as they free up (--dist loadfile), so the long modules start early
+    # and the short unit-test modules fill the end, instead of one worker running a campaign module alone last.
+    e2e_count = Counter(item.module.__name__ for item in items if item.get_closest_marker("e2e"))
+    first_seen = {name: i for i, name in reversed(list(enumerate(item.module.__name__ for item in items)))}
+    items.sort(key=lambda item: (-e2e_count[item.module.__name__], first_seen[item.module.__name__]))
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
