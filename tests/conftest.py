@@ -53,15 +53,16 @@ E2E_MODULES = {"tests.flows.test_drills", "tests.flows.test_lifetime", "tests.fl
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    e2e_count: Counter[str] = Counter()
     for item in items:
         if E2E_FIXTURES & set(getattr(item, "fixturenames", ())) or item.module.__name__ in E2E_MODULES:
             item.add_marker(pytest.mark.e2e)
-    # Modules with the most end-to-end tests first, each module's tests together and in their order: `make test`
-    # hands whole modules to its 2 workers as they free up (--dist loadfile), so the long modules start early
-    # and the short unit-test modules fill the end, instead of one worker running a campaign module alone last.
-    e2e_count = Counter(item.module.__name__ for item in items if item.get_closest_marker("e2e"))
-    first_seen = {name: i for i, name in reversed(list(enumerate(item.module.__name__ for item in items)))}
-    items.sort(key=lambda item: (-e2e_count[item.module.__name__], first_seen[item.module.__name__]))
+            e2e_count[item.module.__name__] += 1
+    # Modules with the most end-to-end tests first, each module's tests together and in their order (the sort is
+    # stable): `make test` hands whole modules to its 2 workers as they free up (--dist loadfile), so the long
+    # modules start early and the short unit-test modules fill the end, instead of one worker running a campaign
+    # module alone last.
+    items.sort(key=lambda item: -e2e_count[item.module.__name__])
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
