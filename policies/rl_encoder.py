@@ -1,13 +1,15 @@
 """The RL baselines' observation encoder: stable-baselines3's own (NatureCNN on the frames, the proprio
-and instruction vectors flattened beside it), in bf16 autocast during the agent's updates where that
-pays on this CPU, as `train.amp` decides for our policy (policies/precision.py).
+and instruction vectors flattened beside it), in bf16 autocast on batches where that pays on this CPU, as
+`train.amp` decides for our policy (policies/precision.py).
 
 Why: a SAC step takes a gradient step on 64 frames, five encoder passes and, as SB3 wrote it, three backward
 ones, ~150 ms of a core in fp32 (docs/bench-rl.md), so the generalist's SAC agents train for ~16-20 h each. One
 of the backward passes is wasted (`skip_critic_encoder_in_actor_loss` skips it). Only the
 encoder autocasts: its features come back in fp32, so the heads, losses, log-probabilities and entropy
-terms compute as SB3 wrote them. Acting (batch 1) stays fp32, where bf16's casts would cost more than
-they save; so do SAC's target critics (SB3 keeps them out of training mode)."""
+terms compute as SB3 wrote them. Every batch autocasts, SAC's target critics' included (SB3 keeps them out of
+training mode; in fp32 their pass was ~11% of a SAC step), its frames channels_last (oneDNN's AMX kernels take
+that layout: 1.3x the encoder's bf16 pass and backward at batch 64); acting (one frame) stays fp32, where bf16's
+casts would cost more than they save."""
 
 from __future__ import annotations
 
@@ -19,22 +21,26 @@ import numpy as np
 import torch
 from stable_baselines3.common.torch_layers import CombinedExtractor
 
-from policies.precision import autocast, cpu_bf16_may_pay, describe, measured_bf16, probe_key, uses_bf16
+from policies.precision import (autocast, cpu_bf16_may_pay, describe, image_layout, measured_bf16, probe_key,
+                               uses_bf16)
 from schemas.keys import digest_of
 
 CPU = torch.device("cpu")
 
 
 class AutocastExtractor(CombinedExtractor):
-    """SB3's CombinedExtractor; while `bf16` is set and the module is in training mode (SB3 sets it for
-    `train()` and unsets it to act), its pass runs in bf16 autocast and returns fp32 features. Unset,
-    it is CombinedExtractor exactly (the same parameters, drawn from the same seeds)."""
+    """SB3's CombinedExtractor; while `bf16` is set, its pass over a batch of more than one observation
+    (an update's, a target critic's) runs in bf16 autocast on channels_last frames and returns fp32
+    features; one observation (acting) is fp32. Unset, it is CombinedExtractor exactly (the same
+    parameters, drawn from the same seeds)."""
 
     bf16 = False
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
-        if not (self.bf16 and self.training):
+        if not self.bf16 or len(next(iter(observations.values()))) == 1:
             return super().forward(observations)
+        observations = {key: image_layout(value, CPU) if value.dim() == 4 else value
+                        for key, value in observations.items()}
         with autocast(CPU, True):
             features = super().forward(observations)
         return features.float()

@@ -1,5 +1,6 @@
-"""The RL baselines' encoder: SB3's own exactly in fp32; in bf16 only during updates, its features back in
-fp32 and near the fp32 ones; the precision chosen by train.amp's rule for this CPU, once per host."""
+"""The RL baselines' encoder: SB3's own exactly in fp32; in bf16 on batches (updates, target critics), its
+features back in fp32 and near the fp32 ones, one observation (acting) in fp32; the precision chosen by
+train.amp's rule for this CPU, once per host; the agents' optimisers fused Adam with SB3's settings."""
 
 import json
 
@@ -42,19 +43,30 @@ def test_unset_it_is_sb3s_extractor_exactly(env):
     assert torch.equal(ours(observed), theirs(observed))
 
 
-def test_bf16_only_while_training_and_its_features_in_fp32(env):
+@pytest.mark.parametrize("mode", ["train", "eval"])  # an update's pass; a target critic's (SB3 keeps it in eval)
+def test_bf16_on_batches_and_its_features_in_fp32(env, mode):
     agent = new_agent("ppo", env, 600, 0)
     found = extractors(agent)
     assert len(found) == 1  # PPO's actor and critic share it
-    encoder, batch = found[0], _batch(agent.observation_space)
-    encoder.train()
+    encoder, batch = getattr(found[0], mode)(), _batch(agent.observation_space)
     fp32 = agent.policy.extract_features(batch, encoder)
     encoder.bf16 = True
     bf16 = agent.policy.extract_features(batch, encoder)
     assert bf16.dtype == torch.float32 and not torch.equal(bf16, fp32)  # computed in bf16, handed on in fp32
     assert torch.allclose(bf16, fp32, rtol=0.05, atol=0.05)
-    encoder.eval()  # acting: SB3 leaves training mode, and the pass is fp32 again
-    assert torch.equal(agent.policy.extract_features(batch, encoder), fp32)
+    one = {key: value[:1] for key, value in batch.items()}  # acting: one frame, fp32 as SB3 computes it
+    acting = agent.policy.extract_features(one, encoder)
+    encoder.bf16 = False
+    assert torch.equal(acting, agent.policy.extract_features(one, encoder))
+
+
+@pytest.mark.parametrize("algorithm, eps", [("ppo", 1e-5), ("sac", 1e-8)])
+def test_the_optimisers_are_fused_adam_with_sb3s_settings(request, algorithm, eps):
+    agent = new_agent(algorithm, request.getfixturevalue("env" if algorithm == "ppo" else "lift"), 600, 0)
+    optimisers = [agent.policy.optimizer] if algorithm == "ppo" else [agent.actor.optimizer, agent.critic.optimizer]
+    for optimiser in optimisers:
+        assert isinstance(optimiser, torch.optim.Adam)
+        assert optimiser.defaults["fused"] is True and optimiser.defaults["eps"] == eps  # SB3's PPO eps, Adam's own for SAC
 
 
 def test_the_choice_follows_the_cpu_and_is_measured_once_per_host(env, tmp_path):
