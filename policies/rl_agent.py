@@ -54,7 +54,7 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     from policies.rl_encoder import AutocastExtractor, skip_critic_encoder_in_actor_loss
 
     def common(adam_eps: float) -> dict:
-        # SB3's own encoder, bf16 where it pays; torch's fused Adam: the same update as SB3's per-tensor one
+        # SB3's own encoder, bf16 where it pays; torch's fused Adam: SB3's per-tensor Adam's update rule
         # in one kernel, ~5x faster over SAC's ~2M parameters on a CPU core (docs/bench-rl.md); SB3's Adam eps
         # per algorithm (it sets PPO's 1e-5 only where no optimizer_kwargs are given)
         return {"policy": "MultiInputPolicy", "env": env, "seed": seed, "verbose": 0, "device": "cpu",
