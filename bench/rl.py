@@ -46,7 +46,7 @@ class RLStepCost(BaseModel):
     cpu_ms: float  # a training step, the agent's updates included, CPU ms
     wall_ms: float
     budget: int | None
-    precision: str  # its encoder's during updates (train.amp: policies/rl_encoder.py)
+    precision: str  # its encoder's on batches (train.amp: policies/rl_encoder.py)
     sac_encoder: str | None = None  # SAC's: the critic's shared, or one each (baselines.sac_encoder); PPO: None
 
     @property

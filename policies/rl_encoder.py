@@ -90,7 +90,7 @@ def encoder_precision(agent, cache: Path, batch_size: int = 64) -> tuple[bool, s
         why = f"{'bf16 autocast' if bf16 else 'fp32'}: bf16 measured at {speedup:.2f}x fp32's speed on this CPU"
     for extractor in found:
         extractor.bf16 = bf16
-    return bf16, f"its encoder during updates: {why}"
+    return bf16, f"its encoder on batches: {why}"
 
 
 def _pass_timer(agent, encoder: AutocastExtractor, batch_size: int):
