@@ -9,20 +9,26 @@ encoder autocasts: its features come back in fp32, so the heads, losses, log-pro
 terms compute as SB3 wrote them. Every batch autocasts, SAC's target critics' included (SB3 keeps them out of
 training mode; in fp32 their pass was ~11% of a SAC step), its frames channels_last (oneDNN's AMX kernels take
 that layout: 1.3x the encoder's bf16 pass and backward at batch 64); acting (one frame) stays fp32, where bf16's
-casts would cost more than they save."""
+casts would cost more than they save. SAC's update converts each batch's frames once (`FramesOnceSAC`), not
+at each of its five encoder passes."""
 
 from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
+from stable_baselines3 import SAC
+from stable_baselines3.common.policies import BaseModel
+from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import CombinedExtractor
 
 from policies.precision import (autocast, cpu_bf16_may_pay, describe, image_layout, measured_bf16, probe_key,
-                               uses_bf16)
+                               uses_bf16, uses_channels_last)
 from schemas.keys import digest_of
 
 CPU = torch.device("cpu")
@@ -67,6 +73,53 @@ def skip_critic_encoder_in_actor_loss(agent) -> None:
 
     critic.optimizer.register_step_post_hook(requiring(False))
     agent.actor.optimizer.register_step_post_hook(requiring(True))
+
+
+@contextmanager
+def frames_converted_once(agent) -> Iterator[None]:
+    """While `agent` (SAC) updates: each batch its replay samples arrives with the frames as its encoders take
+    them (uint8 to float / 255, as SB3's `preprocess_obs`; channels_last where they autocast), and the
+    policy's own conversion is off. SB3 converts the batch at each encoder pass, five an update (the frames
+    three times, the next frames twice), ~10% of a SAC step on AMX (py-spy, docs/bench-rl.md); here twice.
+    The same numbers bit for bit; acting, outside the update, converts as before."""
+    models = [module for module in agent.policy.modules() if isinstance(module, BaseModel)]
+    normalised = [model.normalize_images for model in models]
+    images = [key for key, space in agent.observation_space.spaces.items()
+              if normalised[0] and is_image_space(space)]
+    layout = torch.channels_last if any(e.bf16 for e in extractors(agent)) and uses_channels_last(CPU) \
+        else torch.contiguous_format
+    buffer = agent.replay_buffer
+    sample = buffer.sample
+
+    def converted(observations: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {key: torch.empty(frames.shape, dtype=torch.float32, memory_format=layout).copy_(frames).div_(255.0)
+                if key in images else frames for key, frames in observations.items()}
+
+    def sample_converted(*args, **kwargs):
+        batch = sample(*args, **kwargs)
+        return batch._replace(observations=converted(batch.observations),
+                              next_observations=converted(batch.next_observations))
+
+    buffer.sample = sample_converted
+    for model in models:
+        model.normalize_images = False
+    try:
+        yield
+    finally:
+        del buffer.sample  # the buffer's own method again (a checkpoint pickles the buffer)
+        for model, normalise in zip(models, normalised):
+            model.normalize_images = normalise
+
+
+class FramesOnceSAC(SAC):
+    """SB3's SAC whose update (`update`: SB3's own, or a subclass's) runs inside `frames_converted_once`."""
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        with frames_converted_once(self):
+            self.update(gradient_steps, batch_size)
+
+    def update(self, gradient_steps: int, batch_size: int) -> None:
+        super().train(gradient_steps, batch_size)
 
 
 def extractors(agent) -> list[AutocastExtractor]:

@@ -26,9 +26,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
-from stable_baselines3 import SAC
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN, MultiInputPolicy
+
+from policies.rl_encoder import FramesOnceSAC
 
 
 class CriticEncoderPolicy(MultiInputPolicy):
@@ -48,8 +49,9 @@ class CriticEncoderPolicy(MultiInputPolicy):
             self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
 
 
-class CriticEncoderSAC(SAC):
-    """SB3's SAC whose update follows the module docstring's three steps; `policy` is always
+class CriticEncoderSAC(FramesOnceSAC):
+    """SB3's SAC whose update follows the module docstring's three steps (each batch's frames converted once:
+    `FramesOnceSAC`); `policy` is always
     `CriticEncoderPolicy` (a saved one loads back as this class)."""
 
     def __init__(self, policy=CriticEncoderPolicy, *args, **kwargs):
@@ -69,7 +71,7 @@ class CriticEncoderSAC(SAC):
     def _q_values(critic, features: torch.Tensor, actions: torch.Tensor) -> list[torch.Tensor]:
         return [q(torch.cat([features, actions], dim=1)) for q in critic.q_networks]
 
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+    def update(self, gradient_steps: int, batch_size: int) -> None:
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.ent_coef_optimizer is not None:
