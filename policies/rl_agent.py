@@ -30,16 +30,15 @@ CHECKPOINT, PREVIOUS, WRITING = "checkpoint", "checkpoint.old", "checkpoint.tmp"
 
 
 def agent_class(algorithm: str, sac_encoder: str = "separate"):
-    """SB3's PPO; SAC with the critic's encoder shared (policies/rl_sac.py) or SB3's own, an encoder each, each
-    converting a batch's frames once an update (policies/rl_encoder.py)."""
+    """SB3's PPO; SAC with the critic's encoder shared (policies/rl_sac.py) or SB3's own, an encoder each, both
+    updating on this CPU's fast path (`FastUpdateSAC`)."""
     from stable_baselines3 import PPO
 
-    from policies.rl_encoder import FramesOnceSAC
-    from policies.rl_sac import CriticEncoderSAC
+    from policies.rl_sac import CriticEncoderSAC, FastUpdateSAC
 
     if algorithm == "ppo":
         return PPO
-    return {"critic": CriticEncoderSAC, "separate": FramesOnceSAC}[sac_encoder]
+    return {"critic": CriticEncoderSAC, "separate": FastUpdateSAC}[sac_encoder]
 
 
 def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int | None = None,

@@ -9,8 +9,8 @@ encoder autocasts: its features come back in fp32, so the heads, losses, log-pro
 terms compute as SB3 wrote them. Every batch autocasts, SAC's target critics' included (SB3 keeps them out of
 training mode; in fp32 their pass was ~11% of a SAC step), its frames channels_last (oneDNN's AMX kernels take
 that layout: 1.3x the encoder's bf16 pass and backward at batch 64); acting (one frame) stays fp32, where bf16's
-casts would cost more than they save. SAC's update converts each batch's frames once (`FramesOnceSAC`), not
-at each of its five encoder passes."""
+casts would cost more than they save. SAC's update converts each batch's frames once
+(`frames_converted_once`), not at each of its five encoder passes."""
 
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from stable_baselines3 import SAC
 from stable_baselines3.common.policies import BaseModel
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.torch_layers import CombinedExtractor
@@ -109,17 +108,6 @@ def frames_converted_once(agent) -> Iterator[None]:
         del buffer.sample  # the buffer's own method again (a checkpoint pickles the buffer)
         for model, normalise in zip(models, normalised):
             model.normalize_images = normalise
-
-
-class FramesOnceSAC(SAC):
-    """SB3's SAC whose update (`update`: SB3's own, or a subclass's) runs inside `frames_converted_once`."""
-
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        with frames_converted_once(self):
-            self.update(gradient_steps, batch_size)
-
-    def update(self, gradient_steps: int, batch_size: int) -> None:
-        super().train(gradient_steps, batch_size)
 
 
 def extractors(agent) -> list[AutocastExtractor]:

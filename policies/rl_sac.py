@@ -1,4 +1,13 @@
-"""SAC with one encoder, the critic's: the pixel-SAC design of SAC-AE and DrQ, on stable-baselines3's SAC.
+"""The baselines' SAC: stable-baselines3's, its update on this CPU's fast path (`FastUpdateSAC`), and a variant
+with one encoder, the critic's (`CriticEncoderSAC`).
+
+`FastUpdateSAC` computes SB3's update (the same losses, optimisers, targets, schedules) with each batch's frames
+converted once, not at each of the five encoder passes (`policies.rl_encoder.frames_converted_once`: the same
+numbers bit for bit), and denormal floats flushed to zero (`policies.precision.denormals_flushed`: Adam's
+moments decay into them, at ~20x an operation's cost). Side by side: ~1.08x and ~1.2x a step
+(docs/bench-rl.md). Acting and the environment's step run outside it as before.
+
+`CriticEncoderSAC`: SAC with one encoder, the critic's: the pixel-SAC design of SAC-AE and DrQ.
 
 SB3's SAC gives the actor and the critic an encoder each (its `share_features_extractor=False` default),
 and each update runs five encoder passes over the batch and two backward ones (`skip_critic_encoder_in_actor_loss`
@@ -26,10 +35,24 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
+from stable_baselines3 import SAC
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN, MultiInputPolicy
 
-from policies.rl_encoder import FramesOnceSAC
+from policies.precision import denormals_flushed
+from policies.rl_encoder import frames_converted_once
+
+
+class FastUpdateSAC(SAC):
+    """SB3's SAC whose update (`update`: SB3's own, or a subclass's) runs with each batch's frames converted
+    once and denormals flushed (module docstring)."""
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        with frames_converted_once(self), denormals_flushed():
+            self.update(gradient_steps, batch_size)
+
+    def update(self, gradient_steps: int, batch_size: int) -> None:
+        super().train(gradient_steps, batch_size)
 
 
 class CriticEncoderPolicy(MultiInputPolicy):
@@ -49,9 +72,9 @@ class CriticEncoderPolicy(MultiInputPolicy):
             self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
 
 
-class CriticEncoderSAC(FramesOnceSAC):
-    """SB3's SAC whose update follows the module docstring's three steps (each batch's frames converted once:
-    `FramesOnceSAC`); `policy` is always
+class CriticEncoderSAC(FastUpdateSAC):
+    """SB3's SAC whose update follows the module docstring's three steps (on the fast path:
+    `FastUpdateSAC`); `policy` is always
     `CriticEncoderPolicy` (a saved one loads back as this class)."""
 
     def __init__(self, policy=CriticEncoderPolicy, *args, **kwargs):

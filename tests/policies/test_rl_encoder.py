@@ -115,35 +115,3 @@ def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift)
     assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
     assert all(p.requires_grad for p in ours.critic.features_extractor.parameters())  # thawed by the actor's step
 
-
-@pytest.mark.parametrize("bf16", [False, True])
-def test_sac_converts_a_batchs_frames_once_and_updates_as_sb3_does(lift, monkeypatch, bf16):
-    """SB3's SAC converts the batch's frames at each of its five encoder passes an update; ours twice (the
-    frames, the next frames), to the same numbers: the same parameters after the same updates, bit for bit,
-    in fp32 and in bf16 (channels_last frames); acting, outside the update, converts its frame as before."""
-    from stable_baselines3 import SAC
-
-    from policies.rl_encoder import FramesOnceSAC
-
-    def trained(ours: bool) -> tuple[SAC, list[set[int]]]:
-        with monkeypatch.context() as patched:
-            if not ours:  # SB3's own update, its own conversions
-                patched.setattr(FramesOnceSAC, "train", SAC.train)
-            agent = new_agent("sac", lift, 1_000, 3)
-            for extractor in extractors(agent):
-                extractor.bf16 = bf16
-            frames: list[torch.Tensor] = []  # held, so that no two passes' frames can share memory by reuse
-            for extractor in extractors(agent):
-                extractor.extractors["image"].register_forward_pre_hook(
-                    lambda _m, args: frames.append(args[0]) if len(args[0]) > 1 else None)
-            agent.learning_starts = 30
-            agent.learn(total_timesteps=33)  # 30 random steps, then 3 updates of 64 samples
-        assert len(frames) == 5 * 3
-        return agent, [{f.data_ptr() for f in frames[5 * i:5 * i + 5]} for i in range(3)]
-
-    (ours, our_frames), (sb3, sb3_frames) = trained(True), trained(False)
-    assert isinstance(ours, FramesOnceSAC)
-    assert [len(update) for update in our_frames] == [2] * 3 and [len(update) for update in sb3_frames] == [5] * 3
-    assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
-    assert ours.policy.normalize_images and ours.actor.normalize_images  # acting converts its frame again
-    assert "sample" not in vars(ours.replay_buffer)  # the buffer's own method, as a checkpoint pickles it

@@ -1,11 +1,17 @@
-"""SAC with the critic's encoder (policies/rl_sac.py): one encoder, which acting reads, only the critic's
-loss trains (one backward pass through it an update, none from the actor's loss), three passes an update
-against SB3's five; saved and loaded back as itself."""
+"""The baselines' SAC (policies/rl_sac.py): SB3's update on the fast path (each batch's frames converted once,
+the same numbers; denormals flushed in the update alone); the critic's encoder variant: one encoder, which
+acting reads, only the critic's loss trains (one backward pass through it an update, none from the actor's
+loss), three passes an update against SB3's five; saved and loaded back as itself."""
 
+import contextlib
+
+import pytest
 import torch
+from stable_baselines3 import SAC
 
 from policies.rl_agent import agent_class, new_agent
-from policies.rl_sac import CriticEncoderSAC
+from policies.rl_encoder import extractors
+from policies.rl_sac import CriticEncoderSAC, FastUpdateSAC
 
 
 def _encoder_passes(agent, updates: int = 3) -> tuple[list[bool], int, int]:
@@ -59,3 +65,53 @@ def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     critic_graphs, target_passes, critic_backward = _encoder_passes(agent)
     assert len(actor_graphs) + len(critic_graphs) + target_passes == 5 * 3
     assert critic_backward == 3 and sum(actor_graphs) == 3  # and the actor's own backward: two an update
+
+
+def _flushes_denormals() -> bool:
+    return (torch.tensor([1e-38]) / 100).item() == 0.0  # a denormal result, written as zero while flushing
+
+
+@pytest.mark.parametrize("bf16", [False, True])
+def test_sac_converts_a_batchs_frames_once_and_updates_as_sb3_does(lift, monkeypatch, bf16):
+    """SB3's SAC converts the batch's frames at each of its five encoder passes an update; ours twice (the
+    frames, the next frames), to the same numbers: the same parameters after the same updates, bit for bit,
+    in fp32 and in bf16 (channels_last frames); acting, outside the update, converts its frame as before.
+    (Denormals are left as they are here: this compares the conversions.)"""
+    def trained(ours: bool) -> tuple[SAC, list[set[int]]]:
+        with monkeypatch.context() as patched:
+            patched.setattr("policies.rl_sac.denormals_flushed", contextlib.nullcontext)
+            if not ours:  # SB3's own update, its own conversions
+                patched.setattr(FastUpdateSAC, "train", SAC.train)
+            agent = new_agent("sac", lift, 1_000, 3)
+            for extractor in extractors(agent):
+                extractor.bf16 = bf16
+            frames: list[torch.Tensor] = []  # held, so that no two passes' frames can share memory by reuse
+            for extractor in extractors(agent):
+                extractor.extractors["image"].register_forward_pre_hook(
+                    lambda _m, args: frames.append(args[0]) if len(args[0]) > 1 else None)
+            agent.learning_starts = 30
+            agent.learn(total_timesteps=33)  # 30 random steps, then 3 updates of 64 samples
+        assert len(frames) == 5 * 3
+        return agent, [{f.data_ptr() for f in frames[5 * i:5 * i + 5]} for i in range(3)]
+
+    (ours, our_frames), (sb3, sb3_frames) = trained(True), trained(False)
+    assert isinstance(ours, FastUpdateSAC)
+    assert [len(update) for update in our_frames] == [2] * 3 and [len(update) for update in sb3_frames] == [5] * 3
+    assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
+    assert ours.policy.normalize_images and ours.actor.normalize_images  # acting converts its frame again
+    assert "sample" not in vars(ours.replay_buffer)  # the buffer's own method, as a checkpoint pickles it
+
+
+def test_sac_updates_with_denormals_flushed_and_steps_the_environment_without(lift, monkeypatch):
+    """Adam's moments decay into denormals, ~20x an operation's cost: the update flushes them to zero; the
+    simulation, acting and everything after the update compute with them as before."""
+    agent = new_agent("sac", lift, 1_000, 3)
+    in_updates, in_env = [], []
+    agent.critic.features_extractor.register_forward_hook(lambda *_: in_updates.append(_flushes_denormals()))
+    step = type(lift).step
+    monkeypatch.setattr(type(lift), "step", lambda env, action: (in_env.append(_flushes_denormals()), step(env, action))[1])
+    agent.learning_starts = 30
+    agent.learn(total_timesteps=33)
+    assert in_updates and all(in_updates)
+    assert len(in_env) == 33 and not any(in_env)
+    assert not _flushes_denormals()
