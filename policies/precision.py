@@ -51,6 +51,11 @@ def denormals_flushed() -> Iterator[None]:
         torch.set_flush_denormal(False)  # the process's default: nothing else here sets it
 
 
+def flushing_denormals() -> bool:
+    """Whether this thread writes a denormal result as zero now (inside `denormals_flushed`)."""
+    return (torch.tensor([1e-38]) / 100).item() == 0.0
+
+
 def cpu_has_bf16_units() -> bool:
     """Whether this CPU multiplies bf16 matrices in hardware tiles (AMX), where bf16 pays; AVX-512 BF16
     alone did not (module docstring)."""

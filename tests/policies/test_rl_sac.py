@@ -9,6 +9,7 @@ import pytest
 import torch
 from stable_baselines3 import SAC
 
+from policies.precision import flushing_denormals
 from policies.rl_agent import agent_class, new_agent
 from policies.rl_encoder import extractors
 from policies.rl_sac import CriticEncoderSAC, FastUpdateSAC
@@ -67,10 +68,6 @@ def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     assert critic_backward == 3 and sum(actor_graphs) == 3  # and the actor's own backward: two an update
 
 
-def _flushes_denormals() -> bool:
-    return (torch.tensor([1e-38]) / 100).item() == 0.0  # a denormal result, written as zero while flushing
-
-
 @pytest.mark.parametrize("bf16", [False, True])
 def test_sac_converts_a_batchs_frames_once_and_updates_as_sb3_does(lift, monkeypatch, bf16):
     """SB3's SAC converts the batch's frames at each of its five encoder passes an update; ours twice (the
@@ -107,11 +104,11 @@ def test_sac_updates_with_denormals_flushed_and_steps_the_environment_without(li
     simulation, acting and everything after the update compute with them as before."""
     agent = new_agent("sac", lift, 1_000, 3)
     in_updates, in_env = [], []
-    agent.critic.features_extractor.register_forward_hook(lambda *_: in_updates.append(_flushes_denormals()))
+    agent.critic.features_extractor.register_forward_hook(lambda *_: in_updates.append(flushing_denormals()))
     step = type(lift).step
-    monkeypatch.setattr(type(lift), "step", lambda env, action: (in_env.append(_flushes_denormals()), step(env, action))[1])
+    monkeypatch.setattr(type(lift), "step", lambda env, action: (in_env.append(flushing_denormals()), step(env, action))[1])
     agent.learning_starts = 30
     agent.learn(total_timesteps=33)
     assert in_updates and all(in_updates)
     assert len(in_env) == 33 and not any(in_env)
-    assert not _flushes_denormals()
+    assert not flushing_denormals()
