@@ -3,12 +3,12 @@
 # its evaluation, the experts' ceiling, then PPO and SAC per family at the environment steps the family's exploration
 # took, all in one workspace, so that one `sim2act report` puts them side by side (docs/results-generalist.md).
 #
-#   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~17 h on 2 cores
+#   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~15 h on 2 cores (AMX)
 #
 # Why not docs/quality/generalist.sh: that script also trains the results protocol's other two seeds and runs the
 # adaptation before the baselines (~8 h), whose figures are in the docs already; a workspace that went with its
-# machine needs only the baselines again, and they are the long part (~12 h priced alone on an AMX Xeon,
-# ~15 h inside the campaign: docs/bench-rl.md).
+# machine needs only the baselines again, and they are the long part (~12 h inside the campaign on an AMX Xeon:
+# docs/bench-rl.md).
 # 1. the iteration: explore the million (~1 h), train seed 0 (~0.7 h), evaluate it on 228 cases x 10 episodes
 #    (~0.6 h); the adaptation off;
 # 2. the baselines stage of the same command: the experts, then SAC and PPO per family, longest first, each agent
