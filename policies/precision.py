@@ -13,7 +13,7 @@ channels_last on CPU. Numbers behind the choices are in docs/bench-train.md.
   activation: 1.2-1.4x on the default model in fp32 on that same CPU; the conv trunk is ~60% of a step.
 - Denormal floats (below 1.2e-38) cost x86 cores ~20x an operation. Adam's moments of parameters whose
   gradients are zero (a dead ReLU's weights) decay into them: in the generalist's SAC agents at 15,000 steps
-  ~27% of them, and fused Adam over SAC-sized parameters took 36 ms a step there against 1.5 (docs/bench-rl.md).
+  25-27% of them, and fused Adam over SAC-sized parameters took 36 ms a step there against 1.5 (docs/bench-rl.md).
   `denormals_flushed` rounds them to zero for an update.
 """
 
@@ -22,8 +22,7 @@ from __future__ import annotations
 import json
 import os
 import platform
-from collections.abc import Callable
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
@@ -43,12 +42,22 @@ def denormals_flushed() -> Iterator[None]:
     """Inside: this thread's float operations read and write denormals (below 1.2e-38) as zero, at full speed
     (module docstring). For an RL agent's update, whose values that small are rounding residue (an Adam
     moment of 1e-39 moves its parameter by ~1e-35); not for simulation, which runs outside it bit for bit as
-    before. torch's intra-op threads are not switched: the RL workers run one thread each."""
+    before. torch's intra-op threads are not switched: the RL workers run one thread each. A CPU that cannot
+    flush (torch's `set_flush_denormal` says so) computes as before."""
+    before = flushing_denormals()
     torch.set_flush_denormal(True)
     try:
         yield
     finally:
-        torch.set_flush_denormal(False)  # the process's default: nothing else here sets it
+        torch.set_flush_denormal(before)
+
+
+def cpu_can_flush_denormals() -> bool:
+    """Whether torch can flush denormals on this CPU (x86 with SSE3: every one these runs meet)."""
+    before = flushing_denormals()
+    supported = torch.set_flush_denormal(True)
+    torch.set_flush_denormal(before)
+    return supported
 
 
 def flushing_denormals() -> bool:

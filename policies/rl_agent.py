@@ -31,7 +31,7 @@ CHECKPOINT, PREVIOUS, WRITING = "checkpoint", "checkpoint.old", "checkpoint.tmp"
 
 def agent_class(algorithm: str, sac_encoder: str = "separate"):
     """SB3's PPO (policies/rl_ppo.py: its update with denormals flushed); SAC with the critic's encoder shared
-    (policies/rl_sac.py) or SB3's own, an encoder each, both updating on this CPU's fast path (`FastUpdateSAC`)."""
+    (policies/rl_sac.py) or SB3's own, an encoder each, both updating on the fast path (`FastUpdateSAC`)."""
     from policies.rl_ppo import FastUpdatePPO
     from policies.rl_sac import CriticEncoderSAC, FastUpdateSAC
 

@@ -3,7 +3,7 @@ and instruction vectors flattened beside it), in bf16 autocast on batches where 
 `train.amp` decides for our policy (policies/precision.py).
 
 Why: a SAC step takes a gradient step on 64 frames, five encoder passes and, as SB3 wrote it, three backward
-ones, ~150 ms of a core in fp32 (docs/bench-rl.md), so the generalist's SAC agents train for ~16-20 h each. One
+ones, ~150 ms of a core in fp32 (docs/bench-rl.md), so the generalist's SAC agents trained for ~16-20 h each. One
 of the backward passes is wasted (`skip_critic_encoder_in_actor_loss` skips it). Only the
 encoder autocasts: its features come back in fp32, so the heads, losses, log-probabilities and entropy
 terms compute as SB3 wrote them. Every batch autocasts, SAC's target critics' included (SB3 keeps them out of
@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3.common.policies import BaseModel
@@ -83,15 +84,19 @@ def frames_converted_once(agent) -> Iterator[None]:
     The same numbers bit for bit; acting, outside the update, converts as before."""
     models = [module for module in agent.policy.modules() if isinstance(module, BaseModel)]
     normalised = [model.normalize_images for model in models]
-    images = [key for key, space in agent.observation_space.spaces.items()
-              if normalised[0] and is_image_space(space)]
+    if not isinstance(agent.observation_space, gym.spaces.Dict):
+        raise TypeError(f"expected a Dict observation space (MultiInputPolicy), got {agent.observation_space}")
+    images = [key for key, space in agent.observation_space.spaces.items() if is_image_space(space)] \
+        if normalised[0] else []
     layout = torch.channels_last if any(e.bf16 for e in extractors(agent)) and uses_channels_last(CPU) \
         else torch.contiguous_format
     buffer = agent.replay_buffer
+    if "sample" in vars(buffer):  # converting twice would divide the frames by 255 twice
+        raise RuntimeError("expected the replay buffer's own sample method, got one already wrapped")
     sample = buffer.sample
 
     def converted(observations: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        return {key: torch.empty(frames.shape, dtype=torch.float32, memory_format=layout).copy_(frames).div_(255.0)
+        return {key: torch.empty(frames.shape, dtype=torch.float32, device=frames.device, memory_format=layout).copy_(frames).div_(255.0)
                 if key in images else frames for key, frames in observations.items()}
 
     def sample_converted(*args, **kwargs):

@@ -4,14 +4,14 @@ with one encoder, the critic's (`CriticEncoderSAC`).
 `FastUpdateSAC` computes SB3's update (the same losses, optimisers, targets, schedules) with each batch's frames
 converted once, not at each of the five encoder passes (`policies.rl_encoder.frames_converted_once`: the same
 numbers bit for bit), and denormal floats flushed to zero (`policies.precision.denormals_flushed`: Adam's
-moments decay into them, at ~20x an operation's cost). Side by side: ~1.08x and ~1.2x a step
-(docs/bench-rl.md). Acting and the environment's step run outside it as before.
+moments decay into them, at ~20x an operation's cost). Side by side: 1.08-1.09x a step, and 1.23-1.25x an
+update from checkpoints at 15,000 steps (docs/bench-rl.md). Acting and the environment's step run outside it as before.
 
 `CriticEncoderSAC`: SAC with one encoder, the critic's: the pixel-SAC design of SAC-AE and DrQ.
 
 SB3's SAC gives the actor and the critic an encoder each (its `share_features_extractor=False` default),
 and each update runs five encoder passes over the batch and two backward ones (`skip_critic_encoder_in_actor_loss`
-already saves a third): ~100 ms of a core at 84 px, so the generalist's SACs train for ~14-18 h each
+already saves a third): ~100 ms of a core at 84 px, so the generalist's SACs trained for ~14-18 h each
 (docs/bench-rl.md). SB3's own shared option trains the one encoder through the actor's loss, the choice
 SAC-AE found to hurt on pixels. Here, as in SAC-AE and DrQ, the actor reads the critic's encoder with its
 gradients stopped, and only the critic's loss trains it:
@@ -74,8 +74,7 @@ class CriticEncoderPolicy(MultiInputPolicy):
 
 class CriticEncoderSAC(FastUpdateSAC):
     """SB3's SAC whose update follows the module docstring's three steps (on the fast path:
-    `FastUpdateSAC`); `policy` is always
-    `CriticEncoderPolicy` (a saved one loads back as this class)."""
+    `FastUpdateSAC`); `policy` is always `CriticEncoderPolicy` (a saved one loads back as this class)."""
 
     def __init__(self, policy=CriticEncoderPolicy, *args, **kwargs):
         super().__init__(CriticEncoderPolicy, *args, **kwargs)

@@ -12,7 +12,7 @@
 # 1. the iteration: explore the million (~1 h), train seed 0 (~0.7 h), evaluate it on 228 cases x 10 episodes
 #    (~0.6 h); the adaptation off;
 # 2. the baselines stage of the same command: the experts, then SAC and PPO per family, longest first, each agent
-#    checkpointed every 5,000 environment steps (~10 minutes of SAC lost to a kill or a session's end);
+#    checkpointed every 5,000 environment steps (~7.5 minutes of SAC lost to a kill or a session's end);
 # 3. `sim2act report` into WORKSPACE-logs/report.md.
 # Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.
 set -euo pipefail

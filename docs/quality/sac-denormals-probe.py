@@ -42,19 +42,22 @@ def main() -> None:
     parser.add_argument("checkpoint", type=Path, help="a SAC checkpoint folder: agent.zip and replay.pkl")
     parser.add_argument("mode", choices=["flushed", "kept"], help="the update with denormals flushed, or kept")
     parser.add_argument("--blocks", type=int, default=4, help="timed blocks of 50 updates")
+    parser.add_argument("--sac-encoder", choices=["separate", "critic"], default="separate",
+                        help="the checkpoint's baselines.sac_encoder: its update is that class's")
     args = parser.parse_args()
     if not (args.checkpoint / "agent.zip").is_file() or not (args.checkpoint / "replay.pkl").is_file():
         sys.exit(f"expected a SAC checkpoint folder with agent.zip and replay.pkl, got {args.checkpoint}")
     torch.set_num_threads(1)
     if args.mode == "kept":
         rl_sac.denormals_flushed = contextlib.nullcontext
-    agent = without_log_folder(agent_class("sac").load(args.checkpoint / "agent.zip", device="cpu"))
+    agent = without_log_folder(agent_class("sac", args.sac_encoder).load(args.checkpoint / "agent.zip", device="cpu"))
     agent.load_replay_buffer(args.checkpoint / "replay.pkl")
     skip_critic_encoder_in_actor_loss(agent)
     for name in ("actor", "critic"):
         found, total = denormal_moments(getattr(agent, name).optimizer)
         print(f"{name}'s Adam moments: {found:,} of {total:,} denormal ({100 * found / total:.0f}%)")
-    print(encoder_precision(agent, Path(tempfile.mkdtemp()))[1])  # the probe's cache not in the workspace
+    with tempfile.TemporaryDirectory() as cache:  # the precision probe's cache, not the workspace's
+        print(encoder_precision(agent, Path(cache))[1])
     agent._current_progress_remaining = 0.9  # a learning rate schedule reads it; SB3's default is constant
     agent.train(gradient_steps=10, batch_size=agent.batch_size)
     timed = []

@@ -94,7 +94,7 @@ def test_a_training_with_the_cache_learns_and_saves_an_agent_that_loads(env, tmp
 
 
 def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift):
-    """SB3's SAC with its actor loss's wasted backward pass through the critic's encoder, against ours: the
+    """SAC's update as SB3 wrote it, its actor loss's backward pass through the critic's encoder, against ours: the
     same parameters after the same updates, bit for bit; ours builds a graph through that encoder once an
     update (the critic's loss), SB3's twice (the actor's loss too)."""
     from stable_baselines3 import SAC
@@ -114,4 +114,3 @@ def test_sacs_actor_loss_skips_the_critics_encoder_and_updates_as_sb3_does(lift)
     assert our_graphs == [True, False] * 3 and sb3_graphs == [True, True] * 3
     assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
     assert all(p.requires_grad for p in ours.critic.features_extractor.parameters())  # thawed by the actor's step
-

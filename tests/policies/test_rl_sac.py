@@ -9,7 +9,7 @@ import pytest
 import torch
 from stable_baselines3 import SAC
 
-from policies.precision import flushing_denormals
+from policies.precision import cpu_can_flush_denormals, flushing_denormals
 from policies.rl_agent import agent_class, new_agent
 from policies.rl_encoder import extractors
 from policies.rl_sac import CriticEncoderSAC, FastUpdateSAC
@@ -68,37 +68,57 @@ def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     assert critic_backward == 3 and sum(actor_graphs) == 3  # and the actor's own backward: two an update
 
 
+@pytest.mark.parametrize("sac_encoder, passes", [("separate", 5), ("critic", 3)])
 @pytest.mark.parametrize("bf16", [False, True])
-def test_sac_converts_a_batchs_frames_once_and_updates_as_sb3_does(lift, monkeypatch, bf16):
-    """SB3's SAC converts the batch's frames at each of its five encoder passes an update; ours twice (the
-    frames, the next frames), to the same numbers: the same parameters after the same updates, bit for bit,
-    in fp32 and in bf16 (channels_last frames); acting, outside the update, converts its frame as before.
-    (Denormals are left as they are here: this compares the conversions.)"""
+def test_sac_converts_a_batchs_frames_once_and_updates_as_before(lift, monkeypatch, bf16, sac_encoder, passes):
+    """An update's encoder passes (SB3's five; the critic's encoder's three) each converted the batch's frames;
+    now the frames and the next frames are converted once each, to the same numbers: the same parameters after
+    the same updates, bit for bit, in fp32 and in bf16 (channels_last frames); acting, outside the update,
+    converts its frame as before. (Denormals are left as they are here: this compares the conversions.)"""
     def trained(ours: bool) -> tuple[SAC, list[set[int]]]:
         with monkeypatch.context() as patched:
             patched.setattr("policies.rl_sac.denormals_flushed", contextlib.nullcontext)
-            if not ours:  # SB3's own update, its own conversions
-                patched.setattr(FastUpdateSAC, "train", SAC.train)
-            agent = new_agent("sac", lift, 1_000, 3)
+            if not ours:  # the update as it was: each pass converts
+                patched.setattr(FastUpdateSAC, "train",
+                                lambda agent, gradient_steps, batch_size=64: agent.update(gradient_steps, batch_size))
+            agent = new_agent("sac", lift, 1_000, 3, sac_encoder=sac_encoder)
             for extractor in extractors(agent):
                 extractor.bf16 = bf16
             frames: list[torch.Tensor] = []  # held, so that no two passes' frames can share memory by reuse
-            for extractor in extractors(agent):
+            for extractor in {id(e): e for e in extractors(agent)}.values():
                 extractor.extractors["image"].register_forward_pre_hook(
                     lambda _m, args: frames.append(args[0]) if len(args[0]) > 1 else None)
             agent.learning_starts = 30
             agent.learn(total_timesteps=33)  # 30 random steps, then 3 updates of 64 samples
-        assert len(frames) == 5 * 3
-        return agent, [{f.data_ptr() for f in frames[5 * i:5 * i + 5]} for i in range(3)]
+        assert len(frames) == passes * 3
+        return agent, [{f.data_ptr() for f in frames[passes * i:passes * (i + 1)]} for i in range(3)]
 
-    (ours, our_frames), (sb3, sb3_frames) = trained(True), trained(False)
+    (ours, our_frames), (before, frames_before) = trained(True), trained(False)
     assert isinstance(ours, FastUpdateSAC)
-    assert [len(update) for update in our_frames] == [2] * 3 and [len(update) for update in sb3_frames] == [5] * 3
-    assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), sb3.policy.state_dict().values()))
+    assert [len(update) for update in our_frames] == [2] * 3
+    assert [len(update) for update in frames_before] == [passes] * 3
+    assert all(torch.equal(a, b) for a, b in zip(ours.policy.state_dict().values(), before.policy.state_dict().values()))
     assert ours.policy.normalize_images and ours.actor.normalize_images  # acting converts its frame again
     assert "sample" not in vars(ours.replay_buffer)  # the buffer's own method, as a checkpoint pickles it
 
 
+def test_a_failed_update_leaves_the_agent_as_it_was(lift, monkeypatch):
+    agent = new_agent("sac", lift, 1_000, 3)
+
+    def fails(_agent, _steps, _batch):
+        assert flushing_denormals() or not cpu_can_flush_denormals()
+        assert "sample" in vars(agent.replay_buffer) and not agent.critic_target.normalize_images
+        raise RuntimeError("an update that fails")
+
+    monkeypatch.setattr(FastUpdateSAC, "update", fails)
+    with pytest.raises(RuntimeError, match="an update that fails"):
+        agent.train(1, 64)
+    assert "sample" not in vars(agent.replay_buffer)
+    assert all(model.normalize_images for model in (agent.policy, agent.actor, agent.critic, agent.critic_target))
+    assert not flushing_denormals()
+
+
+@pytest.mark.skipif(not cpu_can_flush_denormals(), reason="this CPU cannot flush denormals (torch.set_flush_denormal)")
 def test_sac_updates_with_denormals_flushed_and_steps_the_environment_without(lift, monkeypatch):
     """Adam's moments decay into denormals, ~20x an operation's cost: the update flushes them to zero; the
     simulation, acting and everything after the update compute with them as before."""
@@ -106,7 +126,8 @@ def test_sac_updates_with_denormals_flushed_and_steps_the_environment_without(li
     in_updates, in_env = [], []
     agent.critic.features_extractor.register_forward_hook(lambda *_: in_updates.append(flushing_denormals()))
     step = type(lift).step
-    monkeypatch.setattr(type(lift), "step", lambda env, action: (in_env.append(flushing_denormals()), step(env, action))[1])
+    monkeypatch.setattr(type(lift), "step",
+                        lambda env, action: (in_env.append(flushing_denormals()), step(env, action))[1])
     agent.learning_starts = 30
     agent.learn(total_timesteps=33)
     assert in_updates and all(in_updates)
