@@ -54,10 +54,8 @@ def denormals_flushed() -> Iterator[None]:
 
 def cpu_can_flush_denormals() -> bool:
     """Whether torch can flush denormals on this CPU (x86 with SSE3: every one these runs meet)."""
-    before = flushing_denormals()
-    supported = torch.set_flush_denormal(True)
-    torch.set_flush_denormal(before)
-    return supported
+    with denormals_flushed():
+        return flushing_denormals()
 
 
 def flushing_denormals() -> bool:

@@ -96,8 +96,8 @@ def frames_converted_once(agent) -> Iterator[None]:
     sample = buffer.sample
 
     def converted(observations: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        return {key: torch.empty(frames.shape, dtype=torch.float32, device=frames.device, memory_format=layout).copy_(frames).div_(255.0)
-                if key in images else frames for key, frames in observations.items()}
+        return {key: torch.empty(frames.shape, dtype=torch.float32, device=frames.device, memory_format=layout)
+                .copy_(frames).div_(255.0) if key in images else frames for key, frames in observations.items()}
 
     def sample_converted(*args, **kwargs):
         batch = sample(*args, **kwargs)
