@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.utils.data import DataLoader
 
 from envs.observation import ACTION_DIM, NAVIGATION_ACTIONS, PROPRIO_DIM
 from envs.pool import Progress
@@ -33,7 +32,7 @@ from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from stages.index import IndexResult
 from warehouse.catalog import Catalog
-from warehouse.training_reader import SelectionError, StepBatches, check_where, decode_rows
+from warehouse.training_reader import SelectionError, StepBatches, check_where, decode_rows, training_loader
 
 STAGE, VERSION = "train", 2
 WARMUP_FRACTION = 0.05
@@ -418,12 +417,7 @@ def _train_member(run: _Run, member: int) -> _Member:
         })
 
     batches.start_batch = step
-    loader = DataLoader(
-        batches, batch_size=None, num_workers=cfg.loader_workers, pin_memory=run.device.type == "cuda",
-        # spawned: a process forked after a Prefect flow ran in this one fails at exit (code 1)
-        multiprocessing_context="spawn" if cfg.loader_workers else None,
-        prefetch_factor=4 if cfg.loader_workers else None,
-    )
+    loader = training_loader(batches, cfg.loader_workers, pin_memory=run.device.type == "cuda")
     window, window_started, waited = _Means(), time.monotonic(), 0.0
     epoch_started, epoch_samples = time.monotonic(), 0
     model.train()

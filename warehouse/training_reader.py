@@ -27,7 +27,7 @@ import duckdb
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from torch.utils.data import IterableDataset, default_convert, get_worker_info
+from torch.utils.data import DataLoader, IterableDataset, default_convert, get_worker_info
 
 from schemas.errors import Sim2ActError
 from schemas.frames import decode_depth, decode_frame
@@ -283,3 +283,23 @@ class StepBatches(IterableDataset):
             for k, rows in enumerate(self._epoch(stream, epoch)):
                 if epoch * per_epoch + k >= skip:  # skipped batches are read, never decoded
                     yield {**self.collate(rows), "batch": (epoch * per_epoch + k) * count + stream}
+
+
+def training_loader(batches: StepBatches, workers: int, pin_memory: bool = False, persistent: bool = False) -> DataLoader:
+    """The DataLoader a training reads `batches` through (stages/train.py), and `sim2act bench warehouse`
+    times: `workers` processes (0: in the calling process), each prefetching 4 batches. `persistent` keeps
+    the workers from one pass over the loader to the next (the bench times a pass apart from their start;
+    a training makes one pass over all its epochs).
+
+    The workers are spawned, not forked: a process forked from one that ran a Prefect flow exits with
+    code 1 and prints nothing. Prefect's queue services register a thread-exit hook
+    (`threading._register_atexit`) that asserts on state its own after-fork reset clears, and the
+    DataLoader treats the worker's code 1 as a crash when the epoch ends.
+    """
+    if workers != batches.streams and not (workers == 0 and batches.streams == 1):
+        raise ValueError(f"expected the {batches.streams} worker(s) the batches were split for, got {workers}")
+    return DataLoader(
+        batches, batch_size=None, num_workers=workers, pin_memory=pin_memory,
+        multiprocessing_context="spawn" if workers else None, prefetch_factor=4 if workers else None,
+        persistent_workers=persistent and workers > 0,
+    )

@@ -1,0 +1,40 @@
+"""The DataLoader a training reads through, in a process that has run a Prefect flow (as `sim2act run`'s
+training does): a forked worker of such a process exits with code 1 (Prefect's thread-exit hook asserts
+on state its after-fork reset cleared), which the DataLoader takes for a crash when the epoch ends."""
+
+from __future__ import annotations
+
+import pytest
+from prefect import flow
+from prefect.settings import PREFECT_API_URL, temporary_settings
+
+from bench.synthetic import register_explore_unit
+from schemas.workspace import Workspace
+from warehouse.catalog import Catalog
+from warehouse.training_reader import StepBatches, select_rows, training_loader
+
+
+@flow(name="a-flow-before-the-loader")
+def a_flow() -> int:
+    return 1
+
+
+def test_every_row_comes_through_spawned_workers_after_a_flow_ran_here(prefect_api, tmp_path):
+    with temporary_settings({PREFECT_API_URL: prefect_api}):
+        assert a_flow() == 1
+    workspace = Workspace.at(tmp_path / "ws").create()
+    Catalog(workspace.catalog).initialise()
+    for u in range(2):
+        register_explore_unit(workspace, f"explore-{u}", seed=u, steps=20, unique_frames=4)
+    batches = StepBatches(select_rows(Catalog(workspace.catalog), "NOT done"), batch_size=16, shuffle_buffer=32,
+                          seed=0, epochs=2, workers=2)
+    assert sum(len(batch["action"]) for batch in training_loader(batches, workers=2)) == 2 * batches.rows_per_epoch
+
+
+def test_the_workers_must_be_those_the_batches_were_split_for(tmp_path):
+    workspace = Workspace.at(tmp_path / "ws").create()
+    Catalog(workspace.catalog).initialise()
+    register_explore_unit(workspace, "explore-0", steps=20, unique_frames=4)
+    batches = StepBatches(select_rows(Catalog(workspace.catalog), "NOT done"), 16, 32, seed=0, epochs=1, workers=2)
+    with pytest.raises(ValueError, match="expected the 2 worker"):
+        training_loader(batches, workers=3)
