@@ -315,10 +315,10 @@ def bench_reads(root: Path, sizes: BenchSizes) -> list[Measure]:
     return [
         Measure(name="training reads: DataLoader over the warehouse", value=samples / stream_s, unit="samples/s",
                 reference=samples / memory_s, ratio=memory_s / stream_s, target=">= 5,000 samples/s",
-                note=f"{samples:,} decoded 84x84 frames, SQL selection, {sizes.read_workers} spawned workers "
-                     f"(starting them added {max(0.0, first_s - stream_s):.1f} s to the first epoch, not counted), "
-                     f"shuffle buffer {sizes.shuffle_buffer:,}, batch {sizes.batch_size}; reference: batches "
-                     f"gathered from an in-memory uint8 array; peak worker RSS {peak_mb:,.0f} MB for a "
+                note=f"{samples:,} decoded 84x84 frames, SQL selection, {sizes.read_workers} spawned workers (the "
+                     f"first epoch took {max(0.0, first_s - stream_s):.1f} s longer: their start and first reads, not "
+                     f"counted), shuffle buffer {sizes.shuffle_buffer:,}, batch {sizes.batch_size}; reference: batches "
+                     f"gathered from an in-memory uint8 array; peak worker RSS {peak_mb:,.0f} MiB for a "
                      f"{warehouse_bytes / 1e6:,.0f} MB warehouse"),
     ]
 
@@ -327,7 +327,7 @@ def bench_warehouse(sizes: BenchSizes, scratch: Path | None = None) -> list[Meas
     if scratch is not None:  # --scratch names a folder to use: made if missing, like a workspace
         Path(scratch).mkdir(parents=True, exist_ok=True)
     root = Path(tempfile.mkdtemp(prefix="sim2act-bench-", dir=scratch))
-    try:  # reads first: their workers fork this process, which the SQL measure's tables would swell
+    try:  # reads first: the peak RSS of this process's children it reads is then its own workers' alone
         reads = bench_reads(root, sizes)
         return bench_ingest(root, sizes) + bench_registration(root, sizes) + bench_sql(root, sizes) + reads
     finally:

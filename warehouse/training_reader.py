@@ -285,11 +285,14 @@ class StepBatches(IterableDataset):
                     yield {**self.collate(rows), "batch": (epoch * per_epoch + k) * count + stream}
 
 
-def training_loader(batches: StepBatches, workers: int, pin_memory: bool = False, persistent: bool = False) -> DataLoader:
+def training_loader(
+    batches: StepBatches, workers: int, pin_memory: bool = False, persistent: bool = False,
+) -> DataLoader:
     """The DataLoader a training reads `batches` through (stages/train.py), and `sim2act bench warehouse`
     times: `workers` processes (0: in the calling process), each prefetching 4 batches. `persistent` keeps
     the workers from one pass over the loader to the next (the bench times a pass apart from their start;
-    a training makes one pass over all its epochs).
+    a training makes one pass over all its epochs); they keep `batches` as it was when they started, so a
+    later `start_batch` or `epochs` never reaches them.
 
     The workers are spawned, not forked: a process forked from one that ran a Prefect flow exits with
     code 1 and prints nothing. Prefect's queue services register a thread-exit hook

@@ -12,14 +12,13 @@ import numpy as np
 import pyarrow as pa
 import pytest
 import torch
-from torch.utils.data import DataLoader
 
 from schemas.workspace import Workspace
 from tests.warehouse.filled import fill
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import SchemaMismatch, write_shard
 from warehouse.sql import run_sql
-from warehouse.training_reader import RowRange, SelectionError, StepBatches, partition, select_rows
+from warehouse.training_reader import RowRange, SelectionError, StepBatches, partition, select_rows, training_loader
 
 
 @pytest.fixture
@@ -139,9 +138,7 @@ def test_select_rows_and_stream_every_selected_step_once_per_epoch_across_worker
     assert expected > 0 and sum(r.stop - r.start for r in ranges) == expected
     assert len(ranges) <= catalog.query(f"SELECT count(DISTINCT episode_id) FROM steps WHERE {where}")[0][0]
     batches = StepBatches(ranges, batch_size=5, shuffle_buffer=8, seed=1, epochs=2, workers=2, piece_rows=7)
-    # spawned, as training inside a flow must: a child forked after Prefect ran in this process
-    # (another test's flow) fails at exit on Prefect's inherited at-exit hooks (exit code 1)
-    loader = DataLoader(batches, batch_size=None, num_workers=2, multiprocessing_context="spawn")
+    loader = training_loader(batches, workers=2)  # the training's own: spawned (test_training_loader.py)
     read = list(loader)
     assert [int(b["batch"]) for b in read] == list(range(len(batches))) and len(batches) == 2 * batches.batches_per_epoch
     assert all(b["image"].shape[1:] == (84, 84, 3) and b["image"].dtype == torch.uint8 for b in read)
@@ -158,12 +155,9 @@ def test_a_resumed_stream_reads_exactly_the_rest_of_the_sequence(filled):
     ranges = select_rows(Catalog(filled.catalog), "TRUE")
     sizes = dict(batch_size=4, shuffle_buffer=16, seed=3, epochs=3, piece_rows=9)
     for workers in (0, 2):
-        context = "spawn" if workers else None
-        full = list(DataLoader(StepBatches(ranges, workers=workers, **sizes), batch_size=None, num_workers=workers,
-                               multiprocessing_context=context))
+        full = list(training_loader(StepBatches(ranges, workers=workers, **sizes), workers))
         for start in (1, 7, len(full) // 2 + 1):
-            rest = list(DataLoader(StepBatches(ranges, workers=workers, start_batch=start, **sizes), batch_size=None,
-                                   num_workers=workers, multiprocessing_context=context))
+            rest = list(training_loader(StepBatches(ranges, workers=workers, start_batch=start, **sizes), workers))
             assert [int(b["batch"]) for b in rest] == list(range(start, len(full)))
             assert _actions(rest) == _actions(full[start:])
     shuffled = _actions(full[: len(full) // 3])
