@@ -299,7 +299,7 @@ def training_loader(
     (`threading._register_atexit`) that asserts on state its own after-fork reset clears, and the
     DataLoader treats the worker's code 1 as a crash when the epoch ends.
     """
-    if workers != batches.streams and not (workers == 0 and batches.streams == 1):
+    if max(1, workers) != batches.streams:  # StepBatches reads 0 workers as one stream
         raise ValueError(f"expected the {batches.streams} worker(s) the batches were split for, got {workers}")
     return DataLoader(
         batches, batch_size=None, num_workers=workers, pin_memory=pin_memory,

@@ -14,6 +14,15 @@ from warehouse.catalog import Catalog
 from warehouse.training_reader import StepBatches, select_rows, training_loader
 
 
+def _selected_rows(tmp_path):
+    """The steps of a small synthetic warehouse (two explore units), selected as a training selects them."""
+    workspace = Workspace.at(tmp_path / "ws").create()
+    Catalog(workspace.catalog).initialise()
+    for u in range(2):
+        register_explore_unit(workspace, f"explore-{u}", seed=u, steps=20, unique_frames=4)
+    return select_rows(Catalog(workspace.catalog), "NOT done")
+
+
 @flow(name="a-flow-before-the-loader")
 def a_flow() -> int:
     return 1
@@ -22,19 +31,11 @@ def a_flow() -> int:
 def test_every_row_comes_through_spawned_workers_after_a_flow_ran_here(prefect_api, tmp_path):
     with temporary_settings({PREFECT_API_URL: prefect_api}):
         assert a_flow() == 1
-    workspace = Workspace.at(tmp_path / "ws").create()
-    Catalog(workspace.catalog).initialise()
-    for u in range(2):
-        register_explore_unit(workspace, f"explore-{u}", seed=u, steps=20, unique_frames=4)
-    batches = StepBatches(select_rows(Catalog(workspace.catalog), "NOT done"), batch_size=16, shuffle_buffer=32,
-                          seed=0, epochs=2, workers=2)
+    batches = StepBatches(_selected_rows(tmp_path), batch_size=16, shuffle_buffer=32, seed=0, epochs=2, workers=2)
     assert sum(len(batch["action"]) for batch in training_loader(batches, workers=2)) == 2 * batches.rows_per_epoch
 
 
 def test_the_workers_must_be_those_the_batches_were_split_for(tmp_path):
-    workspace = Workspace.at(tmp_path / "ws").create()
-    Catalog(workspace.catalog).initialise()
-    register_explore_unit(workspace, "explore-0", steps=20, unique_frames=4)
-    batches = StepBatches(select_rows(Catalog(workspace.catalog), "NOT done"), 16, 32, seed=0, epochs=1, workers=2)
+    batches = StepBatches(_selected_rows(tmp_path), batch_size=16, shuffle_buffer=32, seed=0, epochs=1, workers=2)
     with pytest.raises(ValueError, match="expected the 2 worker"):
         training_loader(batches, workers=3)
