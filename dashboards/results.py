@@ -89,6 +89,37 @@ def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str
     return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
 
 
+def _evaluating(evaluations: list[TaskEvaluation], cases: int) -> str:
+    """A baseline read mid-evaluation says so: its pooled figures are the cases so far of `cases`."""
+    met = len({(e.task_id, e.split, e.instruction) for e in evaluations})
+    return f", evaluating: {met}/{cases} cases" if met < cases else ""
+
+
+def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
+                              baselines: dict[tuple[str, str | None, int], list[TaskEvaluation]],
+                              families: list[str], cases: Counter) -> list[str]:
+    """Each family's rows side by side: Sim2Act per iteration, then every baseline evaluated on that
+    family's cases (the expert's over all families, narrowed to it; an RL agent's are its family's).
+    The claim "higher success on unseen tasks than RL from scratch" is read here, family by family:
+    the pooled table above mixes a family where RL learns something with one where it learns nothing.
+    `cases`: family -> the cases the last iteration's model met there."""
+    if not baselines:
+        return []
+    rows = []
+    for family in families:
+        columns = [f"{family}/{split}" for split in SPLIT_COLUMNS]
+        rows += [[family, f"Sim2Act iteration {iteration}", *_cells(groups, columns)]
+                 for iteration, groups in sorted(by_iteration.items())]
+        for (agent, _, _), evaluations in baselines.items():
+            met = [e for e in evaluations if e.family == family]
+            if not met:  # an RL agent of another family
+                continue
+            rows.append([family, AGENT_NAMES.get(agent, agent) + _evaluating(met, cases[family]),
+                         *_cells(group_success(met), columns)])
+    header = ["family", "agent", *[split.replace("_", " ") for split in SPLIT_COLUMNS]]
+    return ["", "### Per family, against the baselines", "", *_table(header, rows)]
+
+
 def _utc(seconds: float | None) -> str:
     return "–" if seconds is None else datetime.datetime.fromtimestamp(
         seconds, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -391,12 +422,10 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
-    for (agent, family, steps), evaluations in baseline_evaluations(catalog, campaign).items():
-        name = AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
-        met = len({(e.task_id, e.split, e.instruction) for e in evaluations})
-        meets = cases[family] if family else sum(cases.values())
-        if met < meets:  # read mid-evaluation: the pooled figures are the cases so far
-            name += f", evaluating: {met}/{meets} cases"
+    baselines = baseline_evaluations(catalog, campaign)
+    for (agent, family, steps), evaluations in baselines.items():
+        name = (AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
+                + _evaluating(evaluations, cases[family] if family else sum(cases.values())))
         rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
     if models is not None:
@@ -405,6 +434,7 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
         lines += _split_table("Per family (Sim2Act)", by_iteration, families)
+        lines += family_baselines_markdown(by_iteration, baselines, families, cases)
 
     lines += spec_markdown(catalog, campaign)
 

@@ -23,16 +23,18 @@ def _cells(line: str) -> list[str]:
     return [cell.strip() for cell in line.strip("|").split("|")]
 
 
-def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10) -> None:
-    """successes: (task, split) -> successful episodes of `episodes`."""
+def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10,
+              families: dict[str, str] | None = None) -> None:
+    """successes: (task, split) -> successful episodes of `episodes`; families: task -> family where not
+    navigation."""
     model = f"train-{iteration}"
     rows = []
     for (task_id, split), won in successes.items():
         low, high = wilson_interval(won, episodes)
         rows.append({
             "unit_key": f"evaluate-{iteration}-{task_id}-{split}", "campaign": CAMPAIGN, "iteration": iteration,
-            "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id, "family": "navigation",
-            "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
+            "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id,
+            "family": (families or {}).get(task_id, "navigation"), "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
             "ci_low": low, "ci_high": high, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
             "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
             "failure_video": None, "episode_achieved": None, "success_rate": won / episodes})
@@ -46,14 +48,17 @@ def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str],
                               "promoted": True, "decision": "", "mlflow_run_id": ""}]})
 
 
-def _catalog_with_tasks(folder) -> Catalog:
-    """A new workspace's catalog holding the campaign's TASKS (navigation)."""
+def _catalog_with_tasks(folder, metaworld: dict[str, str] | None = None) -> Catalog:
+    """A new workspace's catalog holding the campaign's TASKS (navigation) and `metaworld`'s (task -> split,
+    its own spec)."""
     catalog = Catalog(Workspace.at(folder).create().catalog)
     catalog.initialise()
-    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": "navigation", "env_name": "GoToRoom",
+    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": family, "env_name": "GoToRoom",
               "instruction": t, "instructions": [t, f"{t} now", f"do {t}"], "unseen_instructions": [],
-              "object_colours": json.dumps({}),
-              "split": split, "horizon": 50, "unit_key": "tasks-test"} for t, (spec, split) in TASKS.items()]
+              "object_colours": json.dumps({}), "split": split, "horizon": 50, "unit_key": "tasks-test"}
+             for t, (spec, split, family) in {**{t: (*v, "navigation") for t, v in TASKS.items()},
+                                              **{t: (t, split, "metaworld") for t, split in (metaworld or {}).items()}
+                                              }.items()]
     catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": tasks})
     return catalog
@@ -97,13 +102,13 @@ def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "
 
 
 def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None,
-               campaign: str = CAMPAIGN) -> None:
-    """`model`'s evaluation on one case: nav-room-red seen, or `task` (task id, family), seen."""
+               campaign: str = CAMPAIGN, split: str = "seen") -> None:
+    """`model`'s evaluation on one case: nav-room-red, or `task` (task id, family), in `split`."""
     task_id, family = task or ("nav-room-red", "navigation")
     low, high = wilson_interval(won, episodes)
     key = f"evaluate-{model}-{task_id}" + ("" if campaign == CAMPAIGN else f"-{campaign}")
     row = {"unit_key": key, "campaign": campaign, "iteration": 0, "suite": CAMPAIGN_SUITE,
-           "model_key": model, "task_id": task_id, "family": family, "split": "seen",
+           "model_key": model, "task_id": task_id, "family": family, "split": split,
            "instruction": task_id, "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
            "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
            "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
@@ -410,3 +415,34 @@ def test_a_baseline_read_mid_evaluation_says_how_many_of_its_cases_are_in(tmp_pa
     [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
              if line.startswith("| scripted expert")]
     assert row.startswith("| scripted expert, noiseless (ceiling) | – | 30/30 = 100%"), row
+
+
+def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
+    """The pooled table mixes families; the per-family one sets each family's Sim2Act rows beside the expert's
+    (narrowed to the family) and that family's RL agents, and says which agent is still being evaluated."""
+    from stages.baselines import RLTrained
+
+    catalog = _catalog_with_tasks(tmp_path, {"mw-reach": "seen", "mw-push": "unseen"})
+    metaworld = {"mw-reach": "metaworld", "mw-push": "metaworld"}
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("mw-reach", "seen"): 3, ("mw-push", "unseen"): 1},
+              families=metaworld)
+    for task_id, won, split in (("nav-room-red", 10, "seen"), ("mw-reach", 10, "seen"), ("mw-push", 9, "unseen")):
+        _evaluated(catalog, "expert", won, task=(task_id, metaworld.get(task_id, "navigation")), split=split)
+    assert "### Per family, against the baselines" in results_markdown(catalog, CAMPAIGN, "sim2act report")
+    for key, algorithm, family in (("baselines-ppo", "ppo", "navigation"), ("baselines-sac", "sac", "metaworld")):
+        catalog.register_unit(unit_key=key, stage="baselines", campaign=CAMPAIGN, iteration=0, summary=RLTrained(
+            algorithm=algorithm, family=family, env_steps=1_000, steps_taken=1_024, episodes=20, successes=0,
+            resumed_at=0, path="x").model_dump())
+    _evaluated(catalog, "baselines-ppo", 2)
+    _evaluated(catalog, "baselines-sac", 0, task=("mw-reach", "metaworld"))  # mw-push not yet
+    lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+    at = lines.index("### Per family, against the baselines")
+    assert lines[at + 2] == "| family | agent | seen | unseen | unseen paraphrase |"
+    rows = [_cells(line) for line in lines[at + 4:at + 9]]
+    assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
+        ["metaworld", "Sim2Act iteration 0", "3/10", "1/10", "–"],
+        ["metaworld", "scripted expert, noiseless (ceiling)", "10/10", "9/10", "–"],
+        ["metaworld", "SAC from scratch, evaluating: 1/2 cases", "0/10", "–", "–"],
+        ["navigation", "Sim2Act iteration 0", "9/10", "–", "–"],
+        ["navigation", "scripted expert, noiseless (ceiling)", "10/10", "–", "–"]]
+    assert _cells(lines[at + 9])[:3] == ["navigation", "PPO from scratch", "2/10 = 20% (6%–51%)"]
