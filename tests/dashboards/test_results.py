@@ -16,6 +16,11 @@ from warehouse.catalog import Catalog
 CAMPAIGN = "specs"
 TASKS = {"nav-room-red": ("nav-room", "seen"), "nav-room-sequence-red-green": ("nav-room-sequence", "seen"),
          "nav-room-sequence-purple-red": ("nav-room-sequence", "unseen")}
+METAWORLD = {"mw-reach": "seen", "mw-push": "unseen"}  # task -> split, each its own spec: a second family where asked
+
+
+def _family(task_id: str) -> str:
+    return "metaworld" if task_id in METAWORLD else "navigation"
 
 
 def _cells(line: str) -> list[str]:
@@ -23,18 +28,16 @@ def _cells(line: str) -> list[str]:
     return [cell.strip() for cell in line.strip("|").split("|")]
 
 
-def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10,
-              families: dict[str, str] | None = None) -> None:
-    """successes: (task, split) -> successful episodes of `episodes`; families: task -> family where not
-    navigation."""
+def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10) -> None:
+    """successes: (task, split) -> successful episodes of `episodes`."""
     model = f"train-{iteration}"
     rows = []
     for (task_id, split), won in successes.items():
         low, high = wilson_interval(won, episodes)
         rows.append({
             "unit_key": f"evaluate-{iteration}-{task_id}-{split}", "campaign": CAMPAIGN, "iteration": iteration,
-            "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id,
-            "family": (families or {}).get(task_id, "navigation"), "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
+            "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id, "family": _family(task_id),
+            "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
             "ci_low": low, "ci_high": high, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
             "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
             "failure_video": None, "episode_achieved": None, "success_rate": won / episodes})
@@ -48,17 +51,15 @@ def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str],
                               "promoted": True, "decision": "", "mlflow_run_id": ""}]})
 
 
-def _catalog_with_tasks(folder, metaworld: dict[str, str] | None = None) -> Catalog:
-    """A new workspace's catalog holding the campaign's TASKS (navigation) and `metaworld`'s (task -> split,
-    its own spec)."""
+def _catalog_with_tasks(folder, with_metaworld: bool = False) -> Catalog:
+    """A new workspace's catalog holding the campaign's TASKS (navigation), and METAWORLD's if asked."""
     catalog = Catalog(Workspace.at(folder).create().catalog)
     catalog.initialise()
-    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": family, "env_name": "GoToRoom",
+    specs = {**TASKS, **({t: (t, split) for t, split in METAWORLD.items()} if with_metaworld else {})}
+    tasks = [{"campaign": CAMPAIGN, "task_id": t, "spec": spec, "family": _family(t), "env_name": "GoToRoom",
               "instruction": t, "instructions": [t, f"{t} now", f"do {t}"], "unseen_instructions": [],
               "object_colours": json.dumps({}), "split": split, "horizon": 50, "unit_key": "tasks-test"}
-             for t, (spec, split, family) in {**{t: (*v, "navigation") for t, v in TASKS.items()},
-                                              **{t: (t, split, "metaworld") for t, split in (metaworld or {}).items()}
-                                              }.items()]
+             for t, (spec, split) in specs.items()]
     catalog.register_unit(unit_key="tasks-test", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": tasks})
     return catalog
@@ -422,12 +423,10 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
     (narrowed to the family) and that family's RL agents, and says which agent is still being evaluated."""
     from stages.baselines import RLTrained
 
-    catalog = _catalog_with_tasks(tmp_path, {"mw-reach": "seen", "mw-push": "unseen"})
-    metaworld = {"mw-reach": "metaworld", "mw-push": "metaworld"}
-    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("mw-reach", "seen"): 3, ("mw-push", "unseen"): 1},
-              families=metaworld)
+    catalog = _catalog_with_tasks(tmp_path, with_metaworld=True)
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("mw-reach", "seen"): 3, ("mw-push", "unseen"): 1})
     for task_id, won, split in (("nav-room-red", 10, "seen"), ("mw-reach", 10, "seen"), ("mw-push", 9, "unseen")):
-        _evaluated(catalog, "expert", won, task=(task_id, metaworld.get(task_id, "navigation")), split=split)
+        _evaluated(catalog, "expert", won, task=(task_id, _family(task_id)), split=split)
     assert "### Per family, against the baselines" in results_markdown(catalog, CAMPAIGN, "sim2act report")
     for key, algorithm, family in (("baselines-ppo", "ppo", "navigation"), ("baselines-sac", "sac", "metaworld")):
         catalog.register_unit(unit_key=key, stage="baselines", campaign=CAMPAIGN, iteration=0, summary=RLTrained(
