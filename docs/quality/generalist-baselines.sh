@@ -3,17 +3,22 @@
 # its evaluation, the experts' ceiling, then PPO and SAC per family at the environment steps the family's exploration
 # took, all in one workspace, so that one `sim2act report` puts them side by side (docs/results-generalist.md).
 #
-#   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~15 h on 2 cores (AMX)
+#   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~17 h on 2 cores (AMX)
 #
 # Why not docs/quality/generalist.sh: that script also trains the results protocol's other two seeds and runs the
 # adaptation before the baselines (~8 h), whose figures are in the docs already; a workspace that went with its
 # machine needs only the baselines again, and they are the long part (~12 h inside the campaign on an AMX Xeon:
 # docs/bench-rl.md).
 # 1. the iteration: explore the million (~1 h), train seed 0 (~0.7 h), evaluate it on 228 cases x 10 episodes
-#    (~0.6 h); the adaptation off;
-# 2. the baselines stage of the same command: the experts, then SAC and PPO per family, longest first, each agent
-#    checkpointed every 5,000 environment steps (~7.5 minutes of SAC lost to a kill or a session's end);
+#    (~0.6 h); the adaptation off; then, in the same command, the experts and the three PPOs (~2.5 h on the two
+#    workers) and their evaluations; `sim2act report` into WORKSPACE-logs/report-ppo.md;
+# 2. the same command with SAC added: the PPOs are trained and evaluated already (their units are kept), so the
+#    two SACs train at once, one a worker (~10-14 h), each checkpointed every 5,000 environment steps (~7.5 minutes
+#    lost to a kill or a session's end), then their evaluations;
 # 3. `sim2act report` into WORKSPACE-logs/report.md.
+# Why PPO first rather than the stage's longest-first order of all five (~1 h sooner to the end): five times a
+# workspace went with its machine before its SACs finished (docs/results-generalist.md), and the PPO rows in
+# report-ppo.md are out of it ~10 h earlier.
 # Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.
 set -euo pipefail
 # this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
@@ -26,5 +31,8 @@ LOGS=$W-logs
 mkdir -p "$LOGS"
 trap 'echo "generalist-baselines.sh: a step failed; its log is $LOGS/baselines.log" >&2' ERR
 
+$S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set 'baselines.agents=[expert,ppo]' \
+  --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
+$S report "${C[@]}" > "$LOGS/report-ppo.md"
 $S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
 $S report "${C[@]}" | tee "$LOGS/report.md"
