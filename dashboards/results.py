@@ -5,7 +5,6 @@ each number took — Markdown, from the warehouse alone."""
 from __future__ import annotations
 
 import datetime
-import itertools
 import json
 import os
 import platform
@@ -97,26 +96,29 @@ def _evaluating(evaluations: list[TaskEvaluation], cases: int) -> str:
 
 def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
                               baselines: dict[tuple[str, str | None, int], list[TaskEvaluation]],
-                              families: list[str], cases: Counter) -> list[str]:
+                              families: list[str], cases: Counter,
+                              steps_through: dict[tuple[int, str], int]) -> list[str]:
     """Each family's rows side by side: Sim2Act per iteration, then every baseline evaluated on that
     family's cases (the expert's over all families, narrowed to it; an RL agent's are its family's).
     The claim "higher success on unseen tasks than RL from scratch" is read here, family by family:
     the pooled table above mixes a family where RL learns something with one where it learns nothing.
-    `cases`: family -> the cases the last iteration's model met there."""
+    `cases`: family -> the cases the last iteration's model met there; `steps_through`: (iteration,
+    family) -> the environment steps its dataset explored on the family, which an RL agent's budget
+    matches by default."""
     if not baselines:
         return []
     rows = []
     for family in families:
         columns = [f"{family}/{split}" for split in SPLIT_COLUMNS]
-        rows += [[family, f"Sim2Act iteration {iteration}", *_cells(groups, columns)]
-                 for iteration, groups in sorted(by_iteration.items())]
-        for (agent, _, _), evaluations in baselines.items():
+        rows += [[family, f"Sim2Act iteration {iteration}", f"{steps_through.get((iteration, family), 0):,}",
+                  *_cells(groups, columns)] for iteration, groups in sorted(by_iteration.items())]
+        for (agent, _, steps), evaluations in baselines.items():
             met = [e for e in evaluations if e.family == family]
             if not met:  # an RL agent of another family
                 continue
             rows.append([family, AGENT_NAMES.get(agent, agent) + _evaluating(met, cases[family]),
-                         *_cells(group_success(met), columns)])
-    header = ["family", "agent", *[split.replace("_", " ") for split in SPLIT_COLUMNS]]
+                         f"{steps:,}" if steps else "–", *_cells(group_success(met), columns)])
+    header = ["family", "agent", "env steps (training data)", *[split.replace("_", " ") for split in SPLIT_COLUMNS]]
     return ["", "### Per family, against the baselines", "", *_table(header, rows)]
 
 
@@ -413,14 +415,16 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
 
 
 def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
-                      steps_through: dict[int, int], cases: Counter, models: Path | None,
+                      steps_through: dict[tuple[int, str], int], cases: Counter, models: Path | None,
                       holder: dict | None) -> list[str]:
     """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation.
     `cases`: family -> the cases the last iteration's model met, which every baseline meets (an RL
-    agent: its family's)."""
+    agent: its family's); `steps_through`: (iteration, family) -> the environment steps explored
+    through that iteration on the family."""
     lines: list[str] = []
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
-             f"{steps_through.get(iteration, 0):,}", *_cells(groups)]
+             f"{sum(steps for (through, _), steps in steps_through.items() if through == iteration):,}",
+             *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
     baselines = baseline_evaluations(catalog, campaign)
     for (agent, family, steps), evaluations in baselines.items():
@@ -434,7 +438,7 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
     if len(families) > 1:
         lines += _split_table("Per family (Sim2Act)", by_iteration, families)
-        lines += family_baselines_markdown(by_iteration, baselines, families, cases)
+        lines += family_baselines_markdown(by_iteration, baselines, families, cases, steps_through)
 
     lines += spec_markdown(catalog, campaign)
 
@@ -469,7 +473,15 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
         "SELECT iteration, sum(num_steps), count(*), count(DISTINCT task_id), count(DISTINCT instruction) "
         "FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) GROUP BY iteration ORDER BY iteration",
         [campaign, explore_units])
-    steps_through = dict(zip([row[0] for row in explored], itertools.accumulate(int(row[1]) for row in explored)))
+    # (iteration, family) -> env steps explored through that iteration: each iteration's dataset holds the earlier ones'
+    steps_through: Counter = Counter()
+    for iteration, family, steps in catalog.query(
+            "SELECT e.iteration, coalesce(f.family, ''), sum(e.num_steps) FROM episodes e "
+            "LEFT JOIN task_families f ON f.campaign = e.campaign AND f.task_id = e.task_id "
+            "WHERE e.campaign = ? AND list_contains(?, e.shard_key) GROUP BY ALL", [campaign, explore_units]):
+        for through in {row[0] for row in explored} | set(evaluations):
+            if through >= iteration:
+                steps_through[through, family] += int(steps)
 
     lines = [f"# Results: campaign `{campaign}`", "",
              f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import json
 
+import pyarrow as pa
 import pytest
 
 from dashboards import results
 from dashboards.results import results_markdown, running_seconds, spec_markdown
+from schemas.tables import EPISODES
 from schemas.tasks import CAMPAIGN_SUITE
 from schemas.workspace import Workspace
 from stages.evaluate import wilson_interval
 from warehouse.catalog import Catalog
+from warehouse.shard_writer import write_shard
 
 CAMPAIGN = "specs"
 TASKS = {"nav-room-red": ("nav-room", "seen"), "nav-room-sequence-red-green": ("nav-room-sequence", "seen"),
@@ -49,6 +52,24 @@ def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str],
                               "iteration": iteration, "registered_model": "m", "version": iteration + 1,
                               "alias": "champion", "champion_version": iteration + 1, "champion_model_key": model,
                               "promoted": True, "decision": "", "mlflow_run_id": ""}]})
+
+
+def _explored(catalog: Catalog, workspace: Workspace, steps: dict[str, list[int]]) -> None:
+    """Iteration 0 explored and indexed: task -> its episodes' lengths, one explore unit (a shard) per task."""
+    units = []
+    for task_id, lengths in steps.items():
+        unit = f"explore-{task_id}"
+        table = pa.Table.from_pylist([
+            {"campaign": CAMPAIGN, "iteration": 0, "episode_id": f"{task_id}-{i}", "task_id": task_id,
+             "instruction": task_id, "explorer": "expert", "seed": i, "shard_key": unit, "num_steps": length,
+             "episode_return": 0.0, "success": True} for i, length in enumerate(lengths)], schema=EPISODES)
+        shard = write_shard("episodes", table, workspace.shard_path("episodes", 0, unit))
+        catalog.register_unit(unit_key=unit, stage="explore", campaign=CAMPAIGN, iteration=0, summary={},
+                              shards=[shard])
+        units.append(unit)
+    catalog.register_unit(unit_key="index-0", stage="index", campaign=CAMPAIGN, iteration=0, summary={}, rows={
+        "iterations": [{"unit_key": "index-0", "campaign": CAMPAIGN, "iteration": 0, "dataset_digest": "d",
+                        "explore_units": units, "filter_units": [], "episodes": 0, "kept_episodes": 0, "triplets": 0}]})
 
 
 def _catalog_with_tasks(folder, with_metaworld: bool = False) -> Catalog:
@@ -424,6 +445,7 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
     from stages.baselines import RLTrained
 
     catalog = _catalog_with_tasks(tmp_path, with_metaworld=True)
+    _explored(catalog, Workspace.at(tmp_path), {"nav-room-red": [40, 60], "mw-reach": [150]})
     _register(catalog, 0, {("nav-room-red", "seen"): 9, ("mw-reach", "seen"): 3, ("mw-push", "unseen"): 1})
     for task_id, won, split in (("nav-room-red", 10, "seen"), ("mw-reach", 10, "seen"), ("mw-push", 9, "unseen")):
         _evaluated(catalog, "expert", won, task=(task_id, _family(task_id)), split=split)
@@ -436,12 +458,14 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
     _evaluated(catalog, "baselines-sac", 0, task=("mw-reach", "metaworld"))  # mw-push not yet
     lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
     at = lines.index("### Per family, against the baselines")
-    assert lines[at + 2] == "| family | agent | seen | unseen | unseen paraphrase |"
+    assert lines[at + 2] == "| family | agent | env steps (training data) | seen | unseen | unseen paraphrase |"
     rows = [_cells(line) for line in lines[at + 4:at + 9]]
-    assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
-        ["metaworld", "Sim2Act iteration 0", "3/10", "1/10", "–"],
-        ["metaworld", "scripted expert, noiseless (ceiling)", "10/10", "9/10", "–"],
-        ["metaworld", "SAC from scratch, evaluating: 1/2 cases", "0/10", "–", "–"],
-        ["navigation", "Sim2Act iteration 0", "9/10", "–", "–"],
-        ["navigation", "scripted expert, noiseless (ceiling)", "10/10", "–", "–"]]
-    assert _cells(lines[at + 9])[:3] == ["navigation", "PPO from scratch", "2/10 = 20% (6%–51%)"]
+    assert [row[:3] + [cell.split(" ")[0] for cell in row[3:]] for row in rows] == [
+        ["metaworld", "Sim2Act iteration 0", "150", "3/10", "1/10", "–"],  # its own family's steps, not the pool's
+        ["metaworld", "scripted expert, noiseless (ceiling)", "–", "10/10", "9/10", "–"],
+        ["metaworld", "SAC from scratch, evaluating: 1/2 cases", "1,024", "0/10", "–", "–"],
+        ["navigation", "Sim2Act iteration 0", "100", "9/10", "–", "–"],
+        ["navigation", "scripted expert, noiseless (ceiling)", "–", "10/10", "–", "–"]]
+    assert _cells(lines[at + 9])[:4] == ["navigation", "PPO from scratch", "1,024", "2/10 = 20% (6%–51%)"]
+    [pooled] = [_cells(line) for line in lines if line.startswith("| Sim2Act iteration 0 (BC")]
+    assert pooled[1] == "250"  # the pooled table's: every family's steps
