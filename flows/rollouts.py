@@ -17,7 +17,7 @@ from prefect.cache_policies import NO_CACHE
 from prefect.futures import as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 
-from envs.pool import RETRIES, WorkerLost, WorkerPool, borrowed_pool
+from envs.pool import RETRIES, PoolClosed, WorkerLost, WorkerPool, borrowed_pool
 from schemas.config import ExploreConfig
 from schemas.settings import apply_secrets_file
 from stages.explore import Completed, Execute, ExploreUnit, run_explore_unit, unit_label
@@ -48,7 +48,10 @@ def explore_shard(unit: ExploreUnit, local_pool: str | None) -> tuple[list[Shard
     """(shard files, seconds the rollouts took) for one unit: on the flow's local pool, or here
     (a Dask worker process)."""
     if local_pool is not None:
-        return _local_pools[local_pool].run(run_explore_unit, unit, unit_label(unit))
+        pool = _local_pools.get(local_pool)
+        if pool is None:  # its flow was stopped (a signal) and closed the pool while this run waited for a thread
+            raise PoolClosed(f"the pool was closed before {unit_label(unit)} started")
+        return pool.run(run_explore_unit, unit, unit_label(unit))
     _check_one_thread_per_dask_worker()
     # A Dask worker is started by the lab, not by sim2act (whose local workers inherit its environment):
     if unit.shard_store != FOLDER:

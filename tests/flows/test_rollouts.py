@@ -134,6 +134,19 @@ def test_only_a_dead_worker_earns_a_shard_a_retry():
     assert not _worker_died(None, None, Failed(data=PoolClosed("the pool was closed")))
 
 
+def test_a_shard_queued_when_its_flow_stopped_says_the_pool_closed():
+    """A SIGTERM closes the flow's pool while shards still wait for a thread of the task runner: each says
+    so, rather than a KeyError naming the pool's id (a killed generalist run logged ~100 of those)."""
+    from envs.pool import PoolClosed
+    from flows.rollouts import explore_shard
+    from stages.explore import plan_explore
+
+    [unit, *_] = plan_explore(CONFIG, 0, generate_tasks(CONFIG.tasks, CONFIG.seed), None, {},
+                              Workspace.at("unused"))
+    with pytest.raises(PoolClosed, match=r"^the pool was closed before nav-room-\w+ shard 0 started$"):
+        explore_shard.fn(unit, "a-closed-pool")
+
+
 def test_two_hosts_sharing_no_folder_explore_into_s3_and_a_killed_host_costs_only_its_retried_shards(
         reference, tmp_path, monkeypatch):
     """The drill of docs/scale-out.md at small size: a Dask scheduler and one worker per "host" (its own
