@@ -475,13 +475,13 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
         [campaign, explore_units])
     # (iteration, family) -> env steps explored through that iteration: each iteration's dataset holds the earlier ones'
     steps_through: Counter = Counter()
+    iterations = {row[0] for row in explored} | set(evaluations)
     for iteration, family, steps in catalog.query(
             "SELECT e.iteration, coalesce(f.family, ''), sum(e.num_steps) FROM episodes e "
             "LEFT JOIN task_families f ON f.campaign = e.campaign AND f.task_id = e.task_id "
             "WHERE e.campaign = ? AND list_contains(?, e.shard_key) GROUP BY ALL", [campaign, explore_units]):
-        for through in {row[0] for row in explored} | set(evaluations):
-            if through >= iteration:
-                steps_through[through, family] += int(steps)
+        for through in (i for i in iterations if i >= iteration):
+            steps_through[through, family] += int(steps)
 
     lines = [f"# Results: campaign `{campaign}`", "",
              f"Made by `{command}` on {datetime.date.today().isoformat()} from the warehouse "
