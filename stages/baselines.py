@@ -311,8 +311,8 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
         log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
                  unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
     # after the last training, not beside the others: an evaluation's two workers build their family's scenes
-    # (MetaWorld's ~6 GB each) while the training workers hold theirs and the replays (~15 GB for the generalist's
-    # two SACs), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
+    # (MetaWorld's ~6 GB each) while the training workers hold theirs and the replays (~14 GB for the generalist's
+    # two SACs with every scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
     for unit in units:
         family_cases = [case for case in cases if case[0].family == unit.family]
         evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,

@@ -57,6 +57,28 @@ def test_the_panel_file_validates():
     assert all(p.parameters <= {"campaign"} for p in panels)
 
 
+def test_the_success_panels_read_what_the_report_reads(tmp_path):
+    """The deployed model's current evaluation of each case, as `sim2act report` pools it: another
+    training seed of the same iteration and a case evaluated again do not add episodes."""
+    from dashboards.panels import run_panel
+    from dashboards.report import success_by_iteration
+    from tests.dashboards.test_results import CAMPAIGN, _catalog_with_tasks, _evaluated, _register, _training
+
+    catalog = _catalog_with_tasks(tmp_path)
+    _register(catalog, 0, {("nav-room-red", "seen"): 6, ("nav-room-sequence-purple-red", "unseen"): 3})
+    _training(catalog, "train-s1", seed=1, chunk=8)  # a second seed of iteration 0, never deployed
+    _evaluated(catalog, "train-s1", 10)
+    _evaluated(catalog, "train-0", 4)  # the deployed model's seen case evaluated again: the later one counts
+    panels = {p.id: p for p in load_panels()}
+
+    pooled = {row["split"]: (row["successes"], row["episodes"])
+              for row in run_panel(catalog, panels["success_by_iteration"], CAMPAIGN).rows}
+    report = {g.group: (g.successes, g.episodes) for g in success_by_iteration(catalog, CAMPAIGN)[0]}
+    assert pooled == {"seen": (4, 10), "unseen": (3, 10)} == {k: report[k] for k in ("seen", "unseen")}
+    per_task = {row["task"]: row["evaluation"] for row in run_panel(catalog, panels["per_task"], CAMPAIGN).rows}
+    assert per_task["nav-room-red"].startswith("4/10") and per_task["nav-room-sequence-purple-red"].startswith("3/10")
+
+
 @pytest.mark.parametrize("panel, message", [
     ("{id: wipe, title: Wipe, kind: table, sql: 'DELETE FROM episodes'}",
      "panel wipe: the warehouse is read-only here: DELETE statements are refused (use SELECT)"),
