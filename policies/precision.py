@@ -152,5 +152,10 @@ def describe(device: torch.device, amp: bool) -> str:
     if uses_bf16(device, amp):
         units = "" if device.type == "cuda" else " (CPU bf16 units: AMX)"
         return f"bf16 autocast{units}" + (", channels_last" if uses_channels_last(device) else "")
-    why = "" if not amp or device.type != "cpu" else " (this CPU has no bf16 units (AMX): bf16 is slower here)"
+    if not amp or device.type != "cpu":
+        why = ""
+    elif cpu_bf16_may_pay(device):  # a training too short to measure, none measured before (stages/train.py)
+        why = " (AVX-512 BF16 without AMX: bf16 not measured on this CPU for this model and batch)"
+    else:
+        why = " (this CPU has no bf16 units: bf16 would be emulated, ~10x slower)"
     return "fp32" + (", channels_last" if uses_channels_last(device) else "") + why

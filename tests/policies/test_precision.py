@@ -19,8 +19,12 @@ def test_amp_on_cpu_means_bf16_only_with_bf16_units(monkeypatch, units):
     monkeypatch.setattr(precision, "cpu_has_bf16_units", lambda: units)
     assert precision.uses_bf16(CPU, True) is units and precision.uses_bf16(CPU, False) is False
     assert precision.uses_bf16(CUDA, True) is True  # every GPU it trains on has bf16 (Ampere on)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)
     described = precision.describe(CPU, True)
     assert described.startswith("bf16 autocast (CPU bf16 units: AMX)" if units else "fp32, channels_last (this CPU has no")
+    if not units:  # AVX-512 BF16 alone: bf16 may pay, and the line says it was not measured, not that it is slower
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True)
+        assert "not measured" in precision.describe(CPU, True)
 
 
 def test_bf16_units_on_cpu_means_amx_tiles(monkeypatch):
