@@ -89,9 +89,17 @@ def rollout_task_runner(explore: ExploreConfig) -> TaskRunner:
 def _submitted(units: list[ExploreUnit], pool_id: str | None) -> Completed:
     futures = [explore_shard.submit(unit, pool_id) for unit in units]
     by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
-    for future in as_completed(futures):
-        shards, seconds = future.result()
-        yield by_run[future.task_run_id], shards, seconds
+    try:
+        for future in as_completed(futures):
+            shards, seconds = future.result()
+            yield by_run[future.task_run_id], shards, seconds
+    finally:
+        # stopped early (a signal, a failed unit): the units still queued for a thread never start,
+        # rather than each failing on the closed pool (a killed generalist run logged ~100 of those);
+        # the running ones and the finished ones are left as they are
+        for future in futures:
+            if not future.wrapped_future.done():
+                future.wrapped_future.cancel()
 
 
 def as_prefect_tasks(explore: ExploreConfig) -> Execute:

@@ -147,6 +147,36 @@ def test_a_shard_queued_when_its_flow_stopped_says_the_pool_closed():
         explore_shard.fn(unit, "a-closed-pool")
 
 
+def test_a_stopped_explore_cancels_the_shards_still_queued(prefect_here, monkeypatch):
+    """Stopping the stage (here: its consumer closes it after the first shard) starts no queued shard."""
+    from prefect import task
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    from stages.explore import plan_explore
+
+    started: list[str] = []
+
+    @task(name="explore-shard-probe")
+    def probe(unit, pool_id):
+        started.append(unit.unit_key)
+        time.sleep(0.3)
+        return [], 0.3
+
+    monkeypatch.setattr(flows.rollouts, "explore_shard", probe)
+    config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(update={"episodes_per_shard": 1})})
+    units = plan_explore(config, 0, generate_tasks(config.tasks, config.seed), None, {}, Workspace.at("unused"))
+
+    @flow(name="explore-stopped", task_runner=ThreadPoolTaskRunner(max_workers=1))
+    def stopped() -> int:
+        shards = flows.rollouts._submitted(units, None)
+        next(shards)
+        shards.close()  # as a signal's exception or a failed unit leaves it
+        time.sleep(1.0)  # long enough for a queued shard to have started, were it not cancelled
+        return len(started)
+
+    assert len(units) == 8 and stopped() <= 2  # the first, and at most the one a thread took meanwhile
+
+
 def test_two_hosts_sharing_no_folder_explore_into_s3_and_a_killed_host_costs_only_its_retried_shards(
         reference, tmp_path, monkeypatch):
     """The drill of docs/scale-out.md at small size: a Dask scheduler and one worker per "host" (its own
