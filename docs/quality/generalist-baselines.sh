@@ -23,6 +23,10 @@
 set -euo pipefail
 # this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+# each worker keeps every scene it opens (the default closes beyond 16): an RL episode draws its task at random from
+# the family's 35-44, and the runs since session 53 measured the SACs so (MetaWorld's 44 scenes ~6.3 GB on its
+# worker: docs/evaluation.md); a scene closed and made again draws the same frames, so only speed and memory differ
+export SIM2ACT_SCENES_PER_WORKER=${SIM2ACT_SCENES_PER_WORKER:-64}
 W=${1:?usage: generalist-baselines.sh WORKSPACE [SIM2ACT]}
 W=${W%/}
 S=${2:-sim2act}
