@@ -10,6 +10,7 @@ import statistics
 
 from pydantic import BaseModel
 
+from schemas.tables import CURRENT_DEPLOYMENTS
 from stages.evaluate import SPLITS, TaskEvaluation, evaluated_key, group_success, wilson_interval
 
 class SeedsSuccess(BaseModel):
@@ -209,7 +210,7 @@ def loop_groups(catalog, campaign: str, groups: list[SeedGroup]) -> list[SeedGro
     redeploy stage met, promoted or not (its seed from `sim2act run`, the others from `sim2act train --set
     train.seed=N`), by iteration."""
     deployed = {(iteration, key) for iteration, key in catalog.query(
-        "SELECT iteration, model_key FROM deployments WHERE campaign = ?", [campaign])}
+        f"SELECT iteration, model_key FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?", [campaign])}
     return sorted((g for g in groups if g.weights == "registered"
                    and any((g.iteration, key) in deployed for key in g.model_keys)), key=lambda g: g.iteration)
 

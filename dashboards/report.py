@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from dashboards.protocol import SeedsSuccess, seed_groups
+from schemas.tables import CURRENT_DEPLOYMENTS
 from schemas.tasks import CAMPAIGN_SUITE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
 from warehouse.catalog import Catalog
@@ -16,7 +17,7 @@ def evaluations_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[
     """Iteration -> the evaluation cases of the model that iteration deployed (the flow's own)."""
     rows = read_evaluations(
         catalog, "v.iteration",
-        "JOIN deployments d ON d.campaign = v.campaign AND d.iteration = v.iteration AND d.model_key = v.model_key "
+        f"JOIN {CURRENT_DEPLOYMENTS} d ON d.campaign = v.campaign AND d.iteration = v.iteration AND d.model_key = v.model_key "
         "WHERE v.campaign = ? AND v.suite = ? ORDER BY v.iteration, v.task_id, v.split", [campaign, CAMPAIGN_SUITE],
     )
     by_iteration: dict[int, list[TaskEvaluation]] = {}
@@ -66,7 +67,7 @@ def seeds_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[SeedsS
     """Iteration -> success across the training seeds of the model it deployed (evaluate.training_seeds, or
     seeds trained by hand on its dataset), over the flow's cases; iterations whose model has no other seed
     are left out."""
-    deployed = dict(catalog.query("SELECT model_key, iteration FROM deployments WHERE campaign = ?", [campaign]))
+    deployed = dict(catalog.query(f"SELECT model_key, iteration FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?", [campaign]))
     return {deployed[key]: group.figures for group in seed_groups(catalog, campaign, CAMPAIGN_SUITE)
             if group.weights == "registered" for key in group.model_keys if key in deployed}
 
@@ -75,7 +76,8 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
     """The few lines a person reads when a campaign ends: success per iteration and split (successes,
     rate, Wilson 95%), which iteration holds the champion, and the commands to look further."""
     by_iteration = success_by_iteration(catalog, campaign)
-    champions = dict(catalog.query("SELECT iteration, promoted FROM deployments WHERE campaign = ?", [campaign]))
+    champions = dict(catalog.query(f"SELECT iteration, promoted FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?",
+                                   [campaign]))
     seeds = seeds_by_iteration(catalog, campaign)
     splits = [s for s in SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
     lines = [f"campaign {campaign!r}: success per iteration (successes/episodes, rate, Wilson 95%)",

@@ -280,6 +280,15 @@ def catalog_ddl(name: str) -> str:
 ITERATION_TABLES = ("stage_runs", "shards", "compacted", "quarantine", "iterations", "models", "deployments",
                     "evaluations")
 
+# The deployment that counts for each campaign's iteration: its latest (a campaign run again in its workspace with
+# another training recipe deploys a second model for the same iteration). A subquery, not one of the views below:
+# read-only commands (`sim2act report`) open catalogs whose views an older sim2act made. dashboards/panels.yaml
+# spells the same query out.
+CURRENT_DEPLOYMENTS = """(
+    SELECT d.* FROM deployments d LEFT JOIN stage_runs r ON r.unit_key = d.unit_key
+    QUALIFY row_number() OVER (PARTITION BY d.campaign, d.iteration
+                               ORDER BY r.finished_at DESC NULLS LAST, d.unit_key DESC) = 1)"""
+
 # Views over the tables above, ready for `sim2act sql` and the dashboards.
 VIEWS = {
     # One row per evaluation case (campaign, model, suite, task, split, wording): the one of most episodes, then

@@ -78,6 +78,15 @@ def test_the_success_panels_read_what_the_report_reads(tmp_path):
     per_task = {row["task"]: row["evaluation"] for row in run_panel(catalog, panels["per_task"], CAMPAIGN).rows}
     assert per_task["nav-room-red"].startswith("4/10") and per_task["nav-room-sequence-purple-red"].startswith("3/10")
 
+    # the campaign run again in its workspace with another recipe: iteration 0 deploys a second model, which counts
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-purple-red", "unseen"): 1}, model="train-0b")
+    pooled = {row["split"]: (row["successes"], row["episodes"])
+              for row in run_panel(catalog, panels["success_by_iteration"], CAMPAIGN).rows}
+    report = {g.group: (g.successes, g.episodes) for g in success_by_iteration(catalog, CAMPAIGN)[0]}
+    assert pooled == {"seen": (9, 10), "unseen": (1, 10)} == {k: report[k] for k in ("seen", "unseen")}
+    per_task = {row["task"]: row["evaluation"] for row in run_panel(catalog, panels["per_task"], CAMPAIGN).rows}
+    assert per_task["nav-room-red"].startswith("9/10")
+
 
 @pytest.mark.parametrize("panel, message", [
     ("{id: wipe, title: Wipe, kind: table, sql: 'DELETE FROM episodes'}",

@@ -31,24 +31,27 @@ def _cells(line: str) -> list[str]:
     return [cell.strip() for cell in line.strip("|").split("|")]
 
 
-def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10) -> None:
-    """successes: (task, split) -> successful episodes of `episodes`."""
-    model = f"train-{iteration}"
+def _register(catalog: Catalog, iteration: int, successes: dict[tuple[str, str], int], episodes: int = 10,
+              model: str | None = None) -> None:
+    """`model` (train-<iteration>) evaluated and deployed at `iteration`; successes: (task, split) -> successful
+    episodes of `episodes`."""
+    model = model or f"train-{iteration}"
+    runs = "" if model == f"train-{iteration}" else f"-{model}"  # a second model's units beside the first's
     rows = []
     for (task_id, split), won in successes.items():
         low, high = wilson_interval(won, episodes)
         rows.append({
-            "unit_key": f"evaluate-{iteration}-{task_id}-{split}", "campaign": CAMPAIGN, "iteration": iteration,
+            "unit_key": f"evaluate-{iteration}{runs}-{task_id}-{split}", "campaign": CAMPAIGN, "iteration": iteration,
             "suite": CAMPAIGN_SUITE, "model_key": model, "task_id": task_id, "family": _family(task_id),
             "split": split, "instruction": task_id, "episodes": episodes, "successes": won,
             "ci_low": low, "ci_high": high, "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
             "episode_successes": [i < won for i in range(episodes)], "uncertainty": 0.0, "success_video": None,
             "failure_video": None, "episode_achieved": None, "success_rate": won / episodes})
-    catalog.register_unit(unit_key=f"evaluate-{iteration}", stage="evaluate", campaign=CAMPAIGN, iteration=iteration,
+    catalog.register_unit(unit_key=f"evaluate-{iteration}{runs}", stage="evaluate", campaign=CAMPAIGN, iteration=iteration,
                           summary={}, rows={"evaluations": rows})
-    catalog.register_unit(unit_key=f"redeploy-{iteration}", stage="redeploy", campaign=CAMPAIGN, iteration=iteration,
-                          summary={}, rows={"deployments": [{
-                              "unit_key": f"redeploy-{iteration}", "model_key": model, "campaign": CAMPAIGN,
+    catalog.register_unit(unit_key=f"redeploy-{iteration}{runs}", stage="redeploy", campaign=CAMPAIGN,
+                          iteration=iteration, summary={}, rows={"deployments": [{
+                              "unit_key": f"redeploy-{iteration}{runs}", "model_key": model, "campaign": CAMPAIGN,
                               "iteration": iteration, "registered_model": "m", "version": iteration + 1,
                               "alias": "champion", "champion_version": iteration + 1, "champion_model_key": model,
                               "promoted": True, "decision": "", "mlflow_run_id": ""}]})
