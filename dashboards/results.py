@@ -15,6 +15,7 @@ from pathlib import Path
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
+from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
@@ -72,20 +73,30 @@ def _split_table(title: str, by_iteration: dict[int, list[GroupSuccess]], names:
             *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]
 
 
-def baseline_evaluations(catalog: Catalog, campaign: str) -> dict[tuple[str, str | None, int], list[TaskEvaluation]]:
-    """(agent, family, environment steps its training took) -> its evaluations on the campaign's
-    cases; the expert first, then by agent and family."""
+Baselines = dict[tuple[str, str | None, int, str], list[TaskEvaluation]]
+
+
+def baseline_evaluations(catalog: Catalog, campaign: str) -> Baselines:
+    """(agent, family, environment steps its training took, model key) -> its evaluations on the campaign's
+    cases; the expert first, then by agent and family. Two trainings of one agent and family (another encoder
+    layout, another replay size) are two entries, never pooled."""
     trained = {key: json.loads(summary) for key, summary in catalog.query(
         "SELECT unit_key, summary FROM stage_runs WHERE stage = ? AND campaign = ?", [BASELINES_STAGE, campaign])}
     rows = read_evaluations(catalog, "v.model_key",
                             "WHERE v.campaign = ? AND v.suite = ? AND list_contains(?, v.model_key) "
                             "ORDER BY v.task_id, v.split", [campaign, CAMPAIGN_SUITE, [EXPERT, *trained]])
-    grouped: dict[tuple[str, str | None, int], list[TaskEvaluation]] = {}
+    grouped: Baselines = {}
     for model_key, evaluation in rows:
         agent = trained.get(model_key, {"algorithm": EXPERT, "family": None, "steps_taken": 0})
-        grouped.setdefault((agent["algorithm"], agent["family"], agent["steps_taken"]), []).append(evaluation)
+        grouped.setdefault((agent["algorithm"], agent["family"], agent["steps_taken"], model_key), []).append(evaluation)
     order = list(AGENT_NAMES)
-    return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "")))
+    return dict(sorted(grouped.items(), key=lambda item: (order.index(item[0][0]), item[0][1] or "", item[0][3])))
+
+
+def _agent_name(agent: str, family: str | None, model_key: str, baselines: Baselines) -> str:
+    """The row's agent: its name, and its model key where another training of the same agent and family sits beside it."""
+    twins = sum(1 for a, f, _, _ in baselines if (a, f) == (agent, family))
+    return AGENT_NAMES.get(agent, agent) + (f" [{model_key}]" if twins > 1 else "")
 
 
 def _evaluating(evaluations: list[TaskEvaluation], cases: int) -> str:
@@ -95,7 +106,7 @@ def _evaluating(evaluations: list[TaskEvaluation], cases: int) -> str:
 
 
 def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
-                              baselines: dict[tuple[str, str | None, int], list[TaskEvaluation]],
+                              baselines: Baselines,
                               families: list[str], cases: Counter,
                               steps_through: dict[tuple[int, str], int]) -> list[str]:
     """Each family's rows side by side: Sim2Act per iteration, then every baseline evaluated on that
@@ -112,11 +123,11 @@ def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
         columns = [f"{family}/{split}" for split in SPLIT_COLUMNS]
         rows += [[family, f"Sim2Act iteration {iteration}", f"{steps_through.get((iteration, family), 0):,}",
                   *_cells(groups, columns)] for iteration, groups in sorted(by_iteration.items())]
-        for (agent, _, steps), evaluations in baselines.items():
+        for (agent, agent_family, steps, model_key), evaluations in baselines.items():
             met = [e for e in evaluations if e.family == family]
             if not met:  # an RL agent of another family
                 continue
-            rows.append([family, AGENT_NAMES.get(agent, agent) + _evaluating(met, cases[family]),
+            rows.append([family, _agent_name(agent, agent_family, model_key, baselines) + _evaluating(met, cases[family]),
                          f"{steps:,}" if steps else "–", *_cells(group_success(met), columns)])
     header = ["family", "agent", "env steps (training data)", *[split.replace("_", " ") for split in SPLIT_COLUMNS]]
     return ["", "### Per family, against the baselines", "", *_table(header, rows)]
@@ -427,8 +438,8 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
              *_cells(groups)]
             for iteration, groups in sorted(by_iteration.items())]
     baselines = baseline_evaluations(catalog, campaign)
-    for (agent, family, steps), evaluations in baselines.items():
-        name = (AGENT_NAMES.get(agent, agent) + (f" ({family})" if family else "")
+    for (agent, family, steps, model_key), evaluations in baselines.items():
+        name = (_agent_name(agent, family, model_key, baselines) + (f" ({family})" if family else "")
                 + _evaluating(evaluations, cases[family] if family else sum(cases.values())))
         rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
     lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
@@ -492,7 +503,9 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     if not by_iteration:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
-        cases = Counter(e.family for e in evaluations[max(evaluations)])
+        # the cases a baseline meets: the last iteration's model's, less held-out wordings (stages/baselines.py
+        # evaluates the canonical and paraphrase cases; a wording no template uses is a test of the policy's reading)
+        cases = Counter(e.family for e in evaluations[max(evaluations)] if e.split != HELD_OUT_WORDING)
         lines += _success_sections(catalog, campaign, by_iteration, steps_through, cases, models, holder)
 
     lines += ["", "## Dataset per iteration", ""]

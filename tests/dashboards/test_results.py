@@ -429,7 +429,8 @@ def test_a_baseline_read_mid_evaluation_says_how_many_of_its_cases_are_in(tmp_pa
     cases the last iteration's model met); another campaign's expert on the same task is not this one's."""
     catalog = _catalog_with_tasks(tmp_path)
     _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-red-green", "seen"): 5,
-                           ("nav-room-sequence-purple-red", "unseen"): 1})  # the last iteration's model: 3 cases
+                           ("nav-room-sequence-purple-red", "unseen"): 1,  # the last iteration's model: 3 cases,
+                           ("nav-room-red", "held_out_wording"): 7})  # and one the baselines never meet
     for task_id in ("nav-room-red", "nav-room-sequence-red-green"):
         _evaluated(catalog, "expert", 10, task=(task_id, "navigation"))
     [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
@@ -472,3 +473,17 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
     assert _cells(lines[at + 9])[:4] == ["navigation", "PPO from scratch", "1,024", "2/10 = 20% (6%–51%)"]
     [pooled] = [_cells(line) for line in lines if line.startswith("| Sim2Act iteration 0 (BC")]
     assert pooled[1] == "250"  # the pooled table's: every family's steps
+
+    # a second SAC on the same family and budget (another encoder layout): its own row, not pooled with the first
+    catalog.register_unit(unit_key="baselines-sac-critic", stage="baselines", campaign=CAMPAIGN, iteration=0,
+                          summary=RLTrained(algorithm="sac", family="metaworld", env_steps=1_000, steps_taken=1_024,
+                                            episodes=20, successes=0, resumed_at=0, path="y").model_dump())
+    _evaluated(catalog, "baselines-sac-critic", 4, task=("mw-reach", "metaworld"))
+    lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+    sacs = sorted(_cells(line)[:2] for line in lines if line.startswith("| SAC from scratch"))
+    assert [(name, cell.split(" ")[0]) for name, cell in sacs] == [
+        ("SAC from scratch [baselines-sac-critic] (metaworld), evaluating: 1/2 cases", "1,024"),
+        ("SAC from scratch [baselines-sac] (metaworld), evaluating: 1/2 cases", "1,024")], sacs
+    seen = {_cells(line)[1]: _cells(line)[3].split(" ")[0] for line in lines if line.startswith("| metaworld | SAC")}
+    assert seen == {"SAC from scratch [baselines-sac-critic], evaluating: 1/2 cases": "4/10",
+                    "SAC from scratch [baselines-sac], evaluating: 1/2 cases": "0/10"}, seen
