@@ -25,7 +25,8 @@ from schemas.keys import unit_key
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace, read_json_written, write_text_atomically
 from stages import StageResult, StageUnits, UnitOutput
-from stages.evaluate import SPLITS, Agent, TaskEvaluation, evaluate_model, evaluation_cases, group_success
+from stages.evaluate import (SPLITS, Agent, TaskEvaluation, episodes_per_split, evaluate_model, evaluation_cases,
+                              group_success)
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
@@ -313,10 +314,12 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     # after the last training, not beside the others: an evaluation's two workers build their family's scenes
     # (MetaWorld's ~6 GB each) while the training workers hold theirs and the replays (~14 GB for the generalist's
     # two SACs with every scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
+    per_split = episodes_per_split(config, cases)  # the whole campaign's split sizes: the expert's and the policy's
     for unit in units:
         family_cases = [case for case in cases if case[0].family == unit.family]
         evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,
-                                        Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings)
+                                        Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings,
+                                        per_split=per_split)
         baselines.append(Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
                                   env_steps=unit.env_steps, evaluations=evaluations))
     return BaselinesResult(baselines=baselines)

@@ -394,9 +394,11 @@ def others_of(task: TaskRecord, cases: list[tuple[TaskRecord, str, str]]) -> lis
 
 def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: str, agent: Agent,
                      cases: list[tuple[TaskRecord, str, str]], embeddings: dict[str, np.ndarray],
-                     suite: str = CAMPAIGN_SUITE) -> list[EvalUnit]:
+                     suite: str = CAMPAIGN_SUITE, per_split: dict[str, int] | None = None) -> list[EvalUnit]:
     """One unit per (task, split, instruction) case, keyed by what it reads (evaluate_model); its seeds derive
-    from (campaign, task, episode), so every agent given the same cases meets the same episodes."""
+    from (campaign, task, episode), so every agent given the same cases meets the same episodes. `per_split`:
+    episodes per case of each split where `cases` are part of the campaign's (an RL agent's family), counted
+    on the whole (episodes_per_split); None: counted on `cases`."""
     units = []
     missing = sorted({instruction for _, _, instruction in cases} - set(embeddings))
     if missing:  # wordings the generator never made (held_out_wording): encoded now by the frozen encoder
@@ -409,7 +411,7 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
                                                              "held_out_wordings", "training_seeds"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
-    per_split = episodes_per_split(config, cases)
+    per_split = per_split or episodes_per_split(config, cases)
     for task, split, instruction in cases:
         episodes = per_split[split]
         reads["evaluate"]["episodes_per_task"] = episodes  # where it was before the split's count existed: old keys hold
@@ -431,15 +433,17 @@ def evaluate_model(
     cases: list[tuple[TaskRecord, str, str]],
     embeddings: dict[str, np.ndarray],
     suite: str = CAMPAIGN_SUITE,
+    per_split: dict[str, int] | None = None,
 ) -> tuple[list[TaskEvaluation], int]:
     """Roll the agent out on each (task, split, instruction) case with the campaign's render,
     randomisation and evaluate settings; each case is a unit registered in the catalog's
     `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
-    Seeds derive from (campaign, task, episode): every model meets the same episodes."""
+    Seeds derive from (campaign, task, episode): every model meets the same episodes; `per_split`: as in
+    evaluation_units."""
     if agent.acting is not None:  # its evaluations would be registered as the model's own, under the same keys
         raise ValueError(f"evaluate_model: expected the agent acting as it trained to, got acting {agent.acting.describe()}")
     catalog = Catalog(workspace.catalog)
-    units = evaluation_units(workspace, config, model_key, agent, cases, embeddings, suite)
+    units = evaluation_units(workspace, config, model_key, agent, cases, embeddings, suite, per_split)
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
     # a case of each family in turn: a navigation case runs in seconds, a robosuite one in minutes

@@ -174,3 +174,28 @@ def test_an_evaluation_takes_a_case_of_each_family_in_turn(tmp_path, monkeypatch
     rounds = min(families.count(family) for family in set(families))
     assert len(set(families)) == 3 and rounds >= 2
     assert all(len(set(handed[i:i + 3])) == 3 for i in range(0, 3 * rounds, 3))
+
+
+def test_an_rl_agent_meets_its_familys_cases_with_the_campaigns_episodes_per_split(tmp_path):
+    """With evaluate.episodes_per_split the episodes per case come from the split's size over every family: an RL
+    agent evaluated on its family's cases alone meets the same units (keys, seeds) as the policy and the expert."""
+    import numpy as np
+
+    from envs.suite import generate_tasks
+    from schemas.config import CampaignConfig, EvaluateConfig, TasksConfig
+    from schemas.workspace import Workspace
+    from stages.evaluate import Agent, episodes_per_split, evaluation_cases, evaluation_units
+
+    config = CampaignConfig(tasks=TasksConfig(specs=["nav-room", "mw-reach"], colours=["red", "green", "blue"]),
+                            evaluate=EvaluateConfig(episodes_per_task=3, episodes_per_split=12))
+    cases = evaluation_cases(generate_tasks(config.tasks, config.seed))
+    navigation = [case for case in cases if case[0].family == "navigation"]
+    embeddings = {instruction: np.zeros(384, dtype=np.float32) for _, _, instruction in cases}
+    workspace, agent = Workspace.at(tmp_path), Agent(kind="expert")
+    everyone = {u.unit_key: u.seeds for u in evaluation_units(workspace, config, "m", agent, cases, embeddings)}
+    alone = evaluation_units(workspace, config, "m", agent, navigation, embeddings,
+                             per_split=episodes_per_split(config, cases))
+    assert alone and all(everyone[u.unit_key] == u.seeds for u in alone)
+    # counted on the family alone, a split half the size would get twice the episodes: other units
+    assert not set(everyone) >= {u.unit_key for u in evaluation_units(workspace, config, "m", agent, navigation,
+                                                                      embeddings)}
