@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -120,11 +121,25 @@ def save_checkpoint(agent, env, folder: Path) -> None:
         agent.save_replay_buffer(writing / "replay.pkl")
     (writing / "state.json").write_text(json.dumps(
         {"num_timesteps": agent.num_timesteps, "episodes": env.episodes_finished, "successes": env.successes}))
+    # on disk before the swap: a machine that stops (not only the process) right after a save must not find a
+    # renamed-in checkpoint of empty or cut files with the one before already removed
+    for path in (*writing.iterdir(), writing):
+        _fsync(path)
     if current.exists():  # else a kill between renames left `previous` the only whole one: kept until replaced
         shutil.rmtree(previous, ignore_errors=True)
         current.rename(previous)
     writing.rename(current)
+    _fsync(folder)  # the renames themselves
     shutil.rmtree(previous, ignore_errors=True)
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file's bytes, or a folder's entries, to the disk."""
+    handle = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
 
 
 def remove_checkpoints(folder: Path) -> None:

@@ -79,6 +79,45 @@ def test_a_kill_during_the_swap_leaves_the_checkpoint_before(tmp_path):
     assert last_checkpoint(tmp_path) == tmp_path / CHECKPOINT
 
 
+def test_a_checkpoint_is_on_disk_before_it_is_swapped_in(tmp_path, monkeypatch):
+    """Every file of the new checkpoint and its folder are fsynced before the renames, the folder after them."""
+    import os
+
+    import policies.rl_agent as rl_agent
+
+    class Saved:
+        num_timesteps = 200
+
+        def save(self, path):
+            path.write_bytes(b"agent")
+
+        def save_replay_buffer(self, path):
+            path.write_bytes(b"replay")
+
+    class Counted:
+        episodes_finished, successes = 3, 1
+
+    events: list[str] = []
+    real_fsync, real_rename = os.fsync, type(tmp_path).rename
+
+    def fsync(handle):
+        events.append("fsync " + os.path.basename(os.readlink(f"/proc/self/fd/{handle}")))
+        real_fsync(handle)
+
+    def rename(self, target):
+        events.append(f"rename {self.name}")
+        return real_rename(self, target)
+    monkeypatch.setattr(rl_agent.os, "fsync", fsync)
+    monkeypatch.setattr(type(tmp_path), "rename", rename)
+    save_checkpoint(Saved(), Counted(), tmp_path)
+    events.clear()
+    save_checkpoint(Saved(), Counted(), tmp_path)  # a second: the first is renamed aside, then removed
+    second = events
+    assert sorted(second[:4]) == sorted(f"fsync {n}" for n in ("agent.zip", "replay.pkl", "state.json", WRITING))
+    assert second[4:] == [f"rename {CHECKPOINT}", f"rename {WRITING}", f"fsync {tmp_path.name}"]
+    assert last_checkpoint(tmp_path) == tmp_path / CHECKPOINT and not (tmp_path / PREVIOUS).exists()
+
+
 def test_a_save_after_a_kill_between_renames_keeps_the_only_whole_checkpoint_until_replaced(tmp_path, monkeypatch):
     class Saved:  # what save_checkpoint asks of an agent: save(path) and its step count
         num_timesteps = 200
