@@ -23,6 +23,13 @@ from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success,
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
+
+
+def split_columns(by_iteration: dict[int, list[GroupSuccess]]) -> tuple[str, ...]:
+    """The split tables' columns: seen, unseen and the held-out paraphrase always, and the held-out wordings
+    where the campaign evaluated them (evaluate.held_out_wordings: the policy's test alone, no baseline meets it)."""
+    held_out = any(g.group == HELD_OUT_WORDING for groups in by_iteration.values() for g in groups)
+    return SPLIT_COLUMNS + ((HELD_OUT_WORDING,) if held_out else ())
 AGENT_NAMES = {EXPERT: "scripted expert, noiseless (ceiling)", "ppo": "PPO from scratch", "sac": "SAC from scratch"}
 
 
@@ -64,11 +71,12 @@ WIDE_TABLE_NAMES = 3  # families or specs side by side at most; more get a row e
 def _split_table(title: str, by_iteration: dict[int, list[GroupSuccess]], names: list[str]) -> list[str]:
     """Success per iteration in every split of each family or spec `names` (groups "<name>/<split>"):
     a column per name and split for a few names, else a row per name and iteration."""
+    splits = split_columns(by_iteration)
     if len(names) > WIDE_TABLE_NAMES:
-        rows = [[name, iteration, *_cells(groups, [f"{name}/{split}" for split in SPLIT_COLUMNS])]
+        rows = [[name, iteration, *_cells(groups, [f"{name}/{split}" for split in splits])]
                 for name in names for iteration, groups in sorted(by_iteration.items())]
-        return ["", f"### {title}", "", *_table(["", "iteration", *[s.replace("_", " ") for s in SPLIT_COLUMNS]], rows)]
-    header = ["iteration", *[f"{name}/{split}" for name in names for split in SPLIT_COLUMNS]]
+        return ["", f"### {title}", "", *_table(["", "iteration", *[s.replace("_", " ") for s in splits]], rows)]
+    header = ["iteration", *[f"{name}/{split}" for name in names for split in splits]]
     return ["", f"### {title}", "",
             *_table(header, [[iteration, *_cells(groups, header[1:])] for iteration, groups in sorted(by_iteration.items())])]
 
@@ -118,9 +126,10 @@ def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
     matches by default."""
     if not baselines:
         return []
+    splits = split_columns(by_iteration)
     rows = []
     for family in families:
-        columns = [f"{family}/{split}" for split in SPLIT_COLUMNS]
+        columns = [f"{family}/{split}" for split in splits]
         rows += [[family, f"Sim2Act iteration {iteration}", f"{steps_through.get((iteration, family), 0):,}",
                   *_cells(groups, columns)] for iteration, groups in sorted(by_iteration.items())]
         for (agent, agent_family, steps, model_key), evaluations in baselines.items():
@@ -129,7 +138,7 @@ def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
                 continue
             rows.append([family, _agent_name(agent, agent_family, model_key, baselines) + _evaluating(met, cases[family]),
                          f"{steps:,}" if steps else "–", *_cells(group_success(met), columns)])
-    header = ["family", "agent", "env steps (training data)", *[split.replace("_", " ") for split in SPLIT_COLUMNS]]
+    header = ["family", "agent", "env steps (training data)", *[split.replace("_", " ") for split in splits]]
     return ["", "### Per family, against the baselines", "", *_table(header, rows)]
 
 
@@ -433,16 +442,17 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     agent: its family's); `steps_through`: (iteration, family) -> the environment steps explored
     through that iteration on the family."""
     lines: list[str] = []
+    splits = split_columns(by_iteration)
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{sum(steps for (through, _), steps in steps_through.items() if through == iteration):,}",
-             *_cells(groups)]
+             *_cells(groups, splits)]
             for iteration, groups in sorted(by_iteration.items())]
     baselines = baseline_evaluations(catalog, campaign)
     for (agent, family, steps, model_key), evaluations in baselines.items():
         name = (_agent_name(agent, family, model_key, baselines) + (f" ({family})" if family else "")
                 + _evaluating(evaluations, cases[family] if family else sum(cases.values())))
-        rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations))])
-    lines += _table(["agent", "env steps (training data)", "seen", "unseen", "unseen paraphrase"], rows)
+        rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations), splits)])
+    lines += _table(["agent", "env steps (training data)", *[split.replace("_", " ") for split in splits]], rows)
     if models is not None:
         lines += pending_baselines_markdown(catalog, campaign, models, holder)
 

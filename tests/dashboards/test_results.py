@@ -441,6 +441,11 @@ def test_a_baseline_read_mid_evaluation_says_how_many_of_its_cases_are_in(tmp_pa
     [row] = [line for line in results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
              if line.startswith("| scripted expert")]
     assert row.startswith("| scripted expert, noiseless (ceiling) | – | 30/30 = 100%"), row
+    # the held-out wording is the policy's test alone: a column of its own, which the baselines leave empty
+    lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+    assert "| agent | env steps (training data) | seen | unseen | unseen paraphrase | held out wording |" in lines
+    [policy] = [_cells(line) for line in lines if line.startswith("| Sim2Act iteration 0")]
+    assert policy[-1].startswith("7/10") and _cells(row)[-1] == "–"
 
 
 def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
