@@ -275,10 +275,13 @@ def family_scores(catalog: Catalog, result: AdaptResult) -> FamilyScores:
     if not result.tasks:  # registered before adapt.tasks: one family's every seen task
         return {}
     per_task = result.points[0].trials // len(result.tasks)
-    rows = catalog.query(
-        "SELECT family, model_key, count(DISTINCT task_id), sum(successes), sum(episodes) FROM evaluations "
-        "WHERE campaign = ? AND suite = ? AND list_contains(?, task_id) AND list_contains(?, model_key) "
-        "AND episodes = ? GROUP BY ALL ORDER BY ALL",
+    rows = catalog.query(  # each case once, its latest evaluation: an earlier adaptation (another domain) evaluated
+        # the champion on the same cases under the same campaign and model key
+        "SELECT family, model_key, count(DISTINCT task_id), sum(successes), sum(episodes) FROM ("
+        " SELECT e.* FROM evaluations e LEFT JOIN stage_runs r ON r.unit_key = e.unit_key"
+        " WHERE e.campaign = ? AND e.suite = ? AND list_contains(?, e.task_id) AND list_contains(?, e.model_key)"
+        " AND e.episodes = ? QUALIFY row_number() OVER (PARTITION BY e.model_key, e.task_id, e.split, e.instruction"
+        " ORDER BY r.finished_at DESC NULLS LAST, e.unit_key DESC) = 1) GROUP BY ALL ORDER BY ALL",
         [result.campaign, ADAPT_SUITE, result.tasks, [p.model_key for p in result.points], per_task])
     families: FamilyScores = {}
     for family, model_key, tasks, successes, episodes in rows:

@@ -98,6 +98,26 @@ def test_each_family_s_scores_come_from_the_adaptation_s_own_rows(adapted):
     assert "Per family" not in "\n".join(adaptation_markdown(catalog, "adapt-test"))  # one family: the pooled table says it
 
 
+def test_a_case_evaluated_again_counts_once_in_the_family_scores(adapted, tmp_path):
+    """Another adaptation (another domain) into the same -adapt campaign evaluates the champion on the same cases:
+    each family's score reads each case's latest evaluation, not both."""
+    import shutil
+
+    _, workspace, _, result = adapted
+    copy = tmp_path / "warehouse"  # the module's workspace stays as the other tests read it
+    shutil.copytree(workspace.catalog.parent, copy)
+    catalog = Catalog(copy / workspace.catalog.name)
+    champion = result.points[0].model_key
+    [row] = catalog.query_arrow("SELECT * FROM evaluations WHERE campaign = ? AND suite = 'adapt' AND model_key = ? "
+                                "ORDER BY task_id LIMIT 1", [result.campaign, champion]).to_pylist()
+    again = {**row, "unit_key": "evaluate-another-domain", "successes": row["episodes"] - row["successes"]}
+    catalog.register_unit(unit_key="evaluate-another-domain", stage="evaluate", campaign=result.campaign, iteration=0,
+                          summary={}, rows={"evaluations": [again]})
+    cases, scores = family_scores(catalog, result)["robosuite"]
+    expected = result.points[0].successes - row["successes"] + again["successes"]
+    assert cases == 2 and scores[champion] == (expected, result.points[0].trials)
+
+
 def test_the_per_family_table_counts_each_family_s_episodes_to_its_target():
     def point(start, per_task, key, seed=0):
         return AdaptPoint(start=start, episodes_per_task=per_task, episodes=per_task * 4, model_key=key, successes=0,
