@@ -96,6 +96,15 @@ class SeedGroup(BaseModel):
     seeds: list[int]
     precisions: list[str] = []  # per seed: "bf16" or "fp32" as it trained ("" where its summary predates the record)
     figures: list[SeedsSuccess]
+    cases: int = 0  # the cases every seed was evaluated on: the figures' cases
+    cases_not_shared: int = 0  # cases of those splits that some seeds met and others not (yet): left out of the figures
+
+    def coverage(self) -> str:
+        """"" where the figures hold every case the seeds met in their splits; else how many they hold, and why."""
+        if not self.cases_not_shared:
+            return ""
+        return (f"over {self.cases} of {self.cases + self.cases_not_shared} cases: the others not evaluated for "
+                f"every seed (yet)")
 
 
 def _case(evaluation: TaskEvaluation) -> tuple:
@@ -105,45 +114,56 @@ def _case(evaluation: TaskEvaluation) -> tuple:
 def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
     """Every group of two or more trainings of the same dataset and recipe (their registered summaries
     less the seed) whose models were all evaluated on `suite`, once per weights, over the cases every
-    seed met."""
+    seed met. A seed trained twice under two keys (another train stage version) counts once: its latest
+    training evaluated with those weights."""
     from stages.evaluate import read_evaluations
 
-    trainings: dict[str, list[tuple[int, str]]] = {}
+    trainings: dict[str, dict[int, list[str]]] = {}  # group -> seed -> its model keys, oldest training first
     precision: dict[str, str] = {}
     recipes: dict[str, dict] = {}
     iterations: dict[str, int] = {}
     for model_key, summary, digest, iteration in catalog.query(
             "SELECT s.unit_key, s.summary, m.dataset_digest, m.iteration FROM stage_runs s "
             "JOIN models m ON m.model_key = s.unit_key "
-            "WHERE s.stage = 'train' AND s.campaign = ? ORDER BY s.unit_key", [campaign]):
+            "WHERE s.stage = 'train' AND s.campaign = ? ORDER BY s.finished_at NULLS FIRST, s.unit_key", [campaign]):
         fields = json.loads(summary)
         recipe = {k: v for k, v in sorted(fields.items()) if k not in NOT_RECIPE}
         group = json.dumps([digest, recipe], sort_keys=True)
         recipes[group], iterations[group] = recipe, iteration
-        trainings.setdefault(group, []).append((int(fields.get("seed", 0)), model_key))
+        keys = trainings.setdefault(group, {}).setdefault(int(fields.get("seed", 0)), [])
+        if model_key not in keys:
+            keys.append(model_key)
         precision[model_key] = fields.get("precision", "")
     evaluated: dict[str, list] = {}
     for model_key, evaluation in read_evaluations(catalog, "v.model_key", "WHERE v.campaign = ? AND v.suite = ?",
                                                   [campaign, suite]):
         evaluated.setdefault(model_key, []).append(evaluation)
     groups = []
-    for group, members in trainings.items():
-        members = sorted(set(members))
-        if len({seed for seed, _ in members}) < 2:
+    for group, by_seed in trainings.items():
+        if len(by_seed) < 2:
             continue
         for weights in ("registered", "final"):
-            runs = [evaluated.get(evaluated_key(key, weights)) for _, key in members]
-            if any(run is None for run in runs):
+            members = []  # (seed, model key): per seed its latest training evaluated with these weights
+            for seed, keys in sorted(by_seed.items()):
+                evaluated_keys = [key for key in keys if evaluated_key(key, weights) in evaluated]
+                if evaluated_keys:
+                    members.append((seed, evaluated_keys[-1]))
+            if len(members) < len(by_seed):
                 continue
-            # the cases every seed was evaluated on (one may have met an extra split: sim2act eval --split)
-            shared = set.intersection(*({_case(t) for t in run} for run in runs))
-            runs = [[t for t in run if _case(t) in shared] for run in runs]
+            runs = [evaluated[evaluated_key(key, weights)] for _, key in members]
+            # the cases every seed was evaluated on (one may have met an extra split: sim2act eval --split, or
+            # be mid-evaluation: counted in cases_not_shared where it is a split the figures report)
+            met = [{_case(t) for t in run} for run in runs]
+            shared = set.intersection(*met)
             if not shared:
                 continue
-            figures = protocol_success(runs)
+            splits = {case[1] for case in shared}
+            not_shared = {case for cases in met for case in cases if case[1] in splits} - shared
+            figures = protocol_success([[t for t in run if _case(t) in shared] for run in runs])
             groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights,
                                     model_keys=[k for _, k in members], seeds=[s for s, _ in members],
-                                    precisions=[precision[k] for _, k in members], figures=figures))
+                                    precisions=[precision[k] for _, k in members], figures=figures,
+                                    cases=len(shared), cases_not_shared=len(not_shared)))
     # by iteration, then recipe: a loop's iteration 0 reads above its iteration 3
     return sorted(groups, key=lambda g: (g.iteration, json.dumps(g.recipe, sort_keys=True), g.weights != "registered"))
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dashboards.protocol import SeedsSuccess, seed_groups
+from dashboards.protocol import SeedGroup, seed_groups
 from schemas.tables import CURRENT_DEPLOYMENTS
 from schemas.tasks import CAMPAIGN_SUITE
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
@@ -63,12 +63,12 @@ def plot_success_by_iteration(by_iteration: dict[int, list[GroupSuccess]], group
     return path
 
 
-def seeds_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[SeedsSuccess]]:
-    """Iteration -> success across the training seeds of the model it deployed (evaluate.training_seeds, or
-    seeds trained by hand on its dataset), over the flow's cases; iterations whose model has no other seed
-    are left out."""
+def seeds_by_iteration(catalog: Catalog, campaign: str) -> dict[int, SeedGroup]:
+    """Iteration -> the training seeds of the model it deployed (evaluate.training_seeds, or seeds trained by hand
+    on its dataset), registered weights, over the flow's cases; iterations whose model has no other seed are
+    left out."""
     deployed = dict(catalog.query(f"SELECT model_key, iteration FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?", [campaign]))
-    return {deployed[key]: group.figures for group in seed_groups(catalog, campaign, CAMPAIGN_SUITE)
+    return {deployed[key]: group for group in seed_groups(catalog, campaign, CAMPAIGN_SUITE)
             if group.weights == "registered" for key in group.model_keys if key in deployed}
 
 
@@ -91,11 +91,12 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
         mark = "  promoted" if champions.get(iteration) else ""
         lines.append(f"  {iteration:<10}{row}{mark}".rstrip())
         if iteration in seeds:  # its model's training seeds: mean ± spread across them, the pooled episodes' interval
-            pooled = {f.group: f for f in seeds[iteration]}
-            label = f"{pooled[next(iter(pooled))].seeds} seeds"
-            lines.append(f"    {label:<8}" + "".join(
+            pooled = {f.group: f for f in seeds[iteration].figures}
+            label = f"{len(seeds[iteration].seeds)} seeds"
+            coverage = seeds[iteration].coverage()
+            lines.append((f"    {label:<8}" + "".join(
                 f"{pooled[s].mean:>7.0%} ± {100 * pooled[s].spread:<3.0f}[{pooled[s].ci_low:.0%}, {pooled[s].ci_high:.0%}]"
-                .ljust(28) if s in pooled else " " * 28 for s in splits).rstrip())
+                .ljust(28) if s in pooled else " " * 28 for s in splits)).rstrip() + (f"  ({coverage})" if coverage else ""))
     if seeds:
         lines.append("  (N seeds: the iteration's dataset trained N times, mean ± spread across the trainings, "
                      "Wilson 95% of their pooled episodes)")

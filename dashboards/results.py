@@ -340,7 +340,8 @@ def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
                            + [f"{k} {v}" for k, v in differing.items() if k != "train.where"])
         recipe, seeds = _with_precision(recipe, group.seeds, group.precisions)
         by_split = {f.group: f for f in group.figures}
-        rows.append([str(group.iteration), recipe, group.weights, seeds,
+        coverage = group.coverage()
+        rows.append([str(group.iteration), recipe, group.weights, f"{seeds} ({coverage})" if coverage else seeds,
                      *(by_split[s].describe() if s in by_split else "–" for s in splits)])
     lines += _table(["iteration", "recipe (training summary)", "weights evaluated", "seeds", *splits], rows)
     lines += family_seeds_markdown(groups, splits)

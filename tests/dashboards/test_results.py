@@ -191,6 +191,34 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
          "70% ± 10 (80, 60, 70) over 3 seeds, 21/30 pooled [52%, 83%]"]]
 
 
+def test_a_seed_trained_twice_counts_once_and_a_seed_mid_evaluation_is_said(tmp_path):
+    """Seed 0 trained again under another key (a new train stage version): the group holds its latest training
+    once, not seed 0 twice. Seed 2 evaluated on one of the two cases so far: the figures hold the case every seed
+    met, and the row says how many it left out."""
+    from dashboards.report import campaign_summary
+    from dashboards.results import protocol_markdown
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    for key, seed, won in (("train-v1-s0", 0, 1), ("train-s1", 1, 7), ("train-v2-s0", 0, 9), ("train-s2", 2, 8)):
+        _training(catalog, key, seed, 8)
+        _evaluated(catalog, key, won)
+        if seed != 2:  # seed 2 is still being evaluated: lift-red not yet
+            _evaluated(catalog, key, 5, task=("lift-red", "robosuite"))
+    lines = protocol_markdown(catalog, CAMPAIGN)
+    rows = [_cells(line) for line in lines if line.startswith("| 0 | chunk")]
+    assert [row[3:] for row in rows] == [
+        ["0, 1, 2 (over 1 of 2 cases: the others not evaluated for every seed (yet))",
+         "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"]]
+    _register(catalog, 0, {}, model="train-v2-s0")  # the loop deployed seed 0's latest: the summary's seeds line
+    assert ("    3 seeds     80% ± 10 [63%, 90%]  (over 1 of 2 cases: the others not evaluated for every "
+            "seed (yet))") in campaign_summary(catalog, CAMPAIGN, []).splitlines()
+    _evaluated(catalog, "train-s2", 5, task=("lift-red", "robosuite"))  # seed 2's evaluation done
+    rows = [_cells(line) for line in protocol_markdown(catalog, CAMPAIGN) if line.startswith("| 0 | chunk")]
+    assert rows[0][3] == "0, 1, 2" and rows[0][4].startswith("65% ± 5 (70, 60, 65) over 3 seeds, 39/60 pooled")
+    assert "    3 seeds     65% ± 5  [52%, 76%]" in campaign_summary(catalog, CAMPAIGN, []).splitlines()
+
+
 def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     """The generalist's million before its training: no evaluation yet, the dataset and compute sections alone."""
     catalog = _catalog_with_tasks(tmp_path)
