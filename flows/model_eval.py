@@ -5,6 +5,7 @@ recorded in the warehouse `evaluations` under the task set's suite name."""
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ from mlflow.exceptions import MlflowException
 
 from envs.suite import generate_tasks
 from policies.model import ModelDims
-from schemas.config import CampaignConfig, ConfigError
+from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, ConfigError
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.settings import tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
@@ -124,15 +125,52 @@ def file_tasks(path: Path, config: CampaignConfig, seen_ids: set[str]) -> list[T
     return [t.model_copy(update={"split": "seen" if t.task_id in seen_ids else "unseen"}) for t in tasks]
 
 
+def _flat(settings: dict, prefix: str) -> dict[str, str]:
+    """`{"mesh_detail": 0.1}` -> `{"render.mesh_detail": "0.1"}`: values as JSON, so a tuple and a list compare."""
+    return {f"{prefix}.{name}": json.dumps(value, sort_keys=True) for name, value in settings.items()}
+
+
+def explored_conditions(catalog: Catalog, campaign: str) -> dict[str, str]:
+    """The render (and, where recorded, randomisation) settings the campaign's latest explore unit ran under,
+    flat as `render.mesh_detail` -> its value as JSON: its episodes' render record, with the fields added since
+    from the unit's summary (absent there: at their legacy values). {}: the campaign explored nothing here."""
+    latest = catalog.query("SELECT unit_key, summary FROM stage_runs WHERE stage = 'explore' AND campaign = ? "
+                           "ORDER BY finished_at DESC NULLS LAST, unit_key DESC LIMIT 1", [campaign])
+    if not latest:
+        return {}
+    unit_key, summary = latest[0][0], json.loads(latest[0][1] or "{}")
+    try:
+        rendered = catalog.read_unit_shard("episodes", unit_key, ["render"])["render"].to_pylist()
+    except KeyError:  # a unit that wrote no episodes shard (none in this project does): no record to compare
+        return {}
+    render = {**(rendered[0] or {} if rendered else {}), **RENDER_LEGACY_VALUES,
+              **{k: summary[k] for k in RENDER_LEGACY_VALUES if k in summary}}
+    return {**_flat(render, "render"), **_flat(summary.get("randomise") or {}, "randomise")}
+
+
+def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
+    """The render and randomisation settings in which `config` differs from what its campaign explored under
+    (explored_conditions), as `render.mesh_detail=1.0`: frames the campaign's model never met, whose evaluation
+    is not the campaign's figure. Empty where they agree or nothing was explored."""
+    explored = explored_conditions(Catalog(workspace.catalog), config.name)
+    mine = {**_flat(config.render.model_dump(mode="json"), "render"),
+            **_flat(config.randomise.model_dump(mode="json"), "randomise")}
+    return [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
+
+
 def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | None,
                split: str | None) -> tuple[str, list[tuple[TaskRecord, str, str]]]:
     """(suite, cases): a file's tasks (seen: the task ids the campaign explored), or the
     campaign's own evaluation cases, all or one split: the same units as the flow's, so a model
-    the flow evaluated is not rolled out again."""
+    the flow evaluated is not rolled out again. Under render or randomisation settings other than the
+    campaign explored under, the suite names them (`campaign @ render.mesh_detail=1.0`): such an evaluation
+    keeps its own rows beside the campaign's, which the report and the dashboard read."""
+    apart = conditions_apart(workspace, config)
+    conditions = f" @ {', '.join(apart)}" if apart else ""
     if tasks_file is not None:
         explored = {task_id for (task_id,) in Catalog(workspace.catalog).query(
             "SELECT DISTINCT task_id FROM episodes WHERE campaign = ?", [config.name])}
-        return f"file:{tasks_file.name}", evaluation_cases(file_tasks(tasks_file, config, explored))
+        return f"file:{tasks_file.name}{conditions}", evaluation_cases(file_tasks(tasks_file, config, explored))
     # --split held_out_wording asks for that split whether or not the campaign evaluates it
     cases = evaluation_cases(campaign_tasks(workspace, config),
                              config.evaluate.held_out_wordings or split == HELD_OUT_WORDING)
@@ -140,7 +178,7 @@ def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | 
         cases = [case for case in cases if case[1] == split]
         if not cases:
             raise ConfigError(f"--split: campaign {config.name!r} has no {split} evaluation case")
-    return CAMPAIGN_SUITE, cases
+    return f"{CAMPAIGN_SUITE}{conditions}", cases
 
 
 def instruction_embeddings(workspace: Workspace, config: CampaignConfig,

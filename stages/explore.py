@@ -364,7 +364,9 @@ def unit_summary(unit: ExploreUnit, shards: list) -> dict:
     """What the ledger keeps of an explored unit: its counts, and the render settings replay needs that
     episodes.render (a shard schema older than them) lacks, where not at their defaults."""
     by_table = {s.table: s for s in shards}
-    summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows}
+    summary = {"episodes": by_table["episodes"].num_rows, "steps": by_table["steps"].num_rows,
+               # the ranges drawn from (episodes keep the draws): `sim2act eval` tells another domain by them
+               "randomise": unit.randomise.model_dump(mode="json")}
     if unit.render is not None:  # the render fields added since that schema, where not at their legacy values
         keyed = render_key_fields(unit.render)
         summary.update({field: keyed[field] for field in RENDER_LEGACY_VALUES if field in keyed})

@@ -14,6 +14,21 @@ from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 
+# a task spec file of tasks no campaign explores, for `sim2act eval --tasks`
+NEW_TASKS = """
+defaults: {family: robosuite, expert: pick_place}
+specs:
+  - name: lift-elsewhere
+    env: Lift
+    objects:
+      target: {colours: [red, yellow]}
+    templates:
+      - elevate the {target} block
+      - hoist up the {target} cube
+      - bring the {target} block upward
+    horizon: 20
+"""
+
 ROW_COUNTS = """
 SELECT (SELECT count(*) FROM tasks), (SELECT count(*) FROM episodes), (SELECT count(*) FROM steps),
        (SELECT count(*) FROM filter_decisions), (SELECT count(*) FROM evaluations), (SELECT count(*) FROM models),

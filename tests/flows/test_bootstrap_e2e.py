@@ -19,7 +19,7 @@ from mlflow import MlflowClient
 from schemas.config import load_config
 from schemas.workspace import Workspace
 from stages.baselines import exploration_steps, rl_units
-from tests.campaign import iteration_zero_snapshot, run_campaign, snapshot
+from tests.campaign import NEW_TASKS, iteration_zero_snapshot, run_campaign, snapshot
 from tests.conftest import SIM2ACT, sim2act_env
 from warehouse.catalog import Catalog
 from warehouse.priority import plan_priorities
@@ -237,21 +237,6 @@ def test_sigkill_in_every_stage_then_resume_gives_the_same_rows(finished_campaig
     run_campaign(workspace, prefect_api, None, "--set", "iterations=1")
     assert iteration_zero_snapshot(workspace) == iteration_zero_snapshot(reference)
     assert Catalog(Workspace.at(workspace).catalog).query("SELECT iteration FROM deployments") == [(0,)]
-
-
-NEW_TASKS = """
-defaults: {family: robosuite, expert: pick_place}
-specs:
-  - name: lift-elsewhere
-    env: Lift
-    objects:
-      target: {colours: [red, yellow]}
-    templates:
-      - elevate the {target} block
-      - hoist up the {target} cube
-      - bring the {target} block upward
-    horizon: 20
-"""
 
 
 def _on_a_copy(finished_campaign, tmp_path, prefect_api, command: str):

@@ -1,11 +1,51 @@
-"""`sim2act shadow --placements trained`: the evaluation's cases started where the model's training episodes started."""
+"""`sim2act eval`'s suites and `sim2act shadow --placements trained`: the evaluation's cases started where the
+model's training episodes started."""
 
+from pathlib import Path
+
+import pyarrow as pa
 import pytest
 
 from envs.suite import generate_tasks
-from flows.model_eval import started_as_trained
-from schemas.config import ConfigError, RandomiseConfig, RenderConfig, TasksConfig
+from flows.model_eval import conditions_apart, eval_cases, started_as_trained
+from schemas.config import ConfigError, RandomiseConfig, RenderConfig, TasksConfig, load_config
+from schemas.tables import EPISODES
+from schemas.workspace import Workspace
 from stages.evaluate import Agent, EvalUnit
+from stages.explore import ExploreUnit, unit_summary
+from tests.campaign import NEW_TASKS
+from warehouse.catalog import Catalog
+from warehouse.shard_writer import ShardFile, write_shard
+
+def test_an_evaluation_under_other_frames_than_the_campaign_explored_is_a_suite_of_its_own(tmp_path):
+    """The campaign explored at mesh_detail 0.1: `sim2act eval --set render.mesh_detail=1.0` (or another
+    randomisation) is not the campaign's figure, so its rows go under a suite naming what differs, not under
+    the campaign's cases where the report would take them for the model's score."""
+    workspace = Workspace.at(tmp_path / "ws").create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+    config = load_config("smoke", None, {"render": {"mesh_detail": 0.1}})
+    assert conditions_apart(workspace, config) == []  # nothing explored yet: nothing to differ from
+    episode = {"campaign": config.name, "iteration": 0, "episode_id": "e0", "task_id": "lift-red", "instruction": "x",
+               "explorer": "expert", "seed": 0, "shard_key": "explore-a", "num_steps": 5, "episode_return": 0.0,
+               "success": True, "render": {"camera": "agentview", "image_size": 84, "shadows": False,
+                                           "reflections": False, "multisamples": 0, "depth": False}}
+    shard = write_shard("episodes", pa.Table.from_pylist([episode], schema=EPISODES),
+                        workspace.shard_path("episodes", 0, "explore-a"))
+    summary = unit_summary(ExploreUnit.model_construct(render=config.render, randomise=config.randomise),
+                           [shard, ShardFile("steps", Path("steps.parquet"), 5, 0, "")])
+    catalog.register_unit(unit_key="explore-a", stage="explore", campaign=config.name, iteration=0, summary=summary,
+                          shards=[shard])
+    assert conditions_apart(workspace, config) == []
+    other = load_config("smoke", None, {"render": {"shadows": True, "mesh_detail": 1.0},
+                                        "randomise": {"light": [0.5, 1.5]}})
+    assert conditions_apart(workspace, other) == ["randomise.light=[0.5, 1.5]", "render.mesh_detail=1.0",
+                                                  "render.shadows=true"]
+    tasks = tmp_path / "elsewhere.yaml"
+    tasks.write_text(NEW_TASKS)
+    assert eval_cases(workspace, config, tasks, None)[0] == "file:elsewhere.yaml"
+    assert eval_cases(workspace, other, tasks, None)[0] == ("file:elsewhere.yaml @ randomise.light=[0.5, 1.5], "
+                                                            "render.mesh_detail=1.0, render.shadows=true")
 
 
 @pytest.fixture(scope="module")
