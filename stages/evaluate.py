@@ -186,8 +186,10 @@ def evaluation_videos(evaluations: list[TaskEvaluation]) -> list[tuple[str, str]
 
 
 def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluations: list[TaskEvaluation]) -> Promotion:
-    """Promote when there is no champion, or when the new model's mean success over every
-    evaluation case (seen, unseen, held-out paraphrases; same seeds) beats the champion's."""
+    """Promote when there is no champion, or when the new model's mean success over the evaluation cases both
+    met (seen, unseen, held-out paraphrases) beats the champion's on the same episodes. A case's episodes are
+    seeded by their index, so where one side played more (`sim2act eval --episodes 50` of the champion), the
+    first N of its episodes are the other's N: each case compares those, not 50 episodes against 10."""
     success = float(np.mean([t.success_rate for t in evaluations]))
     champion = catalog.query(
         "SELECT champion_model_key FROM deployments WHERE campaign = ? AND model_key <> ? "
@@ -195,19 +197,20 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
     )
     if not champion:
         return Promotion(promote=True, reason="no champion yet", success=success, champion_success=None)
-    rows = dict(
-        ((task_id, split), rate) for task_id, split, rate in catalog.query(
-            "SELECT task_id, split, success_rate FROM current_evaluations WHERE campaign = ? AND model_key = ? "
-            "AND suite = ?", [campaign, champion[0][0], CAMPAIGN_SUITE])
-    )
-    shared = [t for t in evaluations if (t.task_id, t.split) in rows]
-    if not shared:
+    theirs = {(task_id, split, instruction): outcomes for task_id, split, instruction, outcomes in catalog.query(
+        "SELECT task_id, split, instruction, episode_successes FROM current_evaluations WHERE campaign = ? "
+        "AND model_key = ? AND suite = ?", [campaign, champion[0][0], CAMPAIGN_SUITE])}
+    pairs = []  # per case both met: (the new model's rate, the champion's) over the episodes both played
+    for t in evaluations:
+        champion_outcomes = theirs.get((t.task_id, t.split, t.instruction)) or []
+        if n := min(len(champion_outcomes), len(t.episode_successes)):
+            pairs.append((float(np.mean(t.episode_successes[:n])), float(np.mean(champion_outcomes[:n]))))
+    if not pairs:
         return Promotion(promote=True, reason="the champion was never evaluated on these tasks", success=success,
                          champion_success=None)
-    success = float(np.mean([t.success_rate for t in shared]))
-    before = float(np.mean([rows[(t.task_id, t.split)] for t in shared]))
+    success, before = (float(np.mean(side)) for side in zip(*pairs))
     better = success > before
-    reason = f"success {success:.0%} {'beats' if better else 'does not beat'} the champion's {before:.0%} on {len(shared)} cases"
+    reason = f"success {success:.0%} {'beats' if better else 'does not beat'} the champion's {before:.0%} on {len(pairs)} cases"
     return Promotion(promote=better, reason=reason, success=success, champion_success=before)
 
 

@@ -126,6 +126,35 @@ def test_a_case_evaluated_twice_counts_once_where_evaluations_are_summed(tmp_pat
     assert (groups["seen"].successes, groups["seen"].episodes) == (15, 23)
 
 
+def test_promotion_compares_the_champion_on_the_new_models_own_episodes(tmp_path):
+    """The champion re-evaluated on 20 episodes (`sim2act eval --episodes 20`): its first 10 are the 10 the new
+    model played (seeds by episode index). Over all 20 the champion scores 50%, over those 10 it scores 30%:
+    a new model at 40% beats it on the same episodes."""
+    from schemas.workspace import Workspace
+    from stages.evaluate import decide_promotion
+    from warehouse.catalog import Catalog
+
+    catalog = Catalog(Workspace.at(tmp_path).create().catalog)
+    catalog.initialise()
+    champion = _case("nav-ball-red", "navigation", "seen", [True] * 3 + [False] * 7 + [True] * 7 + [False] * 3)
+    catalog.register_unit(unit_key="evaluate-champion", stage="evaluate", campaign="c", iteration=0, summary={},
+                          rows={"evaluations": [{"unit_key": "evaluate-champion", "campaign": "c", "iteration": 0,
+                                                 "suite": "campaign", "model_key": "train-champion",
+                                                 **champion.model_dump(), "success_rate": champion.success_rate}]})
+    new = [_case("nav-ball-red", "navigation", "seen", [True] * 4 + [False] * 6)]
+    assert decide_promotion(catalog, "c", "train-new", new).reason == "no champion yet"
+    catalog.register_unit(unit_key="redeploy-0", stage="redeploy", campaign="c", iteration=0, summary={}, rows={
+        "deployments": [{"unit_key": "redeploy-0", "model_key": "train-champion", "campaign": "c", "iteration": 0,
+                         "registered_model": "m", "version": 1, "alias": "champion", "champion_version": 1,
+                         "champion_model_key": "train-champion", "promoted": True, "decision": "",
+                         "mlflow_run_id": ""}]})
+    promotion = decide_promotion(catalog, "c", "train-new", new)
+    assert (promotion.promote, promotion.success, promotion.champion_success) == (True, 0.4, 0.3)
+    assert promotion.reason == "success 40% beats the champion's 30% on 1 cases"
+    other = [_case("nav-box-red", "navigation", "seen", [True] * 10)]  # a case the champion never met
+    assert decide_promotion(catalog, "c", "train-new", other).reason == "the champion was never evaluated on these tasks"
+
+
 def test_an_agent_acting_otherwise_than_it_trained_is_never_registered_as_the_model(tmp_path):
     """sim2act shadow --execution plays a checkpoint another way; an evaluation would file its episodes
     under the model's own keys, so evaluate_model refuses it before any work."""
