@@ -407,11 +407,12 @@ def ablation_markdown(found: list) -> list[str]:
                      "Δ points", "reading"], rows)]
 
 
-def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
-                      filter_units: list[str]) -> list[str]:
-    """The latest dataset per family and split: tasks in the campaign and explored, episodes and
-    triplets explored and kept (by the dataset's own filter units), and the explored shard files' bytes."""
-    rows = catalog.query("""
+def dataset_rows(catalog: Catalog, campaign: str, explore_units: list[str],
+                 filter_units: list[str]) -> list[tuple]:
+    """Per family and split of the dataset `explore_units` made: (family, split, tasks in the campaign, tasks
+    explored, episodes, env steps, kept episodes, kept triplets, the explore units' shard bytes). A unit's bytes
+    count once, under the task it explored: `explore.relabel` files some of its episodes under other tasks."""
+    return catalog.query("""
         WITH decided AS (
             SELECT episode_id, bool_or(kept) AS kept FROM filter_decisions WHERE list_contains(?, filter_key) GROUP BY ALL),
         explored AS (SELECT * FROM episodes WHERE campaign = ? AND list_contains(?, shard_key)),
@@ -419,13 +420,25 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
             SELECT e.task_id, count(*) AS episodes, sum(e.num_steps) AS steps, count(*) FILTER (WHERE d.kept) AS kept,
                    coalesce(sum(e.num_steps) FILTER (WHERE d.kept), 0) AS kept_steps
             FROM explored e LEFT JOIN decided d USING (episode_id) GROUP BY ALL),
-        task_bytes AS (  -- an explore unit explores one task
-            SELECT u.task_id, sum(s.num_bytes) AS num_bytes FROM shards s
-            JOIN (SELECT DISTINCT shard_key AS unit_key, task_id FROM explored) u USING (unit_key) GROUP BY ALL)
+        explored_task AS (  -- an explore unit explores one task: the one its episodes not relabelled are filed under
+            SELECT shard_key AS unit_key,
+                   coalesce(any_value(task_id) FILTER (WHERE coalesce(explorer_stats, '') NOT LIKE '%relabelled_from%'),
+                            any_value(task_id)) AS task_id
+            FROM explored GROUP BY ALL),
+        task_bytes AS (
+            SELECT u.task_id, sum(s.num_bytes) AS num_bytes FROM shards s JOIN explored_task u USING (unit_key)
+            GROUP BY ALL)
         SELECT t.family, t.split, count(*), count(p.task_id), coalesce(sum(p.episodes), 0), coalesce(sum(p.steps), 0),
                coalesce(sum(p.kept), 0), coalesce(sum(p.kept_steps), 0), coalesce(sum(b.num_bytes), 0)
         FROM task_families t LEFT JOIN per_task p USING (task_id) LEFT JOIN task_bytes b USING (task_id)
         WHERE t.campaign = ? GROUP BY ALL ORDER BY ALL""", [filter_units, campaign, explore_units, campaign])
+
+
+def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
+                      filter_units: list[str]) -> list[str]:
+    """The latest dataset per family and split: tasks in the campaign and explored, episodes and
+    triplets explored and kept (by the dataset's own filter units), and the explored shard files' bytes."""
+    rows = dataset_rows(catalog, campaign, explore_units, filter_units)
     if not rows:
         return []
     total = [sum(row[i] for row in rows) for i in range(2, len(rows[0]))]

@@ -239,6 +239,28 @@ def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
     assert "| index | 0 | 1 | 2 | 0.00 | 0.00 | 0.00 |" in text
 
 
+def test_a_relabelled_episode_moves_its_counts_but_its_units_bytes_count_once(tmp_path):
+    """`explore.relabel` files a failed episode under the task it did instead: the episode counts there, and the
+    unit's shard bytes stay under the task it explored, once (they were counted under both)."""
+    from dashboards.results import dataset_rows
+
+    catalog = _catalog_with_tasks(tmp_path)
+    unit = "explore-nav-room-red"
+    episodes = [{"campaign": CAMPAIGN, "iteration": 0, "episode_id": f"e{i}", "task_id": task_id, "instruction": "x",
+                 "explorer": "policy", "seed": i, "shard_key": unit, "num_steps": 10, "episode_return": 0.0,
+                 "success": True, "explorer_stats": stats}
+                for i, (task_id, stats) in enumerate([
+                    ("nav-room-red", None), ("nav-room-red", None),
+                    ("nav-room-sequence-red-green", json.dumps({"relabelled_from": "nav-room-red"}))])]
+    shard = write_shard("episodes", pa.Table.from_pylist(episodes, schema=EPISODES),
+                        Workspace.at(tmp_path).shard_path("episodes", 0, unit))
+    catalog.register_unit(unit_key=unit, stage="explore", campaign=CAMPAIGN, iteration=0, summary={}, shards=[shard])
+    rows = dataset_rows(catalog, CAMPAIGN, [unit], [])
+    assert [row[:8] for row in rows] == [("navigation", "seen", 2, 2, 3, 30, 0, 0),
+                                         ("navigation", "unseen", 1, 0, 0, 0, 0, 0)]
+    assert [row[8] for row in rows] == [shard.num_bytes, 0]
+
+
 def test_running_time_is_the_union_of_the_units_spans():
     # two workers overlapping, a unit inside another, then a pause of 1,000 s before a resume
     assert running_seconds([(0, 10), (5, 12), (6, 7), (1012, 1020)]) == 20
