@@ -11,6 +11,7 @@ import statistics
 from pydantic import BaseModel
 
 from schemas.tables import CURRENT_DEPLOYMENTS
+from schemas.wordings import HELD_OUT_WORDING
 from stages.evaluate import SPLITS, TaskEvaluation, evaluated_key, group_success, wilson_interval
 
 class SeedsSuccess(BaseModel):
@@ -92,15 +93,16 @@ class SeedGroup(BaseModel):
     iteration: int  # the campaign iteration whose dataset they trained on
     recipe: dict  # the training summary's recipe fields (chunk, weights, steps, ...)
     weights: str  # which weights were evaluated: registered (the training's own choice) or final
-    model_keys: list[str]  # one per seed, in seed order
+    model_keys: list[str]  # one per seed, in seed order: the training evaluated (a seed's latest, where trained twice)
+    trained_keys: list[str] = []  # every training of the group's seeds: a deployment of any of them is this group's
     seeds: list[int]
     precisions: list[str] = []  # per seed: "bf16" or "fp32" as it trained ("" where its summary predates the record)
     figures: list[SeedsSuccess]
     cases: int = 0  # the cases every seed was evaluated on: the figures' cases
-    cases_not_shared: int = 0  # cases of those splits that some seeds met and others not (yet): left out of the figures
+    cases_not_shared: int = 0  # cases some seeds met and others not (yet): left out of the figures
 
     def coverage(self) -> str:
-        """"" where the figures hold every case the seeds met in their splits; else how many they hold, and why."""
+        """"" where the figures hold every case the seeds met; else how many they hold, and why."""
         if not self.cases_not_shared:
             return ""
         return (f"over {self.cases} of {self.cases + self.cases_not_shared} cases: the others not evaluated for "
@@ -111,11 +113,26 @@ def _case(evaluation: TaskEvaluation) -> tuple:
     return evaluation.task_id, evaluation.split, evaluation.instruction, evaluation.episodes
 
 
+def _shared_cases(runs: list[list[TaskEvaluation]]) -> tuple[list[list[TaskEvaluation]], int]:
+    """Each seed's evaluations cut to the cases every seed met, each case over the episodes every seed played (a
+    seed evaluated again on more, `sim2act eval --episodes 50`: its first N are the others' N), and how many
+    cases some seeds met and others not (yet). A held-out wording only some seeds met (`sim2act eval --split`)
+    is an extra, not a case missing."""
+    by_seed = [{(t.task_id, t.split, t.instruction): t for t in run} for run in runs]
+    shared = set.intersection(*(set(cases) for cases in by_seed))
+    episodes = {case: min(cases[case].episodes for cases in by_seed) for case in shared}
+    cut = [{case: cases[case].first(episodes[case]) for case in shared} for cases in by_seed]
+    shared = {case for case in shared if all(cases[case].episodes == episodes[case] for cases in cut)}  # cut or not
+    splits = {case[1] for case in shared}
+    met = {case for cases in by_seed for case in cases if case[1] != HELD_OUT_WORDING or case[1] in splits}
+    return [[cases[case] for case in sorted(shared)] for cases in cut], len(met - shared)
+
+
 def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
     """Every group of two or more trainings of the same dataset and recipe (their registered summaries
     less the seed) whose models were all evaluated on `suite`, once per weights, over the cases every
-    seed met. A seed trained twice under two keys (another train stage version) counts once: its latest
-    training evaluated with those weights."""
+    seed met (_shared_cases). A seed trained twice under two keys (another train stage version) counts
+    once: its latest training evaluated with those weights."""
     from stages.evaluate import read_evaluations
 
     trainings: dict[str, dict[int, list[str]]] = {}  # group -> seed -> its model keys, oldest training first
@@ -150,20 +167,14 @@ def seed_groups(catalog, campaign: str, suite: str) -> list[SeedGroup]:
                     members.append((seed, evaluated_keys[-1]))
             if len(members) < len(by_seed):
                 continue
-            runs = [evaluated[evaluated_key(key, weights)] for _, key in members]
-            # the cases every seed was evaluated on (one may have met an extra split: sim2act eval --split, or
-            # be mid-evaluation: counted in cases_not_shared where it is a split the figures report)
-            met = [{_case(t) for t in run} for run in runs]
-            shared = set.intersection(*met)
-            if not shared:
+            runs, not_shared = _shared_cases([evaluated[evaluated_key(key, weights)] for _, key in members])
+            if not runs[0]:
                 continue
-            splits = {case[1] for case in shared}
-            not_shared = {case for cases in met for case in cases if case[1] in splits} - shared
-            figures = protocol_success([[t for t in run if _case(t) in shared] for run in runs])
             groups.append(SeedGroup(iteration=iterations[group], recipe=recipes[group], weights=weights,
                                     model_keys=[k for _, k in members], seeds=[s for s, _ in members],
-                                    precisions=[precision[k] for _, k in members], figures=figures,
-                                    cases=len(shared), cases_not_shared=len(not_shared)))
+                                    trained_keys=[k for keys in by_seed.values() for k in keys],
+                                    precisions=[precision[k] for _, k in members], figures=protocol_success(runs),
+                                    cases=len(runs[0]), cases_not_shared=not_shared))
     # by iteration, then recipe: a loop's iteration 0 reads above its iteration 3
     return sorted(groups, key=lambda g: (g.iteration, json.dumps(g.recipe, sort_keys=True), g.weights != "registered"))
 
@@ -232,7 +243,7 @@ def loop_groups(catalog, campaign: str, groups: list[SeedGroup]) -> list[SeedGro
     deployed = {(iteration, key) for iteration, key in catalog.query(
         f"SELECT iteration, model_key FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?", [campaign])}
     return sorted((g for g in groups if g.weights == "registered"
-                   and any((g.iteration, key) in deployed for key in g.model_keys)), key=lambda g: g.iteration)
+                   and any((g.iteration, key) in deployed for key in g.trained_keys)), key=lambda g: g.iteration)
 
 
 def ablations(loops: list[SeedGroup], groups: list[SeedGroup], split: str = "seen") -> list[Ablation]:

@@ -101,17 +101,18 @@ def episode_choices(catalog: Catalog, campaign: str) -> dict[str, list]:
 
 def task_evaluations(catalog: Catalog, campaign: str, task_id: str) -> Rows:
     """The campaign's evaluation cases of a task, each with its MP4s (paths as the evaluate stage
-    wrote them): every iteration's model (agent `policy`) and the baselines (`expert`, `ppo`, `sac`)."""
+    wrote them): every iteration's model (agent `policy`) and the baselines (`expert`, `ppo`, `sac`), on the
+    campaign's cases first, then on another suite (`sim2act eval --tasks`, or other render settings: named)."""
     return read_rows(catalog, """
         SELECT e.iteration, e.model_key,
                CASE WHEN m.model_key IS NOT NULL THEN 'policy' ELSE coalesce(b.summary->>'algorithm', e.model_key) END
                    AS agent,
-               e.split, e.instruction, e.successes, e.episodes, e.success_video, e.failure_video
+               e.suite, e.split, e.instruction, e.successes, e.episodes, e.success_video, e.failure_video
         FROM current_evaluations e
         LEFT JOIN models m ON m.model_key = e.model_key
         LEFT JOIN stage_runs b ON b.unit_key = e.model_key AND b.stage = 'baselines'
         WHERE e.campaign = $campaign AND e.task_id = $task
-        ORDER BY e.iteration DESC, agent = 'policy' DESC, agent,
+        ORDER BY e.suite <> 'campaign', e.suite, e.iteration DESC, agent = 'policy' DESC, agent,
                  CASE e.split WHEN 'seen' THEN 0 WHEN 'unseen' THEN 1 ELSE 2 END
     """, {"campaign": campaign, "task": task_id})
 

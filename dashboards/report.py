@@ -69,7 +69,7 @@ def seeds_by_iteration(catalog: Catalog, campaign: str) -> dict[int, SeedGroup]:
     left out."""
     deployed = dict(catalog.query(f"SELECT model_key, iteration FROM {CURRENT_DEPLOYMENTS} WHERE campaign = ?", [campaign]))
     return {deployed[key]: group for group in seed_groups(catalog, campaign, CAMPAIGN_SUITE)
-            if group.weights == "registered" for key in group.model_keys if key in deployed}
+            if group.weights == "registered" for key in group.trained_keys if key in deployed}
 
 
 def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -> str:

@@ -27,6 +27,8 @@ from stages.generate_tasks import tasks_unit_key
 from stages.redeploy import MODEL_KEY_TAG, champion_explorer
 from stages.train import model_dims
 from warehouse.catalog import Catalog
+from warehouse.shard_writer import ShardUnreadable
+from warehouse.store import ShardStoreUnreachable
 from warehouse.tasks import load_tasks
 
 _NAME, _ALIAS, _VERSION = re.compile(r"^[A-Za-z0-9_.-]+$"), re.compile(r"^[A-Za-z][A-Za-z0-9_-]*$"), re.compile(r"^v?(\d+)$")
@@ -131,21 +133,27 @@ def _flat(settings: dict, prefix: str) -> dict[str, str]:
 
 
 def explored_conditions(catalog: Catalog, campaign: str) -> dict[str, str]:
-    """The render (and, where recorded, randomisation) settings the campaign's latest explore unit ran under,
-    flat as `render.mesh_detail` -> its value as JSON: its episodes' render record, with the fields added since
-    from the unit's summary (absent there: at their legacy values). {}: the campaign explored nothing here."""
+    """The render and randomisation settings the campaign's latest explore unit ran under, flat as
+    `render.mesh_detail` -> its value as JSON: its episodes' render record, with the fields added since from the
+    unit's summary (absent there: at their legacy values), and the randomisation ranges its summary records
+    (a unit explored before they were recorded: whether randomisation was on, from its episodes' draws).
+    {}: the campaign explored nothing here."""
     latest = catalog.query("SELECT unit_key, summary FROM stage_runs WHERE stage = 'explore' AND campaign = ? "
                            "ORDER BY finished_at DESC NULLS LAST, unit_key DESC LIMIT 1", [campaign])
     if not latest:
         return {}
     unit_key, summary = latest[0][0], json.loads(latest[0][1] or "{}")
     try:
-        rendered = catalog.read_unit_shard("episodes", unit_key, ["render"])["render"].to_pylist()
-    except KeyError:  # a unit that wrote no episodes shard (none in this project does): no record to compare
-        return {}
-    render = {**(rendered[0] or {} if rendered else {}), **RENDER_LEGACY_VALUES,
+        episode = catalog.read_unit_shard("episodes", unit_key, ["render", "randomisation"]).slice(0, 1).to_pylist()
+    except (KeyError, ShardUnreadable, ShardStoreUnreachable):  # no record to read: the summary's alone
+        episode = []
+    render = {**(episode[0]["render"] or {} if episode else {}), **RENDER_LEGACY_VALUES,
               **{k: summary[k] for k in RENDER_LEGACY_VALUES if k in summary}}
-    return {**_flat(render, "render"), **_flat(summary.get("randomise") or {}, "randomise")}
+    if "randomise" in summary:
+        randomise = summary["randomise"]
+    else:  # the whole draw is null where the campaign turned randomisation off
+        randomise = {"enabled": episode[0]["randomisation"] is not None} if episode else {}
+    return {**_flat(render, "render"), **_flat(randomise, "randomise")}
 
 
 def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
@@ -155,6 +163,8 @@ def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
     explored = explored_conditions(Catalog(workspace.catalog), config.name)
     mine = {**_flat(config.render.model_dump(mode="json"), "render"),
             **_flat(config.randomise.model_dump(mode="json"), "randomise")}
+    if mine["randomise.enabled"] == explored.get("randomise.enabled") == "false":  # ranges nothing draws from
+        explored = {name: value for name, value in explored.items() if not name.startswith("randomise.")}
     return [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
 
 

@@ -83,6 +83,19 @@ class TaskEvaluation(BaseModel):
     def success_rate(self) -> float:
         return self.successes / self.episodes
 
+    def first(self, episodes: int) -> TaskEvaluation:
+        """The case over its first `episodes` episodes: a case's episodes are seeded by their index, so these are
+        the episodes an evaluation of `episodes` played. Its mean return and videos stay the whole evaluation's
+        (per-episode returns are not kept). Itself where it has no more, or no per-episode record to cut."""
+        if episodes >= self.episodes or len(self.episode_successes) != self.episodes:
+            return self
+        outcomes, lengths = self.episode_successes[:episodes], self.episode_lengths[:episodes]
+        low, high = wilson_interval(sum(outcomes), episodes)
+        return self.model_copy(update={
+            "episodes": episodes, "successes": sum(outcomes), "ci_low": low, "ci_high": high,
+            "mean_length": sum(lengths) / episodes, "episode_lengths": lengths, "episode_successes": outcomes,
+            "episode_achieved": None if self.episode_achieved is None else self.episode_achieved[:episodes]})
+
 
 def wilson_interval(successes: int, episodes: int, z: float = 1.96) -> tuple[float, float]:
     """The Wilson score interval of a success rate (95% at z = 1.96): unlike p +- z*se it stays

@@ -307,7 +307,8 @@ async function showRollouts(task) {
   for (const row of data.rows) {
     const line = node("div", { class: "rollout" }, box);
     node("span", { class: "what", title: `${row.model_key}: “${row.instruction}”` }, line,
-      `it. ${row.iteration} · ${row.agent} · ${row.split} · ${row.successes}/${row.episodes}`);
+      `it. ${row.iteration} · ${row.agent} · ${row.split} · ${row.successes}/${row.episodes}`
+      + (row.suite === "campaign" ? "" : ` · ${row.suite}`));  // another task set or other frames: said
     for (const [kind, url] of [["success", row.success_url], ["failure", row.failure_url]]) {
       if (!url) {  // keeps the buttons in their columns
         node("span", {}, line);

@@ -88,6 +88,23 @@ def test_the_success_panels_read_what_the_report_reads(tmp_path):
     assert per_task["nav-room-red"].startswith("9/10")
 
 
+def test_the_task_page_names_an_evaluation_outside_the_campaigns_cases(tmp_path):
+    """`sim2act eval --set render.mesh_detail=1.0` of the deployed model on a campaign task: its own row, named by
+    its suite, after the campaign's, not indistinguishable from the model's figure beside it."""
+    from dashboards.reads import task_evaluations
+    from tests.dashboards.test_results import CAMPAIGN, _catalog_with_tasks, _evaluated, _register
+
+    catalog = _catalog_with_tasks(tmp_path)
+    _register(catalog, 0, {("nav-room-red", "seen"): 6})
+    _evaluated(catalog, "train-0", 2, unit="evaluate-full-meshes")
+    with catalog.connect() as con:  # as `sim2act eval` files it under other frames
+        con.execute("UPDATE evaluations SET suite = 'campaign @ render.mesh_detail=1.0' "
+                    "WHERE unit_key = 'evaluate-full-meshes'")
+    rows = task_evaluations(catalog, CAMPAIGN, "nav-room-red").rows
+    assert [(row["suite"], row["model_key"], row["successes"]) for row in rows] == [
+        ("campaign", "train-0", 6), ("campaign @ render.mesh_detail=1.0", "train-0", 2)]
+
+
 @pytest.mark.parametrize("panel, message", [
     ("{id: wipe, title: Wipe, kind: table, sql: 'DELETE FROM episodes'}",
      "panel wipe: the warehouse is read-only here: DELETE statements are refused (use SELECT)"),

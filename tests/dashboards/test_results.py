@@ -127,11 +127,12 @@ def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "
 
 
 def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None,
-               campaign: str = CAMPAIGN, split: str = "seen") -> None:
-    """`model`'s evaluation on one case: nav-room-red, or `task` (task id, family), in `split`."""
+               campaign: str = CAMPAIGN, split: str = "seen", unit: str | None = None) -> None:
+    """`model`'s evaluation on one case: nav-room-red, or `task` (task id, family), in `split`; its first `won`
+    episodes succeeded. `unit`: the case evaluated again, under another unit."""
     task_id, family = task or ("nav-room-red", "navigation")
     low, high = wilson_interval(won, episodes)
-    key = f"evaluate-{model}-{task_id}" + ("" if campaign == CAMPAIGN else f"-{campaign}")
+    key = unit or f"evaluate-{model}-{task_id}" + ("" if campaign == CAMPAIGN else f"-{campaign}")
     row = {"unit_key": key, "campaign": campaign, "iteration": 0, "suite": CAMPAIGN_SUITE,
            "model_key": model, "task_id": task_id, "family": family, "split": split,
            "instruction": task_id, "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
@@ -193,30 +194,38 @@ def test_the_report_pools_trainings_that_differ_only_in_their_seed(tmp_path):
 
 def test_a_seed_trained_twice_counts_once_and_a_seed_mid_evaluation_is_said(tmp_path):
     """Seed 0 trained again under another key (a new train stage version): the group holds its latest training
-    once, not seed 0 twice. Seed 2 evaluated on one of the two cases so far: the figures hold the case every seed
-    met, and the row says how many it left out."""
+    once, not seed 0 twice, and the loop's deployment of the older one still finds the group. Seed 2 evaluated on
+    one of three cases so far (another case of its split, and a whole split, not yet): the figures hold the case
+    every seed met, and the row says how many it left out. Seed 1 evaluated again on 20 episodes: its first 10
+    are the others' 10, so the case stays shared."""
     from dashboards.report import campaign_summary
     from dashboards.results import protocol_markdown
 
     catalog = Catalog(Workspace.at(tmp_path).create().catalog)
     catalog.initialise()
-    for key, seed, won in (("train-v1-s0", 0, 1), ("train-s1", 1, 7), ("train-v2-s0", 0, 9), ("train-s2", 2, 8)):
+    # registered in this order: train-b-s0 is seed 0's older training, train-a-s0 its latest
+    for key, seed, won in (("train-b-s0", 0, 1), ("train-s1", 1, 7), ("train-a-s0", 0, 9), ("train-s2", 2, 8)):
         _training(catalog, key, seed, 8)
         _evaluated(catalog, key, won)
-        if seed != 2:  # seed 2 is still being evaluated: lift-red not yet
+        if seed != 2:  # seed 2 is still being evaluated: lift-red and the paraphrase not yet
             _evaluated(catalog, key, 5, task=("lift-red", "robosuite"))
+            _evaluated(catalog, key, 3, task=("nav-room-sequence-red-green", "navigation"), split="unseen_paraphrase")
     lines = protocol_markdown(catalog, CAMPAIGN)
     rows = [_cells(line) for line in lines if line.startswith("| 0 | chunk")]
     assert [row[3:] for row in rows] == [
-        ["0, 1, 2 (over 1 of 2 cases: the others not evaluated for every seed (yet))",
+        ["0, 1, 2 (over 1 of 3 cases: the others not evaluated for every seed (yet))",
          "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]"]]
-    _register(catalog, 0, {}, model="train-v2-s0")  # the loop deployed seed 0's latest: the summary's seeds line
-    assert ("    3 seeds     80% ± 10 [63%, 90%]  (over 1 of 2 cases: the others not evaluated for every "
+    _register(catalog, 0, {}, model="train-b-s0")  # the loop deployed seed 0's older training: the seeds line
+    assert ("    3 seeds     80% ± 10 [63%, 90%]  (over 1 of 3 cases: the others not evaluated for every "
             "seed (yet))") in campaign_summary(catalog, CAMPAIGN, []).splitlines()
     _evaluated(catalog, "train-s2", 5, task=("lift-red", "robosuite"))  # seed 2's evaluation done
+    _evaluated(catalog, "train-s2", 3, task=("nav-room-sequence-red-green", "navigation"), split="unseen_paraphrase")
+    _evaluated(catalog, "train-s1", 15, episodes=20, unit="evaluate-train-s1-again")  # its first 10 all succeeded
     rows = [_cells(line) for line in protocol_markdown(catalog, CAMPAIGN) if line.startswith("| 0 | chunk")]
-    assert rows[0][3] == "0, 1, 2" and rows[0][4].startswith("65% ± 5 (70, 60, 65) over 3 seeds, 39/60 pooled")
-    assert "    3 seeds     65% ± 5  [52%, 76%]" in campaign_summary(catalog, CAMPAIGN, []).splitlines()
+    assert rows[0][3:] == ["0, 1, 2", "70% ± 5 (70, 75, 65) over 3 seeds, 42/60 pooled [57%, 80%]",
+                           "30% ± 0 (30, 30, 30) over 3 seeds, 9/30 pooled [17%, 48%]"]
+    [seeds] = [line for line in campaign_summary(catalog, CAMPAIGN, []).splitlines() if "3 seeds" in line]
+    assert seeds.split() == ["3", "seeds", "70%", "±", "5", "[57%,", "80%]", "30%", "±", "0", "[17%,", "48%]"]
 
 
 def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):

@@ -48,6 +48,28 @@ def test_an_evaluation_under_other_frames_than_the_campaign_explored_is_a_suite_
                                                             "render.mesh_detail=1.0, render.shadows=true")
 
 
+def test_a_workspace_explored_before_the_ranges_were_recorded_still_tells_randomisation_off(tmp_path):
+    """An explore unit whose summary predates the recorded ranges: its episodes' draws say whether randomisation
+    was on (null: off). Off on both sides, the ranges draw nothing: the same episodes, the campaign's suite. An
+    episodes shard that cannot be read leaves the summary's record, not a failed command."""
+    workspace = Workspace.at(tmp_path / "ws").create()
+    catalog = Catalog(workspace.catalog)
+    catalog.initialise()
+    off = load_config("smoke", None, {"randomise": {"enabled": False}})
+    episode = {"campaign": off.name, "iteration": 0, "episode_id": "e0", "task_id": "lift-red", "instruction": "x",
+               "explorer": "expert", "seed": 0, "shard_key": "explore-a", "num_steps": 5, "episode_return": 0.0,
+               "success": True, "randomisation": None}
+    shard = write_shard("episodes", pa.Table.from_pylist([episode], schema=EPISODES),
+                        workspace.shard_path("episodes", 0, "explore-a"))
+    catalog.register_unit(unit_key="explore-a", stage="explore", campaign=off.name, iteration=0,
+                          summary={"episodes": 1, "steps": 5, "mesh_detail": 0.1}, shards=[shard])
+    assert conditions_apart(workspace, off.model_copy(update={"randomise": RandomiseConfig(enabled=False, tint=0.5)})) == []
+    assert conditions_apart(workspace, load_config("smoke")) == ["randomise.enabled=true"]
+    shard.path.unlink()  # gone from under the catalog: the summary's fields alone
+    assert conditions_apart(workspace, load_config("smoke", None, {"render": {"mesh_detail": 0.2}})) == [
+        "render.mesh_detail=0.2"]
+
+
 @pytest.fixture(scope="module")
 def units():
     tasks = generate_tasks(TasksConfig(specs=["lift"], colours=["red", "green"]), 0)
