@@ -21,7 +21,7 @@ from pydantic import ValidationError
 
 from envs.observation import MujocoState
 from envs.randomisation import Randomisation
-from schemas.config import RENDER_LEGACY_VALUES, RenderConfig
+from schemas.config import RenderConfig, recorded_render
 from schemas.errors import Sim2ActError
 from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
@@ -67,9 +67,6 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     # a relabelled episode is filed as the task it ended doing; explore reset it as the one it set out for,
     # and the reset is what colours the objects
     task_id = relabelled_from or filed_as
-    # render fields newer than episodes.render: the unit's summary keeps those not at their legacy values
-    kept = json.loads(summary) if summary else {}
-    later = {field: kept.get(field, legacy) for field, legacy in RENDER_LEGACY_VALUES.items()}
     task = find_task(catalog, campaign, task_id)
     if task is None:
         raise ReplayError(f"replay: episode {episode_id!r}: its task {task_id!r} is not among campaign "
@@ -81,7 +78,8 @@ def load_episode(catalog: Catalog, episode_id: str) -> StoredEpisode:
     return StoredEpisode(
         episode_id=episode_id, task=task, seed=seed,
         randomisation=Randomisation.model_validate(randomisation) if randomisation else None,
-        render=RenderConfig.model_validate({**render, **later}) if render else None, states=states,
+        render=RenderConfig.model_validate(recorded_render(render, json.loads(summary) if summary else {}))
+        if render else None, states=states,
     )
 
 

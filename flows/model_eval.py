@@ -17,7 +17,7 @@ from mlflow.exceptions import MlflowException
 
 from envs.suite import generate_tasks
 from policies.model import ModelDims
-from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig, ConfigError
+from schemas.config import CampaignConfig, ConfigError, recorded_render
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.settings import tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
@@ -147,8 +147,7 @@ def explored_conditions(catalog: Catalog, campaign: str) -> dict[str, str]:
         episode = catalog.read_unit_shard("episodes", unit_key, ["render", "randomisation"]).slice(0, 1).to_pylist()
     except (KeyError, ShardUnreadable, ShardStoreUnreachable):  # no record to read: the summary's alone
         episode = []
-    render = {**(episode[0]["render"] or {} if episode else {}), **RENDER_LEGACY_VALUES,
-              **{k: summary[k] for k in RENDER_LEGACY_VALUES if k in summary}}
+    render = recorded_render(episode[0]["render"] or {} if episode else {}, summary)
     if "randomise" in summary:
         randomise = summary["randomise"]
     else:  # the whole draw is null where the campaign turned randomisation off

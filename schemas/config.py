@@ -120,6 +120,12 @@ class RenderConfig(_Strict):
 RENDER_LEGACY_VALUES = {"mesh_detail": 1.0, "wrist_camera": False, "decimate_colliding": False}
 
 
+def recorded_render(episode_render: dict, unit_summary: dict) -> dict[str, Any]:
+    """An episode's render settings as stored: `episodes.render` (a shard schema older than the fields added
+    since) with those fields from its explore unit's summary, which keeps them where not at their legacy values."""
+    return {**episode_render, **{field: unit_summary.get(field, legacy) for field, legacy in RENDER_LEGACY_VALUES.items()}}
+
+
 def render_key_fields(render: RenderConfig) -> dict[str, Any]:
     """The render settings as explore, evaluate and baselines units key them (fields added later at
     their legacy value left out, so earlier work keeps its keys)."""
