@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from contextlib import contextmanager
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -31,6 +32,10 @@ Unit = TypeVar("Unit")
 Result = TypeVar("Result")
 log = logging.getLogger("sim2act.envs.pool")
 RETRIES = 2  # a unit whose worker died is run again this many times before the stage fails
+# Rate and ETA are paced on about the last 10 minutes, not the whole run: a run paused (SIGSTOP while
+# the suite ran beside a day-long SAC) or sped up midway (a neighbour finished) would otherwise carry
+# that pace to its end. Long enough to average over a few of a slow unit's log lines.
+PACE_WINDOW_S = 600.0
 
 
 class WorkerLost(RuntimeError):
@@ -59,7 +64,9 @@ class Progress:
         self.count_name, self.rate_name, self.on_update = count_name, rate_name, on_update
         self.done = self.amount = 0
         self.done_before = 0  # done by an earlier run this one resumes: not part of this run's pace
-        self.started = time.monotonic()
+        # (time, units this run did itself, amount) at most every second; the first is the oldest at least
+        # PACE_WINDOW_S old (or the run's start), which rate and ETA are measured from
+        self.samples: deque[tuple[float, int, int]] = deque([(time.monotonic(), 0, 0)])
         # disable=None: drawn only on a terminal; logs and Prefect get the lines below
         self.bar = tqdm(total=total, desc=label, unit=count_name, disable=None, leave=False, file=sys.stderr)
 
@@ -67,10 +74,11 @@ class Progress:
         """`log=False`: the bar moves, no log line (units far shorter than a log line's worth)."""
         self.done += count
         self.amount += amount
-        elapsed = max(time.monotonic() - self.started, 1e-6)
-        rate = self.amount / elapsed
-        ran = self.done - self.done_before
-        eta = elapsed / ran * (self.total - self.done) if ran > 0 else float("nan")
+        now = time.monotonic()
+        pace, rate = self._recent(now)
+        eta = (self.total - self.done) / pace if pace > 0 else float("nan")
+        if now - self.samples[-1][0] >= 1.0:
+            self.samples.append((now, self.done - self.done_before, self.amount))
         self.bar.update(count)
         self.bar.set_postfix_str(f"{rate:.1f} {self.rate_name}/s", refresh=False)
         if log:
@@ -82,8 +90,18 @@ class Progress:
             self.on_update(self.done / max(self.total, 1))
 
     def pace(self) -> float:
-        """Units per second this run did itself (an earlier run's, resumed, not counted); 0 before any."""
-        return (self.done - self.done_before) / max(time.monotonic() - self.started, 1e-6)
+        """Units per second this run did itself over about the last PACE_WINDOW_S (an earlier run's,
+        resumed, not counted); 0 before any."""
+        return self._recent(time.monotonic())[0]
+
+    def _recent(self, now: float) -> tuple[float, float]:
+        """(units/s, amount/s) this run did itself since its newest sample at least PACE_WINDOW_S old
+        (its start, if none is): the samples older than that one are dropped."""
+        while len(self.samples) > 1 and now - self.samples[1][0] >= PACE_WINDOW_S:
+            self.samples.popleft()
+        since, done, amount = self.samples[0]
+        elapsed = max(now - since, 1e-6)
+        return (self.done - self.done_before - done) / elapsed, (self.amount - amount) / elapsed
 
     def resume_at(self, done: int) -> None:
         """Move to `done`, the units between finished by an earlier run (a resumed checkpoint): the

@@ -236,7 +236,8 @@ def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:
 
 def write_progress(folder: Path, done: int, episodes: int, successes: int, rate: float | None = None) -> None:
     """A training's progress between its checkpoints (`progress_callback`: at its start and each 1%);
-    `rate`: this run's env steps/s so far (None at its start), which `sim2act report` turns into an ETA."""
+    `rate`: this run's env steps/s over its last ~10 minutes (`Progress.pace`; None at its start), which
+    `sim2act report` turns into an ETA."""
     write_text_atomically(folder / PROGRESS, json.dumps({"num_timesteps": done, "episodes": episodes,
                                                          "successes": successes, "rate": rate}))
 

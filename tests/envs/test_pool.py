@@ -122,6 +122,37 @@ def test_a_resumed_run_paces_its_eta_on_its_own_work(monkeypatch):
     assert lines == ["train: 1620/9056 steps, 5120 samples, 512.0 samples/s, ETA 3718s"]
 
 
+def test_a_run_paused_midway_paces_its_eta_on_its_last_ten_minutes(monkeypatch):
+    """A SAC at 10 env steps/s for 20 minutes, stopped (SIGSTOP) for 30 while the suite ran, then 15 minutes
+    more at 10/s: its rate says 10/s again, not the 5.4/s of the whole run's average, pauses included."""
+    import logging
+
+    import envs.pool as pool
+
+    now = [0.0]
+    monkeypatch.setattr(pool.time, "monotonic", lambda: now[0])
+    lines = []
+    logger = logging.getLogger("test-progress")
+    monkeypatch.setattr(logger, "info", lambda fmt, *args: lines.append(fmt % args))
+    progress = pool.Progress(logger, "sac", 100_000, "env steps", "env steps")
+
+    def run(seconds: int) -> None:
+        for _ in range(seconds):
+            now[0] += 1.0
+            progress.advance(10, 10, log=False)
+
+    run(20 * 60)
+    assert progress.pace() == pytest.approx(10.0)
+    now[0] += 30 * 60
+    run(60)  # a minute after the pause the window still holds it: slow, and it says so
+    assert progress.pace() < 2.0
+    run(14 * 60)
+    assert progress.pace() == pytest.approx(10.0)
+    progress.advance(10, 10)
+    assert lines == ["sac: 21010/100000 env steps, 21010 env steps, 10.0 env steps/s, ETA 7886s"]
+    assert len(progress.samples) <= 602  # a sample a second over the window, not one per advance of the run
+
+
 def test_interleaving_takes_each_group_in_turn_and_keeps_every_unit_once():
     units = ["nav-a0", "nav-a1", "nav-a2", "mw-b0", "rs-c0", "rs-c1"]
     order = interleaved(units, lambda u: u.split("-")[0])
