@@ -23,7 +23,8 @@ import pyarrow.parquet as pq
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
 from warehouse.catalog import Catalog
-from warehouse.shard_writer import ROW_GROUP_ROWS, ZSTD_LEVEL, SchemaMismatch, ShardUnreadable, read_shard
+from warehouse.shard_writer import ROW_GROUP_ROWS, ZSTD_LEVEL, SchemaMismatch, ShardUnreadable, check_schema
+from warehouse.store import ShardStoreUnreachable
 
 log = logging.getLogger("sim2act.warehouse.compaction")
 
@@ -43,6 +44,15 @@ class Source:
     unit_key: str
     num_rows: int
     num_bytes: int
+    sha256: str  # as registered: a source is compacted only when its bytes still hash to it
+
+
+class BadSource(ShardUnreadable):
+    """A source that is not what the catalog registered; `source` is it (its unit is the one to quarantine)."""
+
+    def __init__(self, source: Source, reason: str):
+        super().__init__(reason)
+        self.source = source
 
 
 @dataclass(frozen=True)
@@ -74,7 +84,7 @@ def plan_compaction(catalog: Catalog, iterations: Sequence[int] | None = None) -
     shards still their own files, in path order, cut at COMPACT_FILE_ROWS rows or COMPACT_FILE_BYTES;
     a cut of one shard is left as it is (nothing to gain)."""
     rows = catalog.query(
-        "SELECT table_name, campaign, iteration, path, unit_key, num_rows, num_bytes FROM shards "
+        "SELECT table_name, campaign, iteration, path, unit_key, num_rows, num_bytes, sha256 FROM shards "
         "WHERE stored_in IS NULL AND (?::INTEGER[] IS NULL OR list_contains(?, iteration)) "
         "ORDER BY table_name, campaign, iteration, path", [iterations, iterations])
     plans: list[CompactionPlan] = []
@@ -84,8 +94,8 @@ def plan_compaction(catalog: Catalog, iterations: Sequence[int] | None = None) -
             plans.append(CompactionPlan(*key, tuple(sources)))
 
     key, run = None, []
-    for table, campaign, iteration, path, unit, num_rows, num_bytes in rows:
-        source = Source(path, unit, num_rows, num_bytes)
+    for table, campaign, iteration, path, unit, num_rows, num_bytes, sha in rows:
+        source = Source(path, unit, num_rows, num_bytes, sha)
         full = (sum(s.num_rows for s in run) + num_rows > COMPACT_FILE_ROWS
                 or sum(s.num_bytes for s in run) + num_bytes > COMPACT_FILE_BYTES)
         if (table, campaign, iteration) != key or (run and full):
@@ -99,13 +109,43 @@ def plan_compaction(catalog: Catalog, iterations: Sequence[int] | None = None) -
 
 
 def _concatenated(catalog: Catalog, plan: CompactionPlan) -> Iterator[pa.Table]:
-    """The plan's sources' rows in path order, each checked against its registered row count."""
+    """The plan's sources' rows in path order, each read by `_source_rows`."""
     for source in plan.sources:
-        rows = read_shard(plan.table, catalog.warehouse / source.path, store=catalog.store)
-        if rows.num_rows != source.num_rows:
-            raise ShardUnreadable(f"{catalog.store.location(source.path)}: {source.num_rows} rows registered, "
-                                  f"the file has {rows.num_rows}")
-        yield rows
+        yield _source_rows(catalog, plan.table, source)
+
+
+def _source_rows(catalog: Catalog, table: str, source: Source) -> pa.Table:
+    """A source's rows, from its bytes read once: they hash to its registered sha256, decode as a
+    Parquet file of the table's schema and hold its registered row count. The hash first: a flipped
+    bit inside a frame decodes without complaint, and once rewritten into a compacted file (a new
+    hash, registered) it could never be told from the data explored.
+
+    Raises:
+        BadSource: naming the source and which check it failed.
+        ShardStoreUnreachable: the store, not the source (nothing to quarantine).
+    """
+    where = catalog.store.location(source.path)
+    try:
+        with catalog.store.read(source.path) as handle:
+            data = handle.read_buffer()
+    except ShardStoreUnreachable:
+        raise
+    except OSError as exc:
+        raise BadSource(source, f"{where}: not readable ({exc})") from None
+    sha = hashlib.sha256(data).hexdigest()
+    if sha != source.sha256:
+        raise BadSource(source, f"{where}: its bytes hash to {sha[:16]}…, expected the registered {source.sha256[:16]}…")
+    try:
+        parquet = pq.ParquetFile(pa.BufferReader(data))
+        check_schema(table, parquet.schema_arrow)
+        rows = parquet.read()
+    except SchemaMismatch as exc:
+        raise BadSource(source, f"{where}: {exc}") from None
+    except (OSError, pa.ArrowException) as exc:
+        raise BadSource(source, f"{where}: not a readable Parquet file ({exc})") from None
+    if rows.num_rows != source.num_rows:
+        raise BadSource(source, f"{where}: {source.num_rows} rows registered, the file has {rows.num_rows}")
+    return rows
 
 
 def write_compacted(catalog: Catalog, plan: CompactionPlan) -> tuple[str, int, str]:
@@ -113,7 +153,7 @@ def write_compacted(catalog: Catalog, plan: CompactionPlan) -> tuple[str, int, s
     after a kill writes the same name and bytes). -> (path relative to the warehouse, bytes, sha256).
 
     Raises:
-        ShardUnreadable, SchemaMismatch: a source is not what the catalog registered (naming it)."""
+        BadSource: a source is not what the catalog registered (naming it)."""
     schema = SHARD_TABLES[plan.table].with_metadata(
         {b"sim2act.table": plan.table.encode(), b"sim2act.schema_version": str(SCHEMA_VERSION).encode()})
     sink = pa.BufferOutputStream()
@@ -154,8 +194,9 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
            sources' `stored_in` / `row_offset`, the table's views. A kill before this leaves an
            unregistered file that the next run's orphan sweep removes; after it, the sources.
         4. Delete the sources' files.
-        A source that is not what the catalog registered is quarantined with its unit (the next run
-        redoes it) and its file is left for the next compaction.
+        A source that is not what the catalog registered (its sha256, its schema, its rows, or it does
+        not decode) is quarantined with its unit, the unit's other shards too (the next run redoes it),
+        and what is left is planned again.
 
     Args:
         catalog: the warehouse's catalog.
@@ -166,16 +207,18 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
         What was compacted: files, sources, rows, bytes before and after, quarantined sources.
     """
     started = time.monotonic()
-    plans = plan_compaction(catalog, iterations)
     summary = CompactionSummary()
-    for done, plan in enumerate(plans, start=1):
+    done, plans = 0, plan_compaction(catalog, iterations)
+    while plans:
+        plan = plans.pop(0)
         try:
             path, size, sha = write_compacted(catalog, plan)
-        except (ShardUnreadable, SchemaMismatch) as exc:
-            bad = next((s.path for s in plan.sources if s.path in str(exc)), plan.sources[0].path)
-            catalog.quarantine(bad, str(exc))
-            summary.quarantined.append((bad, str(exc)))
-            log.warning("compaction: quarantined %s (%s); its file waits for the next compaction", bad, exc)
+        except BadSource as exc:
+            catalog.quarantine(exc.source.path, str(exc))
+            summary.quarantined.append((exc.source.path, str(exc)))
+            log.warning("compaction: quarantined unit %s (%s); the next run redoes it", exc.source.unit_key, exc)
+            # planned again: its unit's shards of the other tables went with it, out of the plans still to do
+            plans = plan_compaction(catalog, iterations)
             continue
         offsets, at = [], 0
         for source in plan.sources:
@@ -185,12 +228,13 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
                                    num_rows=plan.num_rows, num_bytes=size, sha256=sha, offsets=offsets)
         for source in plan.sources:
             catalog.store.delete(source.path)
+        done += 1
         summary.files += 1
         summary.sources += len(plan.sources)
         summary.rows += plan.num_rows
         summary.bytes_before += sum(source.num_bytes for source in plan.sources)
         summary.bytes_after += size
         if progress is not None:
-            progress(done, len(plans), plan)
+            progress(done, done + len(plans), plan)
     summary.wall_s = time.monotonic() - started
     return summary

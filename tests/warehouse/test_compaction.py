@@ -136,3 +136,50 @@ def test_the_cli_compacts_once_and_says_what_it_did(filled, capsys):
     assert "nothing to compact" in capsys.readouterr().out
     assert main(["warehouse", "compact", "--workspace", str(filled.root), "--iteration", "-1"]) == 2
     assert "--iteration must be 0 or more, got [-1]" in capsys.readouterr().err
+
+
+def _source(catalog: Catalog, table: str, index: int):
+    return [p for p in plan_compaction(catalog, [0]) if p.table == table][0].sources[index]
+
+
+def _flip_bytes(path, count: int = 64) -> None:
+    data = bytearray(path.read_bytes())
+    for k in range(len(data) // 4, len(data) // 4 + count):
+        data[k] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("damage", ["bytes in a frame", "a valid rewrite", "another schema", "undecodable"])
+def test_a_source_not_as_registered_is_quarantined_with_its_own_unit_and_the_rest_compacted(filled, damage):
+    """A source is checked against its registered sha256 before its rows go into a compacted file: a flipped bit
+    in a frame decodes fine, and a compacted file (a new sha256) would keep it for good. Whatever the damage, the
+    unit quarantined is the damaged source's (the second of its plan, not the first), and the iteration's other
+    units are compacted in the same run (planned again: the unit's other tables' shards went with it)."""
+    import pyarrow as pa
+
+    catalog = Catalog(filled.catalog)
+    table = "episodes" if damage == "another schema" else "steps"
+    victim = _source(catalog, table, 1)
+    path = filled.warehouse / victim.path
+    if damage == "bytes in a frame":
+        _flip_bytes(path)
+    elif damage == "a valid rewrite":
+        rows = pq.read_table(path)
+        pq.write_table(rows.set_column(rows.schema.get_field_index("reward"), "reward",
+                                       pa.compute.add(rows["reward"], 1000.0)), path)
+    elif damage == "another schema":
+        rows = pq.read_table(path)
+        at = rows.schema.get_field_index("episode_return")
+        pq.write_table(rows.set_column(at, "episode_return", rows["episode_return"].cast(pa.float16())), path)
+    else:
+        path.write_bytes(b"PAR1" + b"\0" * 64 + b"PAR1")
+
+    summary = compact(catalog, iterations=[0])
+
+    [(path_quarantined, reason)] = summary.quarantined
+    assert path_quarantined == victim.path and "expected the registered" in reason  # any change moves the hash
+    assert catalog.query("SELECT DISTINCT unit_key FROM quarantine") == [(victim.unit_key,)]
+    assert catalog.query("SELECT count(*) FROM shards WHERE unit_key = ?", [victim.unit_key]) == [(0,)]
+    # the other two units of iteration 0, every table, compacted in this run; nothing left to do there
+    assert summary.files == 3 and plan_compaction(catalog, [0]) == []
+    assert catalog.verify(full=True) == []
