@@ -569,20 +569,25 @@ class Catalog:
                     raise ShardUnreadable(f"{where}: sha256 differs from the registered one")
             except (ShardUnreadable, SchemaMismatch) as exc:
                 bad.append((path, str(exc)))
-        for path, reason in bad:
-            self.quarantine(path, reason)
-        return bad
+        # a file listed above may have been compacted away since (a `warehouse compact` beside this): its
+        # rows are in the compacted file now, and its unit is not the one to quarantine
+        return [(path, reason) for path, reason in bad if self.quarantine(path, reason, checked_file=True)]
 
-    def quarantine(self, path: str, reason: str) -> None:
+    def quarantine(self, path: str, reason: str, checked_file: bool = False) -> bool:
         """Unregister the unit whose file `path` is bad, with all its shards (a compacted file: every
         unit it holds), and move the files to warehouse/quarantine/: queries keep working without them,
         and the next run redoes the units (same seeds, same data). A compacted file that still holds
-        other units' rows stays, its views cut to those rows; one that holds none goes too."""
+        other units' rows stays, its views cut to those rows; one that holds none goes too.
+        `checked_file`: `path` is a file found bad (verify's), quarantined only while the catalog still
+        reads it, as a shard's own file or a compacted one (a source compacted since is not). -> whether
+        any unit was quarantined."""
         with self._transaction() as con:
+            own_file = "stored_in IS NULL" if checked_file else "TRUE"
             units = [unit for (unit,) in con.execute(
-                "SELECT DISTINCT unit_key FROM shards WHERE path = ? OR stored_in = ? ORDER BY 1", [path, path]).fetchall()]
+                f"SELECT DISTINCT unit_key FROM shards WHERE (path = ? AND {own_file}) OR stored_in = ? ORDER BY 1",
+                [path, path]).fetchall()]
             if not units:
-                return
+                return False
             siblings = con.execute("SELECT path, table_name, iteration, view_part, unit_key, stored_in FROM shards "
                                    "WHERE list_contains(?, unit_key)", [units]).fetchall()
             now = datetime.now(timezone.utc).replace(tzinfo=None)
@@ -603,6 +608,7 @@ class Catalog:
         for p in [p for p, _, _, _, _, stored in siblings if stored is None] + emptied:
             if self.store.exists(p):
                 self.store.move(p, f"quarantine/{p}")
+        return True
 
     def registered_shard_in(self, message: str) -> str | None:
         """The registered file (a shard's own, or a compacted one) a DuckDB error message names, if any."""

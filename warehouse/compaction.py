@@ -214,7 +214,7 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
         try:
             path, size, sha = write_compacted(catalog, plan)
         except BadSource as exc:
-            catalog.quarantine(exc.source.path, str(exc))
+            catalog.quarantine(exc.source.path, str(exc), checked_file=True)
             summary.quarantined.append((exc.source.path, str(exc)))
             log.warning("compaction: quarantined unit %s (%s); the next run redoes it", exc.source.unit_key, exc)
             # planned again: its unit's shards of the other tables went with it, out of the plans still to do

@@ -183,3 +183,26 @@ def test_a_source_not_as_registered_is_quarantined_with_its_own_unit_and_the_res
     # the other two units of iteration 0, every table, compacted in this run; nothing left to do there
     assert summary.files == 3 and plan_compaction(catalog, [0]) == []
     assert catalog.verify(full=True) == []
+
+
+def test_a_verify_that_a_compaction_overtakes_quarantines_nothing(filled, monkeypatch):
+    """`sim2act warehouse verify` lists the files, then checks them one by one: a compaction committed in between
+    deletes the sources it listed. A source compacted away is not a bad file of its unit (its rows are in the
+    compacted file): once that quarantined every unit of the iteration and the compacted files with them."""
+    import warehouse.catalog as catalog_module
+
+    catalog = Catalog(filled.catalog)
+    before = _seen(catalog)
+    inspect = catalog_module.inspect_shard
+    overtaken = []
+
+    def compaction_overtakes(*args, **kwargs):
+        if not overtaken:  # verify's first check (the compaction's own registration inspects its file too)
+            overtaken.append(None)
+            overtaken[0] = compact(catalog, iterations=[0])
+        return inspect(*args, **kwargs)
+
+    monkeypatch.setattr(catalog_module, "inspect_shard", compaction_overtakes)
+    assert catalog.verify() == []
+    assert overtaken[0].files == 3 and catalog.query("SELECT count(*) FROM quarantine") == [(0,)]
+    assert _seen(catalog) == before
