@@ -47,6 +47,44 @@ def exclusive_run(workspace: Workspace, campaign: str) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+@contextmanager
+def reading_shard_files(workspace: Workspace, command: str) -> Iterator[None]:
+    """Held while `command` reads the warehouse's shard files at length (`sim2act train` outside a
+    campaign, `export lerobot`, `warehouse verify`): beside each other and beside a campaign, but not
+    beside `warehouse compact`, which deletes the files it rewrote (a training listed them once, an
+    export or a verify too, and would find them gone), so whichever comes second is refused in one line.
+
+    Raises:
+        WorkspaceBusy: a compaction holds the workspace's shard files."""
+    with _flock(workspace, fcntl.LOCK_SH, f"{command}: a `sim2act warehouse compact` is rewriting the shard files of "
+                f"{workspace.root}; run it again when that ends"):
+        yield
+
+
+@contextmanager
+def rewriting_shard_files(workspace: Workspace) -> Iterator[None]:
+    """Held by `warehouse compact` (beside `exclusive_run`, which keeps the campaigns out).
+
+    Raises:
+        WorkspaceBusy: a command reads the shard files (`reading_shard_files`)."""
+    with _flock(workspace, fcntl.LOCK_EX, f"warehouse compact: a training, export or verify is reading the shard "
+                f"files of {workspace.root}; run it again when that ends (nothing was compacted)"):
+        yield
+
+
+@contextmanager
+def _flock(workspace: Workspace, kind: int, busy: str) -> Iterator[None]:
+    with workspace.shard_files_lock.open("a") as handle:
+        try:
+            fcntl.flock(handle, kind | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise WorkspaceBusy(busy) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def run_holder(workspace: Workspace) -> dict | None:
     """The run holding the workspace now, as it wrote itself into the lock ({campaign, pid, host,
     since, started}); None when none does. Read, never locked, so that a report never stands in a

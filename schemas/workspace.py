@@ -80,6 +80,12 @@ class Workspace:
         return self.root / "run.lock"
 
     @property
+    def shard_files_lock(self) -> Path:
+        """Shared by the commands reading the shard files at length, exclusive to `warehouse compact`
+        (flows/run_lock.py)."""
+        return self.root / "shard-files.lock"
+
+    @property
     def service(self) -> Path:
         """The local stack's record (`sim2act up`): which processes run, on which ports, their logs."""
         return self.root / "service"

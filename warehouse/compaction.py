@@ -181,9 +181,9 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
             progress: Callable[[int, int, CompactionPlan], None] | None = None) -> CompactionSummary:
     """Compact the warehouse's shards (of `iterations`, or all).
 
-    Run it where nothing else writes the warehouse or trains from it (`sim2act warehouse compact`
-    holds the workspace's run lock): a training that listed a source before it was deleted could not
-    read it.
+    Run it where nothing else writes the warehouse or reads its files at length (`sim2act warehouse
+    compact` holds the workspace's run lock and its shard-files lock, flows/run_lock.py): a training
+    that listed a source before it was deleted could not read it.
 
     Steps:
         1. Plan the files (`plan_compaction`): per table, campaign and iteration, the shards still

@@ -74,6 +74,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     config = campaign_config(args)
     from envs.suite import generate_tasks
+    from flows.run_lock import reading_shard_files
     from flows.tracking import Tracking
     from stages.generate_tasks import tasks_unit_key
     from stages.index import latest_index
@@ -99,11 +100,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
     print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
           f"({dataset.triplets:,} triplets), MLflow run {run_id}", flush=True)
-    result = run_train(
-        workspace, config, dataset.iteration, dataset, tasks_key,
-        load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
-        on_metrics=tracking.step_logger(run_id, "train."),
-    )
+    with reading_shard_files(workspace, "train"):  # a compaction would delete the files its dataset lists
+        result = run_train(
+            workspace, config, dataset.iteration, dataset, tasks_key,
+            load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
+            on_metrics=tracking.step_logger(run_id, "train."),
+        )
     if result.skipped:
         state = "already trained"
     else:

@@ -6,10 +6,12 @@ import argparse
 import logging
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
 from flows.cli.common import Commands, add_workspace_option, open_catalog
+from flows.run_lock import exclusive_run, reading_shard_files, rewriting_shard_files
 from schemas.config import ConfigError
 from schemas.workspace import Workspace
 from warehouse.video import CONTROL_FPS
@@ -39,7 +41,7 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
         raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
     if args.fetch_mb is not None and args.fetch_mb <= 0:
         raise ConfigError(f"export lerobot: --fetch-mb must be positive, got {args.fetch_mb:g}")
-    _, catalog = open_catalog(args)
+    workspace, catalog = open_catalog(args)
     log_stages_to_stderr()
     bar: list[Progress] = []  # made at the first episode, when the selection's size is known
 
@@ -48,9 +50,10 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
             bar.append(Progress(logging.getLogger("sim2act.export"), "export lerobot", total, "episodes", "episodes"))
         bar[0].advance(1, 1, log=done == total or done % max(total // 100, 1) == 0)
 
-    summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
-                             repo_id=args.repo_id, progress=report,
-                             fetch_mb=FETCH_MB if args.fetch_mb is None else args.fetch_mb)
+    with reading_shard_files(workspace, "export lerobot"):
+        summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
+                                 repo_id=args.repo_id, progress=report,
+                                 fetch_mb=FETCH_MB if args.fetch_mb is None else args.fetch_mb)
     if bar:
         bar[0].close()
     print(f"{summary.episodes} episodes, {summary.frames} frames, {summary.tasks} tasks, "
@@ -93,8 +96,9 @@ def cmd_labels(args: argparse.Namespace) -> int:
 
 
 def cmd_warehouse_verify(args: argparse.Namespace) -> int:
-    _, catalog = open_catalog(args)
-    bad = catalog.verify(full=args.full)
+    workspace, catalog = open_catalog(args)
+    with reading_shard_files(workspace, "warehouse verify") if catalog.path.exists() else nullcontext():
+        bad = catalog.verify(full=args.full)
     for path, reason in bad:
         print(f"quarantined {path}: {reason}")
     [(files,)] = catalog.query("SELECT (SELECT count(*) FROM shards WHERE stored_in IS NULL) + (SELECT count(*) FROM compacted)")
@@ -104,7 +108,6 @@ def cmd_warehouse_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_warehouse_compact(args: argparse.Namespace) -> int:
-    from flows.run_lock import exclusive_run
     from warehouse.compaction import compact
 
     if args.iteration is not None and any(k < 0 for k in args.iteration):
@@ -119,7 +122,8 @@ def cmd_warehouse_compact(args: argparse.Namespace) -> int:
         print(f"[{done}/{total}] {plan.table} iteration {plan.iteration}: {len(plan.sources)} shards, "
               f"{plan.num_rows:,} rows; {rate:.2f} files/s, ETA {(total - done) / rate:.0f}s", flush=True)
 
-    with exclusive_run(workspace, "warehouse compact"):  # nothing trains from or writes the warehouse meanwhile
+    # no campaign writes the warehouse meanwhile, and nothing trains from, exports or verifies its files
+    with exclusive_run(workspace, "warehouse compact"), rewriting_shard_files(workspace):
         catalog.clean_orphans()  # a killed compaction's unregistered file, or its sources left behind
         summary = compact(catalog, args.iteration, progress=report)
     for path, reason in summary.quarantined:

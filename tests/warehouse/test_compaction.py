@@ -206,3 +206,28 @@ def test_a_verify_that_a_compaction_overtakes_quarantines_nothing(filled, monkey
     assert catalog.verify() == []
     assert overtaken[0].files == 3 and catalog.query("SELECT count(*) FROM quarantine") == [(0,)]
     assert _seen(catalog) == before
+
+
+def test_a_compaction_and_a_reader_of_the_shard_files_refuse_each_other(filled, capsys, tmp_path):
+    """`sim2act train`, `export lerobot` and `warehouse verify` read the shard files at length; `warehouse compact`
+    deletes the ones it rewrote. Whichever comes second is refused in one line, before any work; readers go
+    beside each other."""
+    from flows.cli import main
+    from flows.run_lock import reading_shard_files, rewriting_shard_files
+
+    catalog = Catalog(filled.catalog)
+    before = _shard_files(filled)
+    with reading_shard_files(filled, "train"), reading_shard_files(filled, "export lerobot"):
+        assert main(["warehouse", "compact", "--workspace", str(filled.root)]) == 2
+        [line] = capsys.readouterr().err.strip().splitlines()
+        assert "warehouse compact: a training, export or verify is reading the shard files" in line
+        assert _shard_files(filled) == before and catalog.query("SELECT count(*) FROM compacted") == [(0,)]
+        assert main(["warehouse", "verify", "--workspace", str(filled.root)]) == 0  # readers beside each other
+    capsys.readouterr()
+    with rewriting_shard_files(filled):
+        assert main(["warehouse", "verify", "--workspace", str(filled.root)]) == 2
+        assert "warehouse verify: a `sim2act warehouse compact` is rewriting" in capsys.readouterr().err
+        assert main(["export", "lerobot", "--workspace", str(filled.root), str(tmp_path / "out")]) == 2
+        assert "export lerobot: a `sim2act warehouse compact` is rewriting" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
+    assert main(["warehouse", "compact", "--workspace", str(filled.root)]) == 0  # released
