@@ -15,9 +15,11 @@ dataset_metadata,compute_stats}.py; see tests/warehouse/test_export_lerobot.py f
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import shutil
+import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,7 +99,8 @@ def export_lerobot(
         raise ExportError("the selected steps have no action")
 
     # A crash leaves no half-written dataset at out_dir: all is written beside it, then renamed.
-    tmp = out_dir.parent / f".{out_dir.name}.partial-{os.getpid()}"
+    tmp = _partial_folder(out_dir, os.getpid())
+    _remove_killed_exports(out_dir)
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
@@ -129,6 +132,31 @@ def export_lerobot(
         raise
     size = sum(p.stat().st_size for p in out_dir.rglob("*") if p.is_file())
     return ExportSummary(len(episodes), writer.frames, len(writer.tasks), size, out_dir)
+
+
+def _partial_folder(out_dir: Path, pid: int) -> Path:
+    """Where export `pid` on this host writes before its rename onto `out_dir`."""
+    return out_dir.parent / f".{out_dir.name}.partial-{socket.gethostname()}-{pid}"
+
+
+def _remove_killed_exports(out_dir: Path) -> None:
+    """The folders that exports into `out_dir` on this host left when killed (a SIGKILL runs no clean-up),
+    each a full-size copy nothing else would remove; a live export's is left to it."""
+    prefix = _partial_folder(out_dir, 0).name[:-1]
+    for folder in out_dir.parent.glob(glob.escape(prefix) + "*"):
+        pid = folder.name[len(prefix):]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's
+        return True
+    return True
 
 
 # -- selection -----------------------------------------------------------------------------------

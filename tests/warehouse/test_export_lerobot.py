@@ -280,6 +280,26 @@ def test_a_crash_leaves_no_partial_dataset(warehouse, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_killed_exports_folder_is_removed_by_the_next_export_and_a_live_ones_kept(warehouse, tmp_path):
+    """A SIGKILLed export runs no clean-up: its folder beside the output (a full-size copy) stays. The next
+    export into the same place removes those whose process is gone on this host; a live one's is its own."""
+    import subprocess
+    import sys
+
+    from warehouse.export_lerobot import _partial_folder
+
+    catalog, _ = warehouse
+    out = tmp_path / "out"
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    killed, live = _partial_folder(out, gone.pid), _partial_folder(out, 1)
+    for folder in (killed, live):
+        (folder / "data").mkdir(parents=True)
+        (folder / "data" / "file-000.parquet").write_bytes(b"half")
+    export_lerobot(catalog, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", live.name])
+
+
 def test_mixed_action_shapes_are_refused_naming_both(tmp_path):
     spec = {"nav-1": ("nav-find-ball", "find the ball", 4, True, 1), **EPISODES_SPEC}
     catalog, _ = _build(tmp_path / "ws", spec)
