@@ -178,7 +178,9 @@ class Catalog:
         # an S3 prefix another catalog keeps its shards under is refused before anything is written here
         warehouse_id = self.store.claim((self._meta() or {}).get("warehouse_id"), self.path.resolve())
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self.connect() as con:
+        # one transaction: a first initialise killed midway leaves no catalog_meta without its shard_store
+        # record (which `_recorded_store` would read as the folder: an S3 workspace, refused for good)
+        with self._transaction() as con:
             for name in CATALOG_TABLES:
                 con.execute(catalog_ddl(name))
             con.execute(

@@ -264,3 +264,23 @@ def test_views_come_in_parts_and_a_registration_rewrites_only_the_last(workspace
     with duckdb.connect(str(workspace.catalog), read_only=True) as con:  # a plain client reads them too
         con.execute("SET file_search_path = ?", [str(workspace.warehouse.resolve())])
         assert con.execute("SELECT count(*) FROM filter_decisions").fetchone() == (20,)
+
+
+def test_a_first_initialise_killed_midway_leaves_nothing_half_recorded(tmp_path, monkeypatch):
+    """A first `initialise` is one transaction: killed after catalog_meta was made but before its shard_store
+    record, the record's absence read as 'the folder' and an S3 workspace was refused by every later command."""
+    from warehouse.catalog import Catalog
+
+    catalog = Catalog(tmp_path / "warehouse" / "catalog.duckdb")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Catalog, "_refresh_views", killed)
+    with pytest.raises(KeyboardInterrupt):
+        catalog.initialise()
+    monkeypatch.undo()
+    assert Catalog(catalog.path)._meta() is None  # as if never begun
+    catalog = Catalog(catalog.path)
+    catalog.initialise()
+    assert Catalog(catalog.path)._meta()["shard_store"] == catalog.store.url
