@@ -40,7 +40,7 @@ from bench.tables import Ratio, ratio_table, table
 from envs.observation import PROPRIO_DIM, Observation
 from policies.policy import Policy
 from policies.precision import cpu_has_bf16_units
-from schemas.config import CampaignConfig, TrainConfig
+from schemas.config import CampaignConfig, ConfigError, TrainConfig
 from schemas.workspace import Workspace
 from stages.index import IndexResult
 from warehouse.catalog import Catalog
@@ -317,7 +317,7 @@ def _weights_missing(encoder: str) -> str | None:
 def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
     unknown = sorted(set(sizes.cases) - set(CASES))
     if unknown:
-        raise ValueError(f"bench train: unknown case(s) {', '.join(unknown)} (known: {', '.join(CASES)})")
+        raise ConfigError(f"bench train: --cases: expected some of {', '.join(CASES)}, got {', '.join(unknown)}")
     cpus, torch_threads = os.cpu_count() or 1, torch.get_num_threads()
     image_size = CampaignConfig().render.image_size
     wanted = set(sizes.cases) | {"stage"}

@@ -6,6 +6,7 @@ that is still running; the server writes nothing into the workspace.
 
 from __future__ import annotations
 
+import socket
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from fastapi.staticfiles import StaticFiles
 from dashboards import reads
 from dashboards.media import EpisodeVideos, media_file, media_url
 from dashboards.panels import PanelError, load_panels, run_panel
+from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog, CatalogMissing
 
@@ -114,6 +116,30 @@ def create_app(workspace: Workspace) -> FastAPI:
     return app
 
 
-def serve(workspace: Workspace, host: str, port: int) -> None:
-    """Serve the dashboard over the workspace's warehouse until interrupted (blocking)."""
-    uvicorn.run(create_app(workspace), host=host, port=port, log_level="warning")
+class DashboardUnservable(Sim2ActError, OSError):
+    """The dashboard's address cannot be listened on (a port in use, a host that does not resolve)."""
+
+
+def listening_socket(host: str, port: int) -> socket.socket:
+    """The dashboard's socket, bound before anyone is told where it serves.
+
+    Raises:
+        DashboardUnservable: naming the address and why (uvicorn's own bind says it after the banner, and exits 3)."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise DashboardUnservable(f"--host {host}: not an address this machine can listen on ({exc})") from None
+    sock = socket.socket(family, kind, proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(address)
+    except OSError as exc:
+        sock.close()
+        raise DashboardUnservable(f"cannot serve the dashboard at {host}:{port}: {exc.strerror} "
+                                  "(another --port or --host)") from None
+    return sock
+
+
+def serve(workspace: Workspace, sock: socket.socket) -> None:
+    """Serve the dashboard over the workspace's warehouse on `sock` (`listening_socket`) until interrupted (blocking)."""
+    uvicorn.Server(uvicorn.Config(create_app(workspace), log_level="warning")).run(sockets=[sock])

@@ -6,6 +6,7 @@ recorded in the warehouse `evaluations` under the task set's suite name."""
 from __future__ import annotations
 
 import json
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,9 +18,9 @@ from mlflow.exceptions import MlflowException
 
 from envs.suite import generate_tasks
 from policies.model import ModelDims
-from schemas.config import CampaignConfig, ConfigError, recorded_render
+from schemas.config import CampaignConfig, ConfigError, read_text_file, recorded_render
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
-from schemas.settings import tracking_uri
+from schemas.settings import TRACKING_URI_ENV, tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import EvalUnit, evaluation_cases
@@ -51,8 +52,16 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
         found = catalog.query("SELECT checkpoint_path, iteration FROM models WHERE model_key = ?", [ref])
         if not found:
             raise ConfigError(f"--model: no model {ref!r} in {workspace.root}")
-        return ModelRef(ref, str(workspace.root / found[0][0]), found[0][1], ref)  # stored relative to the workspace
+        checkpoint = workspace.root / found[0][0]  # stored relative to the workspace
+        if not checkpoint.is_file():
+            raise ConfigError(f"--model: {ref} is in the catalog of {workspace.root}, but its checkpoint {checkpoint} "
+                              "is missing (its models/ folder moved or deleted?)")
+        return ModelRef(ref, str(checkpoint), found[0][1], ref)
     name, version_number, alias = parse_registry_ref(ref, config.registered_model_name)
+    if not os.environ.get(TRACKING_URI_ENV) and not workspace.tracking_db.exists():
+        raise ConfigError(f"--model: {ref!r} is a registry reference, but {workspace.root} has no model registry "
+                          f"({workspace.tracking_db} is missing: no campaign ran there); name a model key "
+                          "(train-...) or the workspace of a campaign that ran")  # not made here: a lookup writes nothing
     client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=tracking_uri(workspace))
     try:
         version = (client.get_model_version(name, version_number) if version_number
@@ -122,7 +131,7 @@ def file_tasks(path: Path, config: CampaignConfig, seen_ids: set[str]) -> list[T
 
     if not path.is_file():
         raise ConfigError(f"--tasks: no such file {path}")
-    names = [spec.name for spec in parse_spec_file(path.read_text(), str(path))]
+    names = [spec.name for spec in parse_spec_file(read_text_file(path, "--tasks"), str(path))]
     tasks = generate_tasks(TasksConfig(specs=names, spec_files=[path], weak_experts="keep"), config.seed)
     return [t.model_copy(update={"split": "seen" if t.task_id in seen_ids else "unseen"}) for t in tasks]
 

@@ -587,11 +587,25 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
         if not sep or not path:
             raise ConfigError(f"--set: {setting!r} is not FIELD.PATH=VALUE")
         *parents, leaf = path.split(".")
+        if not all(path.split(".")):
+            raise ConfigError(f"--set: {setting!r}: expected FIELD.PATH=VALUE with no empty part in {path!r}")
         target = overrides
-        for part in parents:
+        for depth, part in enumerate(parents, start=1):
             target = target.setdefault(part, {})
+            if not isinstance(target, dict):  # `--set train=1 --set train.lr=2`: train is a value, not a section
+                raise ConfigError(f"--set {path}: {'.'.join(parents[:depth])} was set to {target!r} by an earlier "
+                                  "--set; expected a section to set a field of")
         target[leaf] = _read_yaml(f"value: {text}", f"--set {path}")["value"]
     return overrides
+
+
+def read_text_file(path: Path, flag: str) -> str:
+    """A YAML file's text; one that is not UTF-8 (a Latin-1 "café") is refused naming the file and where."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{flag}: {path} is not UTF-8 text (byte {exc.object[exc.start]:#x} at offset {exc.start}); "
+                          "save it as UTF-8") from None
 
 
 def load_config(
@@ -601,8 +615,9 @@ def load_config(
     data = preset_dict(preset)
     if config_file is not None:
         if not config_file.is_file():
-            raise ConfigError(f"--config: no such file {config_file}")
-        data = deep_merge(data, _read_yaml(config_file.read_text(), str(config_file)))
+            raise ConfigError(f"--config: expected a YAML file, got {'the folder ' if config_file.is_dir() else 'no such file '}"
+                              f"{config_file}")
+        data = deep_merge(data, _read_yaml(read_text_file(config_file, "--config"), str(config_file)))
     data = deep_merge(data, overrides or {})
     try:
         return CampaignConfig.model_validate(data)

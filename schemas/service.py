@@ -31,7 +31,7 @@ class ServiceConfig(BaseModel):
         from prefect.client.schemas.schedules import CronSchedule  # Prefect's own rules, so the server agrees
 
         # 5 fields as --help shows (Prefect would also take a seconds field and @daily)
-        refusal = ValueError("not a 5-field cron line (e.g. '0 2 * * *': every day at 02:00)")
+        refusal = ValueError(f"expected a 5-field cron line (e.g. '0 2 * * *': every day at 02:00), got {value!r}")
         if len(value.split()) != 5:
             raise refusal
         try:

@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.config import ConfigError, describe_validation_error
+from schemas.config import ConfigError, describe_validation_error, read_text_file
 from schemas.tasks import Colour, Family
 
 BUILTIN_FILES = ("robosuite.yaml", "metaworld.yaml", "navigation.yaml")
@@ -119,7 +119,7 @@ def load_specs(extra_files: list[Path] = ()) -> dict[str, SuiteEntry]:
     for path in extra_files:
         if not Path(path).is_file():
             raise ConfigError(f"tasks.spec_files: no such file {path}")
-        sources.append((Path(path).read_text(), str(path)))
+        sources.append((read_text_file(Path(path), "tasks.spec_files"), str(path)))
     for text, origin in sources:
         for spec in parse_spec_file(text, origin):
             if spec.name in specs:

@@ -112,8 +112,12 @@ def write_text_atomically(path: Path, text: str) -> None:
     """A report or record, whole or not at all: written beside, then moved into place."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    try:
+        tmp.write_text(text)
+        tmp.replace(path)
+    except BaseException:  # a full disk, a folder at `path`: no stray temporary beside it
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def read_json_written(path: Path) -> tuple[object, float] | None:

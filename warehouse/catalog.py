@@ -49,6 +49,10 @@ class CatalogMissing(Sim2ActError, FileNotFoundError):
     pass
 
 
+class CatalogUnreadable(Sim2ActError, OSError):
+    """The catalog file is there but DuckDB cannot open it (not a DuckDB file, another DuckDB's format)."""
+
+
 class CatalogVersionError(Sim2ActError, RuntimeError):
     """The warehouse was written by another layout version; nothing is touched."""
 
@@ -113,13 +117,27 @@ class Catalog:
         """catalog_meta, on a connection of its own (None: no catalog, or not initialised yet)."""
         if not self.path.exists():
             return None
-        con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(duckdb.connect, str(self.path), read_only=True)
+        con = self._open(read_only=True)
         try:
             if not con.execute("SELECT 1 FROM duckdb_tables() WHERE table_name = 'catalog_meta'").fetchone():
                 return None
             return dict(con.execute("SELECT key, value FROM catalog_meta").fetchall())
         finally:
             con.close()
+
+    def _open(self, read_only: bool) -> duckdb.DuckDBPyConnection:
+        """The catalog file, opened; another process holding DuckDB's write lock is waited for a while.
+
+        Raises:
+            CatalogUnreadable: the file is not one DuckDB opens (one line, not DuckDB's traceback)."""
+        try:
+            return retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
+                duckdb.connect, str(self.path), read_only=read_only)
+        except duckdb.IOException as exc:
+            if _is_lock_error(exc):
+                raise
+            raise CatalogUnreadable(f"the warehouse catalog {self.path} cannot be opened: {str(exc).splitlines()[0]}; "
+                                    "restore it from a copy (the shards beside it are untouched)") from None
 
     @property
     def quarantine_folder(self) -> Path:
@@ -152,8 +170,7 @@ class Catalog:
         if confined:
             _CONFINED_FILES.add(key)  # before it locks anything
         # another process holds DuckDB's write lock for a moment: wait for it, a while at most
-        con = retrying(_is_lock_error, within_s=LOCK_WAIT_S, wait_s=0.05)(
-            duckdb.connect, str(self.path), read_only=read_only)
+        con = self._open(read_only)
         try:
             # a read beside a confined one (the dashboard answers requests concurrently; settings are per
             # instance) cannot count on reading the views' relative names: the instance is confined, or may

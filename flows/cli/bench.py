@@ -7,7 +7,8 @@ import json
 import os
 from pathlib import Path
 
-from flows.cli.common import Commands, add_campaign_options, add_workspace_option, print_or_write
+from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, output_file, print_or_write,
+                              scratch_folder)
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import Workspace, write_text_atomically
@@ -154,7 +155,7 @@ def register(commands: Commands) -> None:
     bench_env = bench_commands.add_parser("envs", help="env steps/s per family: raw physics, env, adapter, render")
     bench_env.add_argument("--steps", type=int, default=500, help="timed control steps per layer")
     bench_env.add_argument("--family", choices=FAMILIES, action="append", help="default: every family")
-    bench_env.add_argument("--out", type=Path, help="also write the table as markdown here")
+    bench_env.add_argument("--out", type=output_file, help="also write the table as markdown here")
     bench_env.set_defaults(handler=cmd_bench_envs)
 
     def bench_parser(name: str, help: str, quick: str, handler) -> argparse.ArgumentParser:
@@ -162,8 +163,8 @@ def register(commands: Commands) -> None:
         command = bench_commands.add_parser(name, help=help)
         command.add_argument("--json", action="store_true", help="print the figures as JSON")
         command.add_argument("--quick", action="store_true", help=quick)
-        command.add_argument("--scratch", type=Path, help="folder for the throwaway workspaces (default: $TMPDIR)")
-        command.add_argument("--out", type=Path, help="also write the table as markdown here")
+        command.add_argument("--scratch", type=scratch_folder, help="folder for the throwaway workspaces (default: $TMPDIR)")
+        command.add_argument("--out", type=output_file, help="also write the table as markdown here")
         command.set_defaults(handler=handler)
         return command
 
@@ -190,14 +191,14 @@ def register(commands: Commands) -> None:
     rl.add_argument("--sac-encoder", choices=["critic", "separate"], action="append",
                     help="SAC's encoder, each one given side by side (baselines.sac_encoder); default: the campaign's")
     rl.add_argument("--json", action="store_true", help="print the figures as JSON")
-    rl.add_argument("--out", type=Path, help="also write the table as markdown here")
+    rl.add_argument("--out", type=output_file, help="also write the table as markdown here")
     rl.set_defaults(handler=cmd_bench_rl)
     panels = add_workspace_option(bench_commands.add_parser(
         "panels", help="each dashboard panel's query timed on a warehouse (target: 1 s)"))
     panels.add_argument("--campaign", help="whose panels (default: the warehouse's one campaign)")
     panels.add_argument("--repeats", type=int, default=3, help="warm runs per panel, after the first")
     panels.add_argument("--json", action="store_true", help="print the figures as JSON")
-    panels.add_argument("--out", type=Path, help="also write the table as markdown here")
+    panels.add_argument("--out", type=output_file, help="also write the table as markdown here")
     panels.set_defaults(handler=cmd_bench_panels)
     soak = add_campaign_options(bench_commands.add_parser(
         "soak", help="run a campaign through random SIGKILLs (flow, worker, server), checking its finished parts"))
@@ -210,6 +211,6 @@ def register(commands: Commands) -> None:
                            "training, a DataLoader worker), "
                            "server (Prefect's temporary API server)")
     soak.add_argument("--seed", type=int, default=0, help="draws the waits and the order of the kinds killed")
-    soak.add_argument("--out", type=Path, help="the report (Markdown, and .json beside it); default: "
+    soak.add_argument("--out", type=output_file, help="the report (Markdown, and .json beside it); default: "
                       "<workspace>/soak/soak.md, rewritten after every check")
     soak.set_defaults(handler=cmd_bench_soak)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
-                              configure_environment, open_catalog, same_campaign_flags)
+                              configure_environment, open_catalog, output_file, same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import Acting, ConfigError
 from schemas.experts import TARGET
@@ -374,4 +374,4 @@ def register(commands: Commands) -> None:
     shadow.add_argument("--ensemble-decay", type=float, metavar="M", help="temporal_ensemble: weights exp(-M i)")
 
     campaign_command("report", "the results table: success per iteration beside the baselines, dataset, compute",
-                     cmd_report).add_argument("--out", type=Path, help="write the Markdown here (default: print it)")
+                     cmd_report).add_argument("--out", type=output_file, help="write the Markdown here (default: print it)")

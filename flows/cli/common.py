@@ -18,12 +18,71 @@ from schemas.workspace import Workspace, write_text_atomically
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
 
 
+def output_file(text: str) -> Path:
+    """argparse's type for an option naming a file to write (--out, --record): a path that could not be
+    written (a folder, under a file, in a folder not writable) is refused as the flags are read, before
+    the command's work, not after it. Folders missing on the way are made when it is written."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file to write, got the folder {path}")
+    folder = path.parent
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a file to write, got {path}, under {folder}: a file, not a folder")
+    if not os.access(folder, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {path}: the folder {folder} is not writable")
+    return path
+
+
+def positive_int(text: str) -> int:
+    """argparse's type for a count that must be 1 or more (episodes, workers)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected 1 or more, got {value}")
+    return value
+
+
+def port_number(text: str) -> int:
+    """argparse's type for a TCP port."""
+    value = int(text)
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port from 1 to 65535, got {value}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """argparse's type for a scale that must be 0 or more (a noise)."""
+    value = float(text)
+    if not value >= 0:  # NaN too
+        raise argparse.ArgumentTypeError(f"expected 0 or more, got {text}")
+    return value
+
+
+def scratch_folder(text: str) -> Path:
+    """argparse's type for a folder to work in (bench --scratch): made if missing, so not a file, nor under one."""
+    path = Path(text)
+    found = next((p for p in (path, *path.parents) if p.exists()), None)
+    if found is not None and not found.is_dir():
+        raise argparse.ArgumentTypeError(f"expected a folder (made if missing), got {path}"
+                                         f"{'' if found == path else f', under {found}'}: a file")
+    return path
+
+
 def default_workspace() -> str:
     return os.environ.get("SIM2ACT_WORKSPACE", "workspace")
 
 
+def workspace_folder(text: str) -> str:
+    """argparse's type for --workspace (and $SIM2ACT_WORKSPACE, its default): a folder, or none yet."""
+    if Path(text).exists() and not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"expected a workspace folder (or a path for a new one), got the file {text}")
+    return text
+
+
 def add_workspace_option(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    command.add_argument("--workspace", default=default_workspace(), help="default: $SIM2ACT_WORKSPACE or ./workspace")
+    command.add_argument("--workspace", type=workspace_folder, default=default_workspace(),
+                         help="default: $SIM2ACT_WORKSPACE or ./workspace")
     return command
 
 

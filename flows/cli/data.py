@@ -10,10 +10,10 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
-from flows.cli.common import Commands, add_workspace_option, open_catalog
+from flows.cli.common import Commands, add_workspace_option, open_catalog, output_file
 from flows.run_lock import exclusive_run, reading_shard_files, rewriting_shard_files
 from schemas.config import ConfigError
-from schemas.workspace import Workspace
+from schemas.workspace import Workspace, write_text_atomically
 from warehouse.video import CONTROL_FPS
 
 
@@ -25,8 +25,14 @@ def cmd_sql(args: argparse.Namespace) -> int:
 
     if args.as_of_iteration is not None and args.as_of_iteration < 0:
         raise ConfigError(f"sql: --as-of-iteration must be 0 or more, got {args.as_of_iteration}")
+    catalog = Catalog(Workspace.at(args.workspace).catalog)
+    if args.as_of_iteration is not None and catalog.path.exists():
+        held = _iterations(catalog)
+        if held and args.as_of_iteration > held[-1]:  # the warehouse as it is now: a typo, most likely
+            raise ConfigError(f"sql: --as-of-iteration {args.as_of_iteration}: the warehouse's latest iteration is "
+                              f"{held[-1]}")
     try:
-        print(run_sql(Catalog(Workspace.at(args.workspace).catalog), args.query, args.format, args.as_of_iteration))
+        print(run_sql(catalog, args.query, args.format, args.as_of_iteration))
     except duckdb.Error as exc:
         print(f"sim2act: SQL error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
@@ -90,7 +96,7 @@ def cmd_labels(args: argparse.Namespace) -> int:
     if bar:
         bar[0].close()
     if args.out:
-        args.out.write_text(table + "\n")
+        write_text_atomically(args.out, table + "\n")
     print(table)
     return 0
 
@@ -111,10 +117,15 @@ def cmd_warehouse_compact(args: argparse.Namespace) -> int:
     from warehouse.compaction import compact
 
     if args.iteration is not None and any(k < 0 for k in args.iteration):
-        raise ConfigError(f"warehouse compact: --iteration must be 0 or more, got {args.iteration}")
+        raise ConfigError(f"warehouse compact: --iteration must be 0 or more, got {_listed(args.iteration)}")
     workspace, catalog = open_catalog(args)
     if not catalog.path.exists():
         raise ConfigError(f"warehouse compact: no warehouse at {workspace.warehouse} (run `sim2act run` first)")
+    held = _iterations(catalog)
+    missing = [k for k in args.iteration or [] if k not in held]
+    if missing:
+        raise ConfigError(f"warehouse compact: --iteration {_listed(missing)}: the warehouse holds iteration(s) "
+                          f"{_listed(held) or 'none'}")
     started = time.monotonic()
 
     def report(done: int, total: int, plan) -> None:
@@ -135,6 +146,15 @@ def cmd_warehouse_compact(args: argparse.Namespace) -> int:
           f"({summary.bytes_after / 1e6:.1f} MB, {summary.rows:,} rows) in {summary.wall_s:.1f} s; queries, "
           "snapshots and trainings read them as before")
     return 1 if summary.quarantined else 0
+
+
+def _iterations(catalog) -> list[int]:
+    """The iterations the warehouse holds shards of (every campaign's), in order."""
+    return [k for (k,) in catalog.query("SELECT DISTINCT iteration FROM shards ORDER BY 1")]
+
+
+def _listed(numbers: list[int]) -> str:
+    return ", ".join(str(n) for n in numbers)
 
 
 def register(commands: Commands) -> None:
@@ -161,7 +181,7 @@ def register(commands: Commands) -> None:
     replay.add_argument("episode_id")
     replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
     replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
-    replay.add_argument("--out", type=Path, help="default: ./<episode_id>_<camera>_<size>px.mp4")
+    replay.add_argument("--out", type=output_file, help="default: ./<episode_id>_<camera>_<size>px.mp4")
     replay.add_argument("--fps", type=int, default=None, help=f"frames per second (one frame per step; default {CONTROL_FPS})")
     add_workspace_option(replay).set_defaults(handler=cmd_replay)
 
@@ -171,7 +191,7 @@ def register(commands: Commands) -> None:
     labels.add_argument("--explorer", default="policy%",
                         help="SQL LIKE pattern on episodes.explorer (default 'policy%%': the champion's; 'expert')")
     labels.add_argument("--campaign", help="whose episodes (default: the one campaign of the workspace that has them)")
-    labels.add_argument("--out", type=Path, help="also write the table to this Markdown file")
+    labels.add_argument("--out", type=output_file, help="also write the table to this Markdown file")
     add_workspace_option(labels).set_defaults(handler=cmd_labels)
 
     warehouse = commands.add_parser("warehouse", help="warehouse upkeep")

@@ -8,7 +8,7 @@ import argparse
 from pydantic import ValidationError
 
 from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, campaign_config,
-                              configure_environment, open_catalog)
+                              configure_environment, open_catalog, port_number)
 from schemas.config import ConfigError, describe_validation_error
 from schemas.service import HOST, ServiceConfig
 from schemas.workspace import Workspace
@@ -73,11 +73,15 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
-    from dashboards.server import serve
+    from dashboards.server import listening_socket, serve
 
-    workspace, _ = open_catalog(args)  # a warehouse of another layout: one line, before serving
+    workspace, catalog = open_catalog(args)  # a warehouse of another layout: one line, before serving
+    if not catalog.path.exists():
+        print(f"sim2act: no warehouse in {workspace.root} yet: the dashboard shows it once a campaign runs there",
+              flush=True)
+    sock = listening_socket(args.host, args.port)  # a port in use: one line, before saying where it serves
     print(f"sim2act: dashboard over {workspace.root} at http://{args.host}:{args.port}", flush=True)
-    serve(workspace, args.host, args.port)
+    serve(workspace, sock)
     return 0
 
 
@@ -93,5 +97,5 @@ def register(commands: Commands) -> None:
     dashboard = add_workspace_option(commands.add_parser(
         "dashboard", help="serve the warehouse dashboard alone (sim2act up starts it too)"))
     dashboard.add_argument("--host", default=HOST)
-    dashboard.add_argument("--port", type=int, default=ServiceConfig.model_fields["dashboard_port"].default)
+    dashboard.add_argument("--port", type=port_number, default=ServiceConfig.model_fields["dashboard_port"].default)
     dashboard.set_defaults(handler=cmd_dashboard)

@@ -7,7 +7,7 @@ import itertools
 import json
 from pathlib import Path
 
-from flows.cli.common import Commands
+from flows.cli.common import Commands, non_negative_float, output_file, positive_int
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
@@ -53,11 +53,13 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
     from envs.registry import check_spec
     from envs.suite import expand_spec
     from schemas.config import TasksConfig
+    from schemas.config import read_text_file
     from schemas.task_spec import parse_spec_file
 
     if not args.file.is_file():
-        raise ConfigError(f"tasks validate: no such file {args.file}")
-    specs = parse_spec_file(args.file.read_text(), str(args.file))
+        raise ConfigError(f"tasks validate: expected a YAML spec file, got "
+                          f"{'the folder ' if args.file.is_dir() else 'no such file '}{args.file}")
+    specs = parse_spec_file(read_text_file(args.file, "tasks validate"), str(args.file))
     count = 0
     for spec in specs:
         check_spec(spec, str(args.file))
@@ -73,12 +75,16 @@ def cmd_tasks_experts(args: argparse.Namespace) -> int:
     from schemas.experts import TARGET, default_table_path, load_expert_table, save_expert_table
 
     suite = suite_tasks(args.spec_file)
+    unknown = sorted(set(args.task) - {t.task_id for t in suite})
+    if unknown:
+        raise ConfigError(f"tasks experts: --task: expected task ids of the suite (`sim2act tasks list`), got {', '.join(unknown)}")
     tasks = [
         t for t in suite
         if (args.family is None or t.family == args.family) and (not args.task or t.task_id in args.task)
     ]
     if not tasks:
-        raise ConfigError("tasks experts: no task matches --family/--task")
+        among = f" among --task {', '.join(args.task)}" if args.task else ""
+        raise ConfigError(f"tasks experts: no task of --family {args.family}{among}")
     done = itertools.count(1)
 
     def report(row) -> None:
@@ -109,14 +115,14 @@ def register(commands: Commands) -> None:
     show.add_argument("task_id")
     show.set_defaults(handler=cmd_tasks_show)
     experts = task_commands.add_parser("experts", help="measure each task's scripted expert, write the table")
-    experts.add_argument("--episodes", type=int, default=10)
-    experts.add_argument("--noise", type=float, default=0.1, help="expert action noise, as in exploration")
+    experts.add_argument("--episodes", type=positive_int, default=10)
+    experts.add_argument("--noise", type=non_negative_float, default=0.1, help="expert action noise, as in exploration")
     experts.add_argument("--no-randomise", action="store_true", help="nominal scenes, no domain randomisation")
     experts.add_argument("--family", choices=FAMILIES)
     experts.add_argument("--task", action="append", default=[], help="only these task ids")
-    experts.add_argument("--workers", type=int, default=2)
-    experts.add_argument("--out", type=Path, default=Path("docs/experts.md"))
-    experts.add_argument("--record", type=Path, help="default: the suite's own schemas/task_specs/experts.json")
+    experts.add_argument("--workers", type=positive_int, default=2)
+    experts.add_argument("--out", type=output_file, default=Path("docs/experts.md"))
+    experts.add_argument("--record", type=output_file, help="default: the suite's own schemas/task_specs/experts.json")
     experts.set_defaults(handler=cmd_tasks_experts)
     for sub in (listing, show, experts):
         sub.add_argument("--spec-file", type=Path, action="append", default=[], help="extra YAML spec file")

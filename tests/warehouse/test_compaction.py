@@ -135,7 +135,11 @@ def test_the_cli_compacts_once_and_says_what_it_did(filled, capsys):
     assert main(["warehouse", "compact", "--workspace", str(filled.root), "--iteration", "1"]) == 0
     assert "nothing to compact" in capsys.readouterr().out
     assert main(["warehouse", "compact", "--workspace", str(filled.root), "--iteration", "-1"]) == 2
-    assert "--iteration must be 0 or more, got [-1]" in capsys.readouterr().err
+    assert "--iteration must be 0 or more, got -1" in capsys.readouterr().err
+    assert main(["warehouse", "compact", "--workspace", str(filled.root), "--iteration", "1", "--iteration", "42"]) == 2
+    assert "--iteration 42: the warehouse holds iteration(s) 0, 1" in capsys.readouterr().err  # not 'nothing to compact'
+    assert main(["sql", "--workspace", str(filled.root), "--as-of-iteration", "9", "SELECT 1"]) == 2
+    assert "--as-of-iteration 9: the warehouse's latest iteration is 1" in capsys.readouterr().err
 
 
 def _source(catalog: Catalog, table: str, index: int):

@@ -1,0 +1,151 @@
+"""Bad input to `sim2act` is one line naming what is wrong, before any work and with nothing written: the
+cases a review found (2026-12-05) ending in a traceback after the work, a half-written file, or a message
+that hid the bad value."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from flows.cli import main
+from schemas.config import CampaignConfig, ConfigError
+
+
+def _refused(capsys, argv: list[str]) -> str:
+    """The one line a refused command says (argparse's or ours), its exit status 2."""
+    try:
+        status = main(argv)
+    except SystemExit as exit:  # argparse refuses a flag's value as it reads the flags
+        status = exit.code
+    assert status == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if not line.startswith(("usage:", " "))]
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+def test_an_output_file_that_could_not_be_written_is_refused_before_the_work(tmp_path, capsys):
+    """Once the report (or a label audit's replays, an experts table's episodes) ran whole first, then crashed on
+    writing it, leaving `<out>.tmp` beside it."""
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    assert "argument --out: expected a file to write, got the folder" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--out", str(folder)])
+    assert f"got {a_file}/sub/labels.md, under {a_file}: a file, not a folder" in _refused(
+        capsys, ["labels", "--workspace", str(tmp_path / "ws"), "--iteration", "0", "--out", str(a_file / "sub" / "labels.md")])
+    assert "argument --record: expected a file to write" in _refused(
+        capsys, ["tasks", "experts", "--task", "lift-red", "--record", str(folder)])
+    assert "argument --scratch: expected a folder (made if missing)" in _refused(
+        capsys, ["bench", "warehouse", "--quick", "--scratch", str(a_file / "scratch")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file", "folder"] and not any(folder.iterdir())
+
+
+def test_write_text_atomically_leaves_no_temporary_when_it_fails(tmp_path):
+    from schemas.workspace import write_text_atomically
+
+    (tmp_path / "report.md").mkdir()
+    with pytest.raises(OSError):
+        write_text_atomically(tmp_path / "report.md", "text")
+    assert [p.name for p in tmp_path.iterdir()] == ["report.md"]
+
+
+@pytest.mark.parametrize(("flags", "words"), [
+    (["--episodes", "0"], "argument --episodes: expected 1 or more, got 0"),
+    (["--workers", "0"], "argument --workers: expected 1 or more, got 0"),
+    (["--noise", "-1"], "argument --noise: expected 0 or more, got -1"),
+    (["--task", "lift-redd"], "--task: expected task ids of the suite (`sim2act tasks list`), got lift-redd"),
+])
+def test_tasks_experts_refuses_bad_counts_before_measuring_or_recording(tmp_path, capsys, flags, words):
+    """--episodes 0 saved a record of 0 episodes, then divided by it."""
+    record = tmp_path / "experts.json"
+    line = _refused(capsys, ["tasks", "experts", "--task", "lift-red", "--record", str(record),
+                             "--out", str(tmp_path / "experts.md"), *flags])
+    assert words in line and not list(tmp_path.iterdir())
+
+
+def test_a_workspace_that_is_a_file_is_refused_naming_it(tmp_path, capsys):
+    a_file = tmp_path / "ws"
+    a_file.write_text("x")
+    for command in (["run", "--preset", "smoke"], ["report"], ["sql", "SELECT 1"], ["warehouse", "verify"]):
+        assert f"expected a workspace folder (or a path for a new one), got the file {a_file}" in _refused(
+            capsys, [*command, "--workspace", str(a_file)])
+
+
+def test_config_files_and_settings_that_cannot_be_read_are_one_line(tmp_path, capsys):
+    latin1 = tmp_path / "latin1.yaml"
+    latin1.write_bytes("name: café\n".encode("latin-1"))
+    assert f"--config: {latin1} is not UTF-8 text (byte 0xe9 at offset 9); save it as UTF-8" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(latin1)])
+    assert f"tasks validate: {latin1} is not UTF-8 text" in _refused(capsys, ["tasks", "validate", str(latin1)])
+    assert "--config: expected a YAML file, got the folder" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(tmp_path)])
+    assert "--set train.lr: train was set to 1 by an earlier --set; expected a section" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--set", "train=1", "--set", "train.lr=2"])
+    assert "expected FIELD.PATH=VALUE with no empty part in '.x'" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--set", ".x=1"])
+    assert not (tmp_path / "ws").exists()
+
+
+def test_a_model_the_catalog_lists_without_its_checkpoint_or_a_registry_that_is_not_there(tmp_path, monkeypatch):
+    """A deleted models/ folder crashed `eval` and `shadow` in torch.load; `--model champion` on a workspace with no
+    registry created one (an empty MLflow store) before saying it had no champion."""
+    import flows.model_eval as model_eval
+    from schemas.workspace import Workspace
+
+    workspace = Workspace.at(tmp_path / "ws")
+
+    class Listed:  # the catalog's models row of a model whose folder is gone
+        def __init__(self, path):
+            pass
+
+        def query(self, sql, params=()):
+            return [("models/train-0123456789abcdef/policy.pt", 0)]
+
+    monkeypatch.setattr(model_eval, "Catalog", Listed)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    with pytest.raises(ConfigError, match="train-0123456789abcdef is in the catalog of .*, but its checkpoint .* is missing"):
+        model_eval.resolve_model(workspace, CampaignConfig(), "train-0123456789abcdef")
+    with pytest.raises(ConfigError, match="'champion' is a registry reference, but .* has no model registry"):
+        model_eval.resolve_model(workspace, CampaignConfig(), "champion")
+    assert not workspace.root.exists()
+
+
+def test_the_dashboard_says_where_it_cannot_serve_before_saying_it_serves(tmp_path, capsys):
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
+    try:
+        line = _refused(capsys, ["dashboard", "--workspace", str(tmp_path / "ws"), "--port", str(port)])
+    finally:
+        taken.close()
+    assert f"cannot serve the dashboard at 127.0.0.1:{port}: Address already in use" in line
+    assert "argument --port: expected a port from 1 to 65535, got 99999" in _refused(
+        capsys, ["dashboard", "--workspace", str(tmp_path / "ws"), "--port", "99999"])
+
+
+def test_a_catalog_duckdb_cannot_open_is_one_line(tmp_path, capsys):
+    from schemas.workspace import Workspace
+
+    workspace = Workspace.at(tmp_path / "ws")
+    workspace.catalog.parent.mkdir(parents=True)
+    workspace.catalog.write_text("not a DuckDB file\n" * 300)
+    for command in (["warehouse", "verify"], ["report"]):
+        line = _refused(capsys, [*command, "--workspace", str(workspace.root)])
+        assert f"the warehouse catalog {workspace.catalog} cannot be opened" in line and "restore it" in line
+
+
+def test_a_bench_case_that_does_not_exist_is_one_line(capsys):
+    line = _refused(capsys, ["bench", "train", "--quick", "--cases", "bogus"])
+    assert "bench train: --cases: expected some of" in line and line.endswith("got bogus")
+
+
+def test_a_nightly_cron_line_refused_shows_the_value():
+    from pydantic import ValidationError
+
+    from schemas.service import ServiceConfig
+
+    with pytest.raises(ValidationError, match=r"got '61 \* \* \*'"):
+        ServiceConfig(nightly_cron="61 * * *")
