@@ -272,10 +272,16 @@ class S3Store(ShardStore):
         if not local.exists():
             cache.mkdir(parents=True, exist_ok=True)
             tmp = local.with_name(f".{local.name}.tmp-{os.getpid()}")
-            with self.open(location) as source, tmp.open("wb") as out:
-                for block in iter(lambda: source.read(1 << 20), b""):
-                    out.write(block)
-            tmp.replace(local)
+            try:
+                with self.open(location) as source, tmp.open("wb") as out:
+                    for block in iter(lambda: source.read(1 << 20), b""):
+                        out.write(block)
+                    out.flush()
+                    os.fsync(out.fileno())  # the cache trusts a file once named: whole before it is, past a power loss
+                tmp.replace(local)
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
         return local
 
     def parquet(self, location: str):

@@ -235,3 +235,22 @@ def test_a_compaction_and_a_reader_of_the_shard_files_refuse_each_other(filled, 
         assert "export lerobot: a `sim2act warehouse compact` is rewriting" in capsys.readouterr().err
         assert not (tmp_path / "out").exists()
     assert main(["warehouse", "compact", "--workspace", str(filled.root)]) == 0  # released
+
+
+def test_a_full_disk_during_compaction_is_one_line_and_keeps_the_sources(filled, monkeypatch):
+    import errno
+
+    from warehouse.shard_writer import DiskFull
+
+    catalog = Catalog(filled.catalog)
+    before, files = _seen(catalog), _shard_files(filled)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(type(catalog.store), "put_new", full)
+    with pytest.raises(DiskFull, match="no space left on device writing the compacted .* file of iteration 0 .*"
+                                       "nothing of it is registered and its sources are kept"):
+        compact(catalog)
+    monkeypatch.undo()
+    assert _shard_files(filled) == files and _seen(catalog) == before
