@@ -548,8 +548,8 @@ class Catalog:
             con.execute(f"CREATE TEMP VIEW {name} AS SELECT * FROM {persistent}.{name} WHERE iteration <= {int(iteration)}")
 
     def clean_orphans(self) -> list[Path]:
-        """Delete shard files (and temporaries) that no catalog row names: leftovers of a killed
-        run. Call it only where no other writer is at work on this warehouse. -> their paths
+        """Delete shard files (and temporaries) that no catalog row names, and abort unfinished uploads
+        (a store's: `ShardStore.abort_uploads`): leftovers of a killed run. Call it only where no other writer is at work on this warehouse. -> their paths
         under the warehouse folder (where the store keeps them)."""
         known: set[str] = set()
         if self.path.exists():
@@ -561,7 +561,7 @@ class Catalog:
             if rel not in known:
                 self.store.delete(rel)
                 removed.append(self.warehouse / rel)
-        return removed
+        return removed + [self.warehouse / rel for rel in self.store.abort_uploads("shards")]
 
     # -- corruption ------------------------------------------------------------------------
 

@@ -136,6 +136,10 @@ class ShardStore(ABC):
         with self.read(rel) as handle:
             return sha256_of(handle)
 
+    def abort_uploads(self, under: str) -> list[str]:
+        """Abort the unfinished uploads under the folder `under` -> their rels. A folder has none; see S3Store's."""
+        return []
+
     def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
         """Make `con` able to read this store's locations (nothing for a folder)."""
 
@@ -313,6 +317,29 @@ class S3Store(ShardStore):
             with self.filesystem.open_output_stream(self._path(rel)) as out:  # the object appears whole, or not at all
                 out.write(data)
         self._patient(upload)
+
+    def abort_uploads(self, under: str) -> list[str]:
+        """Abort the multipart uploads under the folder `under` that never completed -> their rels. An upload
+        killed midway (a compacted file of up to 256 MB goes up in parts) leaves one: no listing shows it, so
+        the orphan sweep never would, and the server keeps its parts until it is aborted. Like that sweep,
+        call it only where no other writer is at work here. A server that does not answer the listing is
+        left for the next sweep (a warning): the parts cost space, not correctness."""
+        import boto3
+        from botocore.exceptions import BotoCoreError, ClientError
+
+        bucket, _, prefix = self.root.partition("/")
+        base = f"{prefix}/" if prefix else ""
+        client = boto3.client("s3", endpoint_url=f"{self._scheme}://{self._host}" if self._host else None,
+                              aws_access_key_id=self._key, aws_secret_access_key=self._secret, region_name=self._region)
+        aborted = []
+        try:
+            for page in client.get_paginator("list_multipart_uploads").paginate(Bucket=bucket, Prefix=f"{base}{under}/"):
+                for upload in page.get("Uploads", []):
+                    client.abort_multipart_upload(Bucket=bucket, Key=upload["Key"], UploadId=upload["UploadId"])
+                    aborted.append(upload["Key"].removeprefix(base))
+        except (BotoCoreError, ClientError) as exc:
+            log.warning("shard store %s: unfinished uploads not listed (%s); the next sweep tries again", self.url, exc)
+        return aborted
 
     def exists(self, rel: str) -> bool:
         from pyarrow.fs import FileType

@@ -90,8 +90,19 @@ def test_verify_quarantines_and_clean_orphans_deletes_objects_on_s3(s3, tmp_path
     keys = s3.keys("shards")
     assert f"lab/two/quarantine/{bad}" in keys and f"lab/two/{bad}" not in keys
     assert catalog.query("SELECT count(*) FROM steps")[0][0] > 0  # the views hold the other shards
-    assert catalog.clean_orphans() == [workspace.warehouse / stray]
+    # a compacted file's upload killed midway: parts up, never completed (no listing shows it)
+    import boto3
+
+    client = boto3.client("s3", endpoint_url=s3.endpoint, aws_access_key_id=s3.access_key,
+                          aws_secret_access_key=s3.secret_key, region_name="us-east-1")
+    killed_upload = "shards/steps/iteration=1/compacted-0123456789abcdef.parquet"
+    upload = client.create_multipart_upload(Bucket="shards", Key=f"lab/two/{killed_upload}")
+    client.upload_part(Bucket="shards", Key=f"lab/two/{killed_upload}", UploadId=upload["UploadId"], PartNumber=1,
+                       Body=b"x" * (5 << 20))
+    assert catalog.clean_orphans() == [workspace.warehouse / stray, workspace.warehouse / killed_upload]
     assert f"lab/two/{stray}" not in s3.keys("shards")
+    assert not client.list_multipart_uploads(Bucket="shards", Prefix="lab/two/").get("Uploads")
+    assert catalog.clean_orphans() == []
     # a unit computed twice keeps the object when the bytes agree, and refuses other bytes
     [(path,)] = catalog.query("SELECT path FROM shards WHERE table_name = 'filter_decisions' ORDER BY path LIMIT 1")
     again = catalog.query_arrow(f"SELECT * FROM read_parquet('{catalog.store.location(path)}')")
