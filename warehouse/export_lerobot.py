@@ -124,6 +124,7 @@ def export_lerobot(
                 if progress is not None:
                     progress(done, len(episodes))
         writer.finish(repo_id, _robot_type(catalog, episodes))
+        _fsync_tree(tmp)  # on disk before the name says finished: past a power loss, whole or absent
         if out_dir.exists():
             out_dir.rmdir()
         tmp.rename(out_dir)
@@ -147,6 +148,15 @@ def _remove_killed_exports(out_dir: Path) -> None:
         pid = folder.name[len(prefix):]
         if pid.isdigit() and not _alive(int(pid)):
             shutil.rmtree(folder, ignore_errors=True)
+
+
+def _fsync_tree(folder: Path) -> None:
+    for path in sorted(folder.rglob("*"), key=lambda p: -len(p.parts)):  # files before their folders
+        descriptor = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
 
 
 def _alive(pid: int) -> bool:
