@@ -64,6 +64,16 @@ def _server_failure(exc: BaseException) -> str | None:
         return None
     from prefect.exceptions import PrefectHTTPStatusError
 
+    # the temporary server killed (or dead) while it started, before `ends_with_its_server` could follow it:
+    # Prefect's client raises a bare RuntimeError after waiting for it
+    cause = exc
+    while cause is not None:
+        if isinstance(cause, RuntimeError) and "ephemeral Prefect API server" in str(cause):
+            exit_code = str(cause).rsplit("exited with code", 1)[-1].strip(" .") if "exited with code" in str(cause) else "?"
+            return (f"Prefect's temporary API server died while it started (exit {exit_code}); nothing ran against it. "
+                    "Run the same command again to resume (finished units are kept)")
+        cause = cause.__cause__ or cause.__context__
+
     while exc is not None and not isinstance(exc, PrefectHTTPStatusError):
         exc = exc.__cause__ or exc.__context__
     if exc is None:

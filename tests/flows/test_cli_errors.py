@@ -33,3 +33,21 @@ def test_a_prefect_server_failing_past_its_clients_retries_is_one_line_and_other
     parser.set_defaults(handler=lambda args: 1 / 0)  # a bug stays a traceback
     with pytest.raises(ZeroDivisionError):
         cli.main([])
+
+
+def test_a_temporary_server_that_died_while_it_started_is_one_line(monkeypatch, capsys):
+    """Killed before `ends_with_its_server` could follow it (a soak's server kill on a loaded machine), Prefect's
+    client raised its bare RuntimeError and the run ended in a traceback."""
+    import prefect.exceptions  # noqa: F401 - the CLI looks at Prefect's errors only once Prefect is imported
+
+    def run(args: argparse.Namespace) -> int:
+        raise RuntimeError("Timed out while attempting to connect to ephemeral Prefect API server. "
+                           "Ephemeral server process exited with code -9.")
+
+    parser = argparse.ArgumentParser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    parser.set_defaults(handler=run)
+    assert cli.main([]) == 2
+    assert capsys.readouterr().err == (
+        "sim2act: Prefect's temporary API server died while it started (exit -9); nothing ran against it. Run the "
+        "same command again to resume (finished units are kept)\n")
