@@ -38,7 +38,9 @@ def test_a_prefect_server_failing_past_its_clients_retries_is_one_line_and_other
 def test_a_temporary_server_that_died_while_it_started_is_one_line(monkeypatch, capsys):
     """Killed before `ends_with_its_server` could follow it (a soak's server kill on a loaded machine), Prefect's
     client raised its bare RuntimeError and the run ended in a traceback."""
-    import prefect.exceptions  # noqa: F401 - the CLI looks at Prefect's errors only once Prefect is imported
+    import importlib
+
+    importlib.import_module("prefect.exceptions")  # the CLI looks at Prefect's errors only once Prefect is imported
 
     def run(args: argparse.Namespace) -> int:
         raise RuntimeError("Timed out while attempting to connect to ephemeral Prefect API server. "
