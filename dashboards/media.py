@@ -25,6 +25,8 @@ MIN_VIDEO_SIDE = 256  # 84 px frames are enlarged by whole pixels so the player 
 def media_file(workspace: Workspace, name: str) -> Path | None:
     """The MP4 `name` names inside the workspace's media folder, or None: nothing outside it
     (no `..`, no absolute path, no link out) and nothing but MP4s."""
+    if "\0" in name:  # no file has one: resolve() would raise
+        return None
     folder = workspace.media.resolve()
     path = (folder / name).resolve()
     if path.suffix.lower() != ".mp4" or not path.is_relative_to(folder) or not path.is_file():

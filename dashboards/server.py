@@ -6,15 +6,18 @@ that is still running; the server writes nothing into the workspace.
 
 from __future__ import annotations
 
+import ipaddress
 import socket
 import tempfile
+from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
 import duckdb
 import uvicorn
-from fastapi import FastAPI, HTTPException
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi.middleware.trustedhost import TrustedHostMiddleware
+from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from dashboards import reads
@@ -28,15 +31,35 @@ STATIC = Path(__file__).with_name("static")
 PAGE_SIZE = 50
 
 
-def create_app(workspace: Workspace) -> FastAPI:
+def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> FastAPI:
+    """The dashboard's app over `workspace`. `allowed_hosts`: the Host headers it answers (`serve` gives the
+    loopback names where it listens on loopback, so a page elsewhere cannot read it by DNS rebinding);
+    None: any."""
     catalog = Catalog(workspace.catalog)
     panels = load_panels()
     by_id = {panel.id: panel for panel in panels}
     video_folder = tempfile.TemporaryDirectory(prefix="sim2act-dashboard-")
     videos = EpisodeVideos(catalog, Path(video_folder.name))
-    app = FastAPI(title="Sim2Act dashboard", docs_url=None, redoc_url=None, openapi_url=None)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        yield
+        # here, not at interpreter exit: uvicorn re-raises SIGTERM (`sim2act down`) after its shutdown,
+        # and the rendered videos of every stopped dashboard stayed in /tmp
+        video_folder.cleanup()
+
+    app = FastAPI(title="Sim2Act dashboard", docs_url=None, redoc_url=None, openapi_url=None, lifespan=lifespan)
     app.state.video_folder = video_folder  # removed when the app goes
+    if allowed_hosts is not None:
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.exception_handler(duckdb.IOException)
+    def unreadable_file(request: Request, exc: duckdb.IOException) -> JSONResponse:
+        """A shard missing or damaged (moved by hand, a disk error): said, with what to do, not a bare 500."""
+        return JSONResponse(status_code=503, content={"detail": (
+            f"a warehouse file could not be read ({str(exc).splitlines()[0][:300]}): run `sim2act warehouse verify "
+            f"--workspace {workspace.root}` to quarantine it; the next `sim2act run` redoes its unit")})
 
     def known_campaigns() -> tuple[list[str], str | None]:
         """(campaigns, why there is nothing to show when there are none)."""
@@ -79,16 +102,18 @@ def create_app(workspace: Workspace) -> FastAPI:
         chosen = campaign_of(campaign)
         try:
             rows = run_panel(catalog, panel, chosen)
+        except duckdb.IOException:
+            raise  # a file, not the panel: `unreadable_file` says what to do
         except (PanelError, duckdb.Error) as exc:
             raise HTTPException(500, f"panel {panel_id}: {str(exc).splitlines()[0]}") from None
         return {"id": panel.id, "campaign": chosen, "columns": rows.columns, "rows": rows.rows}
 
     @app.get("/api/episodes")
     def episode_page(campaign: str | None = None, iteration: int | None = None, task: str | None = None,
-                     explorer: str | None = None, reason: str | None = None, offset: int = 0,
-                     limit: int = PAGE_SIZE) -> dict[str, Any]:
+                     explorer: str | None = None, reason: str | None = None,
+                     offset: int = Query(0, ge=0, le=1 << 62), limit: int = PAGE_SIZE) -> dict[str, Any]:
         query = reads.EpisodeQuery(campaign_of(campaign), iteration, task or None, explorer or None, reason or None)
-        total, rows = reads.episodes(catalog, query, max(0, offset), min(max(1, limit), 500))
+        total, rows = reads.episodes(catalog, query, offset, min(max(1, limit), 500))
         return {"campaign": query.campaign, "total": total, "offset": offset, "rows": rows.rows,
                 "choices": reads.episode_choices(catalog, query.campaign)}
 
@@ -140,6 +165,12 @@ def listening_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
+LOOPBACK_NAMES = ["localhost", "127.0.0.1", "::1", "[::1]"]
+
+
 def serve(workspace: Workspace, sock: socket.socket) -> None:
-    """Serve the dashboard over the workspace's warehouse on `sock` (`listening_socket`) until interrupted (blocking)."""
-    uvicorn.Server(uvicorn.Config(create_app(workspace), log_level="warning")).run(sockets=[sock])
+    """Serve the dashboard over the workspace's warehouse on `sock` (`listening_socket`) until interrupted
+    (blocking). On a loopback address it answers only requests naming a loopback host."""
+    host = ipaddress.ip_address(sock.getsockname()[0])
+    app = create_app(workspace, LOOPBACK_NAMES if host.is_loopback else None)
+    uvicorn.Server(uvicorn.Config(app, log_level="warning")).run(sockets=[sock])

@@ -142,7 +142,7 @@ def test_media_serves_the_media_folder_only(tmp_path):
         assert response.status == 206 and response.read() == b"ftyp"  # what <video> asks for
         for path in ("/media/../secret.mp4", "/media/..%2Fsecret.mp4", "/media/%2e%2e/secret.mp4",
                      f"/media/{workspace.root}/secret.mp4", "/media/link.mp4", "/media/notes.txt",
-                     "/media/../warehouse/catalog.duckdb", "/media/missing.mp4"):
+                     "/media/../warehouse/catalog.duckdb", "/media/missing.mp4", "/media/a%00.mp4"):
             status, body = get(port, path)
             assert status == 404 and b"not for the page" not in body, path
 
@@ -159,6 +159,25 @@ def test_an_empty_workspace_says_so(tmp_path):
         assert status == 200 and b'"campaigns":[]' in body and b"holds no campaign" in body
         status, _ = get(port, "/api/panels/per_task")
         assert status == 404
+
+
+def test_a_missing_shard_says_what_to_do_and_a_bad_offset_is_refused(tmp_path):
+    """A shard moved away by hand broke every endpoint with a bare 500; an offset past 64 bits reached DuckDB."""
+    from tests.warehouse.filled import fill
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    fill(workspace, iterations=1, units=2, episodes=2, steps=5)
+    with serving(workspace) as port:
+        status, body = get(port, "/api/episodes?offset=99999999999999999999")
+        assert status == 422
+        status, body = get(port, "/api/episodes?offset=1")
+        assert status == 200 and b'"offset":1' in body
+        [(path,)] = Catalog(workspace.catalog).query(
+            "SELECT path FROM shards WHERE table_name = 'episodes' ORDER BY path LIMIT 1")
+        (workspace.warehouse / path).rename(tmp_path / "moved.parquet")
+        for request in ("/api/episodes", "/api/panels/per_task"):
+            status, body = get(port, request)
+            assert status == 503 and b"run `sim2act warehouse verify --workspace" in body, (request, body)
 
 
 # -- the page in Chromium -----------------------------------------------------------------
@@ -248,9 +267,14 @@ def test_the_page_without_data_says_so(browser, tmp_path):
 
 def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
     """The entry point `sim2act up` runs: a process that answers /health."""
+    import os
+
     port = _free_port()
-    process = subprocess.Popen([SIM2ACT, "dashboard", "--workspace", str(tmp_path), "--port", str(port)],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    process = subprocess.Popen([SIM2ACT, "dashboard", "--workspace", str(tmp_path / "ws"), "--port", str(port)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               env={**os.environ, "TMPDIR": str(scratch)})
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -261,9 +285,15 @@ def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
                 assert process.poll() is None and time.monotonic() < deadline, process.stdout.read()
                 time.sleep(0.2)
         assert status == 200 and b'"status":"ok"' in body
+        assert [p.name for p in scratch.iterdir() if p.name.startswith("sim2act-dashboard-")]  # its video folder
+        # on loopback it answers loopback names only: a page elsewhere cannot read it through DNS rebinding
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        connection.request("GET", "/health", headers={"Host": f"attacker.example:{port}"})
+        assert connection.getresponse().status == 400
     finally:
-        process.terminate()
+        process.terminate()  # what `sim2act down` sends
         process.wait(timeout=30)
+    assert not [p for p in scratch.iterdir() if p.name.startswith("sim2act-dashboard-")]  # its videos gone with it
 
 
 def test_bench_panels_times_every_panel_on_a_finished_campaign(finished_campaign, tmp_path):
