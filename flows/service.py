@@ -82,8 +82,13 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
         linked.setdefault(TRACKING_URI_ENV, mlflow)
     return [
         # The UI asks its API at PREFECT_UI_API_URL, which otherwise assumes port 4200.
+        # Cross-origin calls from its own UI only. Prefect allows any origin by default: a page open in the same
+        # browser could read the deployments and start a bootstrap run with a workspace and config of its
+        # choosing. A write's JSON body needs the browser's preflight, which now fails for other origins (and
+        # its FastAPI refuses JSON sent as text/plain), so raw API clients (curl, docs/service.md) need no token.
         ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
-                    {**prefect_env, "PREFECT_UI_API_URL": f"{prefect}/api"}, f"{prefect}/api/health", prefect),
+                    {**prefect_env, "PREFECT_UI_API_URL": f"{prefect}/api", "PREFECT_SERVER_CORS_ALLOWED_ORIGINS": prefect},
+                    f"{prefect}/api/health", prefect),
         ProcessSpec("mlflow", mlflow_command, mlflow_env, f"{mlflow}/health", mlflow, tracking=own_database),
         ProcessSpec("dashboard", [_bin("sim2act"), "dashboard", "--workspace", str(workspace.root),
                                   "--host", HOST, "--port", str(service.dashboard_port)],

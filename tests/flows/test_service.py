@@ -97,6 +97,19 @@ def test_a_bad_parameter_through_the_api_is_refused_with_its_field_named(stack):
     assert status == 409, body
     assert "lr" in body["detail"] and "fast" in body["detail"], body
     assert Catalog(Workspace.at(workspace).catalog).query("SELECT count(*) FROM stage_runs") == before
+    # a web page elsewhere cannot: its browser's preflight for a JSON POST is refused that origin (Prefect's
+    # default allowed any), while the stack's own UI keeps it
+    for origin, allowed in (("https://attacker.example", False), (urls["prefect"], True)):
+        preflight = urllib.request.Request(
+            f"{urls['prefect']}/api/deployments/{deployment['id']}/create_flow_run", method="OPTIONS",
+            headers={"Origin": origin, "Access-Control-Request-Method": "POST",
+                     "Access-Control-Request-Headers": "content-type"})
+        try:
+            with urllib.request.urlopen(preflight, timeout=10) as response:
+                granted = response.headers.get("access-control-allow-origin")
+        except urllib.error.HTTPError as exc:
+            granted = exc.headers.get("access-control-allow-origin")
+        assert (granted in (origin, "*")) is allowed, (origin, granted)
 
 
 def test_a_bad_value_in_the_prefect_ui_form_is_refused_with_its_field_named(stack, browser):
