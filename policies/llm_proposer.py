@@ -17,6 +17,7 @@ from policies.openai_chat import complete
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import Colour, TaskRecord
+from schemas.wordings import held_out_wording
 
 log = logging.getLogger("sim2act.policies.llm_proposer")
 
@@ -73,6 +74,13 @@ def _check(proposal: Proposal, specs: dict[str, TaskSpec]) -> str | None:
     return None
 
 
+def _held_out(task: TaskRecord) -> set[str]:
+    """What evaluation says to `task` and training must never: its held-out paraphrases, and the held-out
+    wording of its instructions (stages/evaluate.py's held_out_wording split). A model's proposal that
+    repeats one is dropped (counted `held_out_instruction`), not trained on."""
+    return set(task.unseen_instructions) | {held_out_wording(text) for text in task.instructions}
+
+
 def merge_proposals(
     content: str, specs: dict[str, TaskSpec], config: TasksConfig, tasks: list[TaskRecord]
 ) -> ProposalOutcome:
@@ -102,9 +110,18 @@ def merge_proposals(
         if task_id in by_id:
             known = by_id[task_id]
             extra = [text for text in said if text not in known.instructions]
-            by_id[task_id] = known.model_copy(update={"instructions": known.instructions + extra})
+            kept = [text for text in extra if text not in _held_out(known)]
+            if len(kept) < len(extra):
+                rejected["held_out_instruction"] += len(extra) - len(kept)
+            by_id[task_id] = known.model_copy(update={"instructions": known.instructions + kept})
         else:
-            by_id[task_id] = bind_task(spec, colours, list(dict.fromkeys(said)), config)
+            bound = bind_task(spec, colours, list(dict.fromkeys(said)), config)
+            kept = [text for text in bound.instructions if text not in _held_out(bound)]
+            if len(kept) < len(bound.instructions):
+                rejected["held_out_instruction"] += len(bound.instructions) - len(kept)
+            if not kept:
+                continue
+            by_id[task_id] = bound.model_copy(update={"instructions": kept})
             new += 1
     return ProposalOutcome(tasks=list(by_id.values()), new_tasks=new, valid=valid, rejected=dict(rejected))
 

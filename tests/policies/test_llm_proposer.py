@@ -80,3 +80,18 @@ def test_server_errors_are_retried_then_reported(serve_chat):
     with pytest.raises(ProposerUnavailable, match="HTTP 503"):
         chat(config, [{"role": "user", "content": "hi"}])
     assert len(server.requests) == 3
+
+
+def test_a_proposal_that_repeats_a_held_out_instruction_is_not_trained_on(serve_chat):
+    """Evaluation says `hoist the red block into the air` (lift-red's held-out paraphrase); a model that proposed
+    it for training would make that split a seen one. (The held-out wording says no training colour word, so
+    `colour_not_said` refuses a proposal of it already.)"""
+    said = ["hoist the red block into the air", "raise the red block high", "lift the red block up"]
+    answer = {"tasks": [{"spec": "lift", "colours": {"target": "red"}, "instructions": said}]}
+    server = serve_chat(json.dumps(answer))
+    config = _config(f"http://127.0.0.1:{server.server_port}/v1")
+    outcome = propose(config, _specs(config), generate_tasks(config, seed=0))
+    lift_red = {t.task_id: t for t in outcome.tasks}["lift-red"]
+    assert {"raise the red block high", "lift the red block up"} <= set(lift_red.instructions)
+    assert "hoist the red block into the air" not in lift_red.instructions
+    assert outcome.rejected == {"held_out_instruction": 1}
