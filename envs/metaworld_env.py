@@ -21,6 +21,7 @@ from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
 
 BENCHMARK_SEED = 0  # fixes MetaWorld's 50 pre-sampled object/goal variations per task
+PLACEMENT_STREAM = 0x9A5E  # a "fresh" placement's generator: (episode seed, this), apart from randomisation's
 CAMERAS = {"agentview": "corner", "frontview": "corner2", "sideview": "corner3", "birdview": "topview"}
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
 
@@ -99,13 +100,26 @@ class MetaWorldEnv:
         image, depth = self._render()
         return Observation(image, proprio, {"state": np.asarray(state, dtype=np.float64)}, depth)
 
-    def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None) -> Observation:
+    def reset(self, task: TaskRecord, seed: int, randomisation: Randomisation | None = None,
+              placements: str = "benchmark") -> Observation:
+        """`placements`: "benchmark", MT1's 50 fixed object/goal placements (`seed % 50`: what exploration
+        uses); "fresh", one drawn from the task's own reset space by `seed`, as MT1 drew its 50 (MetaWorld
+        draws again while goal and object are too close), so an evaluation can meet placements no
+        exploration saw."""
         if task.env_name != self.env_name:
             raise ValueError(f"task {task.task_id} is for {task.env_name}, this environment is {self.env_name}")
+        if placements not in ("benchmark", "fresh"):
+            raise ValueError(f"placements: expected 'benchmark' or 'fresh', got {placements!r}")
         variations = self.benchmark.train_tasks
-        self.env.set_task(variations[seed % len(variations)])
+        self.env.set_task(variations[seed % len(variations)])  # the task's class and settings (and its placement)
+        if placements == "fresh":  # drawn at reset from the env's generator (its reset ignores a seed): seeded here
+            self.env._freeze_rand_vec, self.env.seeded_rand_vec = False, True
+            self.env.np_random = np.random.default_rng([seed, PLACEMENT_STREAM])
         self.randomiser.apply(randomisation)
-        state, _ = self.env.reset(seed=seed)
+        try:
+            state, _ = self.env.reset(seed=seed)
+        finally:
+            self.env._freeze_rand_vec = True  # the draw is kept for this episode (a reset_model inside it re-reads it)
         return self._observation(state)
 
     def step(self, action: np.ndarray) -> tuple[Observation, float, bool]:

@@ -73,12 +73,14 @@ Act = Callable[[Observation], np.ndarray]
 
 def rollout(
     env, task: TaskRecord, seed: int, act: Act, randomisation=None, label: Act | None = None,
-    steps: int | None = None,
+    steps: int | None = None, placements: str = "benchmark",
 ) -> tuple[list[dict], Observation, bool]:
     """Run one episode until success or the horizon. -> (step rows, final observation, success).
     `label`, if given, is asked for its action at every state the explorer visits (DAgger); `steps`,
-    if given, ends it sooner (explore.policy_steps): its last row is `done`, unsuccessful unless it was."""
-    obs = env.reset(task, seed, randomisation)
+    if given, ends it sooner (explore.policy_steps): its last row is `done`, unsuccessful unless it was.
+    `placements="fresh"`: a MetaWorld task's placement drawn from its seed (evaluate.metaworld_placements)."""
+    obs = env.reset(task, seed, randomisation) if placements == "benchmark" else \
+        env.reset(task, seed, randomisation, placements=placements)
     rows, success = [], False
     last = task.horizon if steps is None else min(steps, task.horizon)
     for step in range(last):

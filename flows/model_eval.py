@@ -173,7 +173,10 @@ def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
             **_flat(config.randomise.model_dump(mode="json"), "randomise")}
     if mine["randomise.enabled"] == explored.get("randomise.enabled") == "false":  # ranges nothing draws from
         explored = {name: value for name, value in explored.items() if not name.startswith("randomise.")}
-    return [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
+    apart = [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
+    if explored and config.evaluate.metaworld_placements != "benchmark":  # exploration always takes MT1's
+        apart.append(f"evaluate.metaworld_placements={config.evaluate.metaworld_placements}")
+    return apart
 
 
 def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | None,

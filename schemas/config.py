@@ -435,6 +435,11 @@ class EvaluateConfig(_Strict):
         "(split held_out_wording: schemas/wordings.py), on the canonical wording's seeds")
     workers: PositiveInt = 2
     videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
+    metaworld_placements: Literal["benchmark", "fresh"] = Field(
+        default="benchmark", description="MetaWorld's object and goal placements in evaluation episodes: 'benchmark' "
+        "takes MT1's 50 fixed ones per task (seed % 50, as exploration does: an evaluation episode mostly starts where "
+        "an explored one did); 'fresh' draws each from the task's own reset space by the episode's seed (as "
+        "robosuite and navigation always do), placements no exploration saw. `sim2act eval` names it in the suite")
     training_seeds: PositiveInt = Field(
         default=1, le=16, description="trainings of each iteration's dataset (train.seed, train.seed + 1, ...): the "
         "first is the campaign's model (it competes for champion and explores the next iteration); the others, "

@@ -57,6 +57,7 @@ class EvalUnit(BaseModel):
     # of them instead (the goal the words did not name: how well the policy reads them)
     others: list[TaskRecord] = []
     video_stem: str | None  # <stem>-success.mp4 / <stem>-failure.mp4: the first episode of each outcome
+    metaworld_placements: str = "benchmark"  # evaluate.metaworld_placements: applies to MetaWorld tasks
 
 
 class TaskEvaluation(BaseModel):
@@ -304,6 +305,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
 
         rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
+            placements=unit.metaworld_placements if unit.task.family == "metaworld" else "benchmark",
         )
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
@@ -424,9 +426,12 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
     # a unit reads its own episode count, not the split's size: the same case evaluated in a smaller task
     # set (sim2act eval --split) finds the same unit
     reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task",
-                                                             "held_out_wordings", "training_seeds"}),
+                                                             "held_out_wordings", "training_seeds",
+                                                             "metaworld_placements"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
+    if config.evaluate.metaworld_placements != "benchmark":  # in the key only where set: older units keep theirs
+        reads["metaworld_placements"] = config.evaluate.metaworld_placements
     per_split = per_split or episodes_per_split(config, cases)
     for task, split, instruction in cases:
         episodes = per_split[split]
@@ -436,7 +441,8 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
                               randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(), others=others_of(task, cases),
-                              video_stem=str(workspace.media / key) if config.evaluate.videos else None))
+                              video_stem=str(workspace.media / key) if config.evaluate.videos else None,
+                              metaworld_placements=config.evaluate.metaworld_placements))
     return units
 
 

@@ -46,6 +46,31 @@ def test_episodes_are_reproducible_from_their_seed(pick_place):
     assert episode(8) != first
 
 
+def test_fresh_placements_are_the_seeds_own_and_none_of_mt1s_fifty(pick_place):
+    """evaluate.metaworld_placements=fresh: MT1's 50 fixed placements are what exploration starts from, so an
+    evaluation on them mostly replays trained placements; a fresh one is drawn from the task's reset space by the
+    episode's seed, reproducibly, and the expert still solves it (MetaWorld redraws a goal too near its object)."""
+    import pickle
+
+    env, task = pick_place
+    benchmark = [pickle.loads(t.data)["rand_vec"] for t in env.benchmark.train_tasks]
+
+    def placement(seed: int, placements: str) -> np.ndarray:
+        env.reset(task, seed, None, placements=placements)
+        return env.env._last_rand_vec.copy()
+
+    assert np.array_equal(placement(7, "benchmark"), benchmark[7 % 50])
+    fresh = {seed: placement(seed, "fresh") for seed in (7, 8, 57)}
+    assert not any(np.allclose(vector, known) for vector in fresh.values() for known in benchmark)
+    assert np.array_equal(placement(7, "fresh"), fresh[7]) and not np.allclose(fresh[7], fresh[57])  # 57 % 50 == 7
+    assert np.array_equal(placement(7, "benchmark"), benchmark[7])  # and the next benchmark episode is as before
+    for seed in (7, 8):
+        _, _, success = rollout(env, task, seed, make_expert(task, 0.0, np.random.default_rng(seed)), placements="fresh")
+        assert success
+    with pytest.raises(ValueError, match="expected 'benchmark' or 'fresh', got 'new'"):
+        env.reset(task, 7, None, placements="new")
+
+
 def test_simplified_visual_meshes_change_pixels_not_physics(pick_place, tmp_path, monkeypatch):
     """As robosuite's (tests/envs/test_robosuite_env.py): the same episode, frames a little different."""
     env, task = pick_place

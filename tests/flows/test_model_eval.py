@@ -41,6 +41,8 @@ def test_an_evaluation_under_other_frames_than_the_campaign_explored_is_a_suite_
                                         "randomise": {"light": [0.5, 1.5]}})
     assert conditions_apart(workspace, other) == ["randomise.light=[0.5, 1.5]", "render.mesh_detail=1.0",
                                                   "render.shadows=true"]
+    fresh = config.model_copy(update={"evaluate": config.evaluate.model_copy(update={"metaworld_placements": "fresh"})})
+    assert conditions_apart(workspace, fresh) == ["evaluate.metaworld_placements=fresh"]  # exploration takes MT1's
     tasks = tmp_path / "elsewhere.yaml"
     tasks.write_text(NEW_TASKS)
     assert eval_cases(workspace, config, tasks, None)[0] == "file:elsewhere.yaml"
