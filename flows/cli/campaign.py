@@ -12,6 +12,7 @@ from flows.cli.common import (Commands, add_campaign_options, campaign_config, c
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import Acting, ConfigError
 from schemas.experts import TARGET
+from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
 
 MODEL_REF = "champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-..."  # --model
@@ -130,6 +131,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
 
     suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
+    per_split = episodes_per_split(config, cases)  # the split's whole size, a family's cases or not: the same units
+    if args.family:
+        cases = [case for case in cases if case[0].family == args.family]
+        if not cases:
+            raise ConfigError(f"--family: {suite} has no {args.family} case{' in split ' + args.split if args.split else ''}")
     check_render(config.render, [task for task, _, _ in cases])  # a view a case's scene lacks: one line, here
     models = [resolve_model(workspace, config, ref) for ref in args.model]
     for model in models:
@@ -144,11 +150,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         run_id = tracking.evaluation_run(model_key, suite, model.label)
         print(f"sim2act: evaluating {model.label} ({model.model_key}, trained at iteration {model.iteration}, "
               f"{weights_of_checkpoint(model.checkpoint, args.weights)} weights) on {len(cases)} case(s) of {suite}, "
-              f"{'/'.join(map(str, sorted(set(episodes_per_split(config, cases).values()))))} episodes each; "
+              f"{'/'.join(map(str, sorted({per_split[split] for _, split, _ in cases})))} episodes each; "
               f"MLflow run {run_id}", flush=True)
         evaluations, skipped = evaluate_model(workspace, config, model.iteration, model_key,
                                               Agent(kind="sim2act", path=model.checkpoint, weights=args.weights),
-                                              cases, embeddings, suite)
+                                              cases, embeddings, suite, per_split=per_split)
         if skipped < len(evaluations):
             tracking.log_evaluation(run_id, evaluations)
         tracking.finish(run_id)
@@ -348,6 +354,7 @@ def register(commands: Commands) -> None:
     which.add_argument("--split", choices=SPLIT_CHOICES,
                        help="only this split's cases (held_out_wording: seen tasks in words the generator never uses)")
     evaluate.add_argument("--episodes", type=int, help="episodes per case (default: the config's evaluate.episodes_per_task)")
+    evaluate.add_argument("--family", choices=FAMILIES, help="only this family's cases (of the campaign's, a split's or a file's)")
 
     shadow = campaign_command("shadow", "a model's evaluation episodes with the noiseless expert asked at every "
                               "state: where they part (a grasp tried short, a slow hand, a drop)", cmd_shadow)

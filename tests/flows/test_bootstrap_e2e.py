@@ -263,6 +263,8 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
     [(first_key,)] = catalog.query("SELECT model_key FROM models ORDER BY iteration LIMIT 1")  # version 1's
     by_key = evaluate("--model", first_key, "--split", "seen")  # its checkpoint path is stored relative to the workspace
     assert by_key.returncode == 0 and f"evaluating {first_key}" in by_key.stdout, by_key.stderr[-3000:]
+    one_family = evaluate("--model", "1", "--split", "seen", "--family", "robosuite")  # a family's cases: the same units
+    assert one_family.returncode == 0 and "3 case(s) of campaign" in one_family.stdout, one_family.stderr[-3000:]
     assert catalog.query("SELECT count(*) FROM evaluations") == before
 
     spec = tmp_path / "elsewhere.yaml"
@@ -283,7 +285,8 @@ def test_eval_scores_a_registered_model_on_a_split_and_on_a_task_file(finished_c
 
     for args, named in ((["--model", "v99"], "--model"), (["--model", "champion", "--tasks", "missing.yaml"], "--tasks"),
                         (["--model", "1", "--set", "render.depth=true"], "render.depth"),
-                        (["--model", "1", "--set", "render.wrist_camera=true"], "render.wrist_camera")):
+                        (["--model", "1", "--set", "render.wrist_camera=true"], "render.wrist_camera"),
+                        (["--model", "1", "--family", "navigation"], "--family: campaign has no navigation case")):
         refused = evaluate(*args)
         assert refused.returncode == 2 and named in refused.stderr and len(refused.stderr.splitlines()) == 1, refused.stderr
     assert catalog.query("SELECT count(*) FROM evaluations WHERE suite = 'campaign'") == before
