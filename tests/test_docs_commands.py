@@ -15,7 +15,7 @@ from flows.cli.common import campaign_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
-FENCED_BLOCK = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)  # every block, so fences stay paired
+FENCED_BLOCK = re.compile(r"^ *```(\w*)\n(.*?)^ *```", re.S | re.M)  # every block, so fences stay paired
 SHELL = {"", "bash", "sh", "shell", "console"}
 # Placeholders the docs write for values a reader picks (train-<key>, $seed, --iteration K, [--json]):
 # each becomes a value the parser takes, so the flags around it are still checked.
