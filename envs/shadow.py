@@ -53,8 +53,10 @@ class EpisodeShadow:
     first_moves: tuple[list[float], list[float]] | None = None  # the policy's and the expert's first translation
 
 
-def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, randomisation=None) -> EpisodeShadow:
-    """One episode of `act` with `expert` (a fresh noiseless expert, or its bound `act`) asked at every state."""
+def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, randomisation=None,
+                   placements: str = "benchmark") -> EpisodeShadow:
+    """One episode of `act` with `expert` (a fresh noiseless expert, or its bound `act`) asked at every state;
+    `placements` as `rollout`'s (a MetaWorld task's, evaluate.metaworld_placements)."""
     distances: list[float | None] = []
     phases: list[tuple[int, str]] = []
     owner = getattr(expert, "__self__", expert)
@@ -68,7 +70,7 @@ def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, rand
         phases.append(expert_phase(owner))
         return action
 
-    rows, _, success = rollout(env, task, seed, policy, randomisation, label=shadowing)
+    rows, _, success = rollout(env, task, seed, policy, randomisation, label=shadowing, placements=placements)
     taken = np.asarray([r["action"] for r in rows], dtype=np.float64)
     wanted = np.asarray([r["expert_action"] for r in rows], dtype=np.float64)
     discrete = task.family in DISCRETE_FAMILIES

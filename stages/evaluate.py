@@ -305,7 +305,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
 
         rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
-            placements=unit.metaworld_placements if unit.task.family == "metaworld" else "benchmark",
+            placements=_placements(unit),
         )
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
@@ -327,6 +327,11 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
     )
 
 
+def _placements(unit: EvalUnit) -> str:
+    """The unit's evaluate.metaworld_placements where its task is MetaWorld's (the others draw theirs from the seed)."""
+    return unit.metaworld_placements if unit.task.family == "metaworld" else "benchmark"
+
+
 def shadow_unit(unit: EvalUnit) -> CaseShadow:
     """Worker: the unit's episodes as evaluate_unit plays them (same agent, seeds, randomisation), the
     noiseless expert asked at every state the agent reaches (envs.shadow; no videos, nothing registered)."""
@@ -340,7 +345,8 @@ def shadow_unit(unit: EvalUnit) -> CaseShadow:
         decide = actor(seed)
         case.add(shadow_episode(env, unit.task, seed, lambda obs: decide(obs)[0],
                                 make_expert(unit.task, 0.0, np.random.default_rng(seed)),
-                                sample_randomisation(unit.randomise, seed, env.RANDOMISES)))
+                                sample_randomisation(unit.randomise, seed, env.RANDOMISES),
+                                placements=_placements(unit)))
     return case
 
 
