@@ -213,11 +213,33 @@ class Climb(BaseModel):
 
 
 def _against(figure: SeedsSuccess, reference: SeedsSuccess, whose: str) -> str:
-    if figure.ci_high < reference.ci_low:
-        return f"below {whose}: the pooled intervals are apart"
-    if figure.ci_low > reference.ci_high:
-        return f"above {whose}: the pooled intervals are apart"
-    return "within the noise: the pooled intervals overlap"
+    """How `figure` reads against `reference`, by both measures: the pooled episodes' Wilson intervals (the
+    episodes' noise alone) and, with two seeds or more on each side, Welch's t on the seeds' rates (which the
+    seeds' own disagreement widens or narrows: apart pooled intervals can still be one seed's luck, and
+    overlapping ones can hide every seed of one recipe below every seed of the other)."""
+    side = "below" if figure.mean < reference.mean else "above"
+    apart = figure.ci_high < reference.ci_low or figure.ci_low > reference.ci_high
+    p = welch_p(figure.per_seed, reference.per_seed)
+    across = "" if p is None else f"Welch's t on the seeds' rates p = {p:.2g}"
+    if apart and (p is None or p < 0.05):
+        return f"{side} {whose}: the pooled intervals are apart" + (f"; across seeds too ({across})" if across else "")
+    if apart:
+        return f"{side} {whose} by the pooled episodes (intervals apart), not across seeds ({across})"
+    if p is not None and p < 0.05:
+        return f"{side} {whose} across seeds ({across}); the pooled intervals overlap"
+    return "within the noise: the pooled intervals overlap" + (f" ({across})" if across else "")
+
+
+def welch_p(rates: list[float], others: list[float]) -> float | None:
+    """Two-sided p of Welch's t-test between two groups of seeds' rates; None where a side has fewer than two
+    seeds, or neither varies (no spread to measure a difference against)."""
+    if len(rates) < 2 or len(others) < 2:
+        return None
+    from scipy import stats
+
+    if statistics.variance(rates) == 0 and statistics.variance(others) == 0:
+        return None
+    return float(stats.ttest_ind(rates, others, equal_var=False).pvalue)
 
 
 def _recipe_changes(loop: dict, other: dict) -> dict[str, object]:

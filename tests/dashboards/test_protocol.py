@@ -35,3 +35,31 @@ def test_seeds_on_different_cases_or_none_are_refused():
         protocol_success([])
     with pytest.raises(ValueError, match="expected every seed evaluated on 1 identical cases"):
         protocol_success([[_case("a", "seen", 1)], [_case("a", "seen", 1, episodes=20)]])
+
+
+def _figure(rates: list[float], episodes_per_seed: int):
+    from dashboards.protocol import SeedsSuccess
+    from stages.evaluate import wilson_interval
+
+    successes = round(sum(rates) * episodes_per_seed)
+    low, high = wilson_interval(successes, len(rates) * episodes_per_seed)
+    return SeedsSuccess(group="seen", per_seed=rates, episodes=len(rates) * episodes_per_seed, successes=successes,
+                        mean=sum(rates) / len(rates), spread=0.0, ci_low=low, ci_high=high)
+
+
+def test_a_reading_weighs_the_seeds_as_well_as_the_pooled_episodes():
+    """The pooled episodes' intervals hold the episodes' noise alone. Every seed of one recipe below every seed of
+    the other (7% vs 13%, results.md's "champion's episodes left out") read "within the noise" because the pooled
+    intervals overlapped; two seeds apart pooled can still be one seed's luck."""
+    from dashboards.protocol import _against
+
+    left_out, loop = _figure([0.06, 0.07, 0.09], 60), _figure([0.12, 0.13, 0.14], 60)
+    assert _against(left_out, loop, "the loop's").startswith(
+        "below the loop's across seeds (Welch's t on the seeds' rates p = 0.0")
+    assert _against(left_out, loop, "the loop's").endswith("; the pooled intervals overlap")
+    lucky, steady = _figure([0.10, 0.12, 0.70], 300), _figure([0.20, 0.21, 0.22], 300)
+    assert _against(lucky, steady, "the loop's").startswith(
+        "above the loop's by the pooled episodes (intervals apart), not across seeds (Welch's t")
+    assert _against(_figure([0.5], 60), _figure([0.52], 60), "x") == "within the noise: the pooled intervals overlap"
+    assert _against(_figure([0.5, 0.6], 60), _figure([0.52, 0.58], 60), "x").startswith(
+        "within the noise: the pooled intervals overlap (Welch's t on the seeds' rates p = ")

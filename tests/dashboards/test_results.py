@@ -334,7 +334,7 @@ def test_the_report_sets_the_loops_last_iteration_over_seeds_against_its_first(t
     rows = [_cells(line) for line in lines if line.startswith("| seen |")]
     assert rows == [["seen", "20% ± 10 (10, 20, 30) over 3 seeds, 30/150 pooled [14%, 27%]",
                      "70% ± 10 (60, 70, 80) over 3 seeds, 105/150 pooled [62%, 77%]", "+50.0",
-                     "above iteration 0's: the pooled intervals are apart"]]
+                     "above iteration 0's: the pooled intervals are apart; across seeds too (Welch's t on the seeds' rates p = 0.0036)"]]
     climb = lines[lines.index("### The loop over seeds: iteration 0 against iteration 3"):]
     assert [line.split("|")[1].strip() for line in climb[:climb.index("### Ablations: each recipe against the loop's own")]
             if line.startswith("| ") and not line.startswith("| split")] == ["seen"]  # splits; families are above
@@ -372,7 +372,7 @@ def test_an_ablation_is_its_own_row_named_by_what_it_changes_and_read_against_th
         "### Ablations: each recipe against the loop's own"):] if line.startswith("| 3")]
     assert ablations == [["3", "train.targets executed", "20% ± 10 (20, 10, 30) over 3 seeds, 6/30 pooled [10%, 37%]",
                           "80% ± 10 (90, 70, 80) over 3 seeds, 24/30 pooled [63%, 90%]", "-60.0",
-                          "below the loop's: the pooled intervals are apart"]]
+                          "below the loop's: the pooled intervals are apart; across seeds too (Welch's t on the seeds' rates p = 0.0018)"]]
 
 
 def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp_path):
