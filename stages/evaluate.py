@@ -31,6 +31,7 @@ from warehouse.catalog import Catalog
 STAGE, VERSION = "evaluate", 5  # 5: episode_achieved
 log = logging.getLogger("sim2act.stages.evaluate")
 SPLITS = (*get_args(Split), UNSEEN_PARAPHRASE, HELD_OUT_WORDING)  # the evaluation's splits, in report order
+CANONICAL_SPLITS = get_args(Split)  # seen, unseen: each task once, said as the suite says it
 
 
 class Agent(BaseModel):
@@ -136,11 +137,14 @@ def read_evaluations(catalog: Catalog, lead: str, rest: str, params: list,
 
 
 def group_success(evaluations: list[TaskEvaluation]) -> list[GroupSuccess]:
-    """Per split, per family, and per split within each family: episodes pooled (each case the
-    same episodes, so the pooled rate is the mean of the cases' rates), with a Wilson interval."""
+    """Per split, per family, and per split within each family: episodes pooled, with a Wilson interval.
+    A family's own group holds its tasks once each, said canonically (seen and unseen): a seen task said
+    again in a held-out paraphrase or wording replays the same episode seeds, and pooled beside its canonical
+    case it would count twice or three times as independent episodes."""
     groups: dict[str, list[TaskEvaluation]] = {}
     for t in evaluations:
-        for group in (t.split, t.family, f"{t.family}/{t.split}"):
+        canonical = (t.family,) if t.split in CANONICAL_SPLITS else ()
+        for group in (t.split, *canonical, f"{t.family}/{t.split}"):
             groups.setdefault(group, []).append(t)
     summaries = []
     for group, members in sorted(groups.items()):
