@@ -20,7 +20,11 @@ class WeightAverage:
 
     def __init__(self, model: nn.Module, decay: float, state: dict[str, torch.Tensor] | None = None):
         self.decay = decay
-        self.weights = {name: value.detach().clone() for name, value in (state or model.state_dict()).items()}
+        # on the model's device: a resumed average is read from a checkpoint loaded to the CPU, and updating it
+        # from a GPU model's weights would mix devices
+        devices = {name: value.device for name, value in model.state_dict().items()}
+        self.weights = {name: value.detach().clone().to(devices.get(name, value.device))
+                        for name, value in (state or model.state_dict()).items()}
 
     @torch.no_grad()
     def update(self, model: nn.Module, step: int) -> None:

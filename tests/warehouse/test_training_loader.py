@@ -39,3 +39,15 @@ def test_the_workers_must_be_those_the_batches_were_split_for(tmp_path):
     batches = StepBatches(_selected_rows(tmp_path), batch_size=16, shuffle_buffer=32, seed=0, epochs=1, workers=2)
     with pytest.raises(ValueError, match="expected the 2 worker"):
         training_loader(batches, workers=3)
+
+
+def test_starting_a_loader_leaves_torchs_global_generator_alone(tmp_path):
+    """A resumed training starts one more loader than a straight one: drawing its workers' base seed from torch's
+    global generator put every later global draw (a trainable MiniLM's dropout) one ahead after a resume."""
+    import torch
+
+    batches = StepBatches(_selected_rows(tmp_path), batch_size=16, shuffle_buffer=32, seed=0, epochs=1, workers=0)
+    torch.manual_seed(5)
+    before = torch.get_rng_state()
+    rows = sum(len(batch["action"]) for batch in training_loader(batches, workers=0))
+    assert rows == batches.rows_per_epoch and torch.equal(torch.get_rng_state(), before)
