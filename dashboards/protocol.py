@@ -31,7 +31,7 @@ class SeedsSuccess(BaseModel):
         return len(self.per_seed)
 
     def describe(self) -> str:
-        """e.g. `87% ± 5 (82, 85, 93) over 3 seeds, 131/150 pooled [81%, 92%]`"""
+        """e.g. `87% ± 6 (82, 86, 94) over 3 seeds, 131/150 pooled [81%, 92%]` (± the seeds' sample standard deviation)"""
         seeds = ", ".join(f"{rate:.0%}".rstrip("%") for rate in self.per_seed)
         return (f"{self.mean:.0%} ± {100 * self.spread:.0f} ({seeds}) over {self.seeds} seed{'s' * (self.seeds > 1)}, "
                 f"{self.successes}/{self.episodes} pooled [{self.ci_low:.0%}, {self.ci_high:.0%}]")
