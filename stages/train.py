@@ -400,6 +400,10 @@ def _train_member(run: _Run, member: int) -> _Member:
             average = WeightAverage(model, cfg.ema, state["ema"])
         earlier_wall_s = state.get("wall_s", 0.0)  # states saved before it was recorded: unknown, not counted
         log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
+        if state.get("bf16", run.bf16) != run.bf16:  # precision is how a unit runs, not in its key: said, not refused
+            log.warning("train it%d: %s ran its first %d steps in %s and goes on in %s (train.amp or this host's "
+                        "bf16 choice differs): the training mixes precisions", run.iteration, key, step,
+                        "bf16" if state["bf16"] else "fp32", "bf16" if run.bf16 else "fp32")
     resumed_at = step
     run.progress.resume_at(offset + step)
     log.info("train it%d: %s%.2fM parameters", run.iteration, which, sum(p.numel() for p in model.parameters()) / 1e6)
@@ -412,7 +416,7 @@ def _train_member(run: _Run, member: int) -> _Member:
             "schedule": schedule.state_dict(), "rng": torch.get_rng_state(),
             "shifts": shifts.get_state(), "step": step,
             "history": history, "epoch_means": epoch_means.state(),
-            "wall_s": earlier_wall_s + time.monotonic() - member_started,
+            "wall_s": earlier_wall_s + time.monotonic() - member_started, "bf16": run.bf16,
             **({} if average is None else {"ema": average.weights}),
         })
 
