@@ -241,7 +241,7 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
              "transfer**: " + ", ".join(f"{name} {value}" for name, value in domain.items()) + " (per episode, "
              "outside the campaign's own randomisation). The expert explores it; each model trains on the first "
              "episodes of every task, fine-tuned from the champion "
-             f"(`{result.source_model}`) or from scratch" + (f", {seeds} training seeds each (pooled; their spread "
+             f"(`{result.source_model}`) or from scratch" + (f", {seeds} training seeds each (pooled; the lowest and highest seed "
              "in parentheses)" if seeds > 1 else "") + ", and meets the same evaluation episodes there.", ""]
     cells = {point: _pooled_cell(seeds) for point, seeds in pooled(result.points).items()}
     counts = sorted({p.episodes for p in result.points if p.start != "source"})
