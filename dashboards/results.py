@@ -218,7 +218,7 @@ def _reached(points: list[AdaptPoint], start: str, target: float) -> str:
 
 
 def _pooled_cell(seeds: list[AdaptPoint]) -> str:
-    """A point's seeds pooled; with several, the spread of their own rates after."""
+    """A point's seeds pooled; with several, the lowest and highest of their own rates after."""
     successes, trials = pooled_score(seeds)
     cell = f"{successes}/{trials} = {successes / trials:.0%}"
     if len(seeds) > 1:

@@ -57,6 +57,9 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
     @app.exception_handler(duckdb.IOException)
     def unreadable_file(request: Request, exc: duckdb.IOException) -> JSONResponse:
         """A shard missing or damaged (moved by hand, a disk error): said, with what to do, not a bare 500."""
+        if "lock" in str(exc).lower():  # a writer held the catalog past the wait: busy, not damaged
+            return JSONResponse(status_code=503, content={"detail": "the warehouse catalog is busy (a campaign is "
+                                                                    "registering work): try again in a moment"})
         return JSONResponse(status_code=503, content={"detail": (
             f"a warehouse file could not be read ({str(exc).splitlines()[0][:300]}): run `sim2act warehouse verify "
             f"--workspace {workspace.root}` to quarantine it; the next `sim2act run` redoes its unit")})
@@ -168,9 +171,10 @@ def listening_socket(host: str, port: int) -> socket.socket:
 LOOPBACK_NAMES = ["localhost", "127.0.0.1", "::1", "[::1]"]
 
 
-def serve(workspace: Workspace, sock: socket.socket) -> None:
+def serve(workspace: Workspace, sock: socket.socket, name: str = "127.0.0.1") -> None:
     """Serve the dashboard over the workspace's warehouse on `sock` (`listening_socket`) until interrupted
-    (blocking). On a loopback address it answers only requests naming a loopback host."""
+    (blocking). On a loopback address it answers only requests naming a loopback host, or `name` (the
+    --host it was given: a host name may resolve to 127.0.1.1)."""
     host = ipaddress.ip_address(sock.getsockname()[0])
-    app = create_app(workspace, LOOPBACK_NAMES if host.is_loopback else None)
+    app = create_app(workspace, [*LOOPBACK_NAMES, name] if host.is_loopback else None)
     uvicorn.Server(uvicorn.Config(app, log_level="warning")).run(sockets=[sock])

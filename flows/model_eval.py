@@ -173,25 +173,31 @@ def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
             **_flat(config.randomise.model_dump(mode="json"), "randomise")}
     if mine["randomise.enabled"] == explored.get("randomise.enabled") == "false":  # ranges nothing draws from
         explored = {name: value for name, value in explored.items() if not name.startswith("randomise.")}
-    apart = [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
-    if explored and config.evaluate.metaworld_placements != "benchmark":  # exploration always takes MT1's
-        apart.append(f"evaluate.metaworld_placements={config.evaluate.metaworld_placements}")
-    return apart
+    return [f"{name}={mine[name]}" for name in sorted(explored) if name in mine and mine[name] != explored[name]]
+
+
+def _suite(name: str, apart: list[str], config: CampaignConfig, cases: list[tuple[TaskRecord, str, str]]) -> str:
+    """The suite's name: `name`, then what differs from the campaign's exploration (`conditions_apart`), and
+    MetaWorld's placements where its cases are on other ones than MT1's (exploration always takes MT1's)."""
+    placements = config.evaluate.metaworld_placements
+    if placements != "benchmark" and any(task.family == "metaworld" for task, _, _ in cases):
+        apart = [*apart, f"evaluate.metaworld_placements={placements}"]
+    return f"{name} @ {', '.join(apart)}" if apart else name
 
 
 def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | None,
-               split: str | None) -> tuple[str, list[tuple[TaskRecord, str, str]]]:
+               split: str | None, family: str | None = None) -> tuple[str, list[tuple[TaskRecord, str, str]]]:
     """(suite, cases): a file's tasks (seen: the task ids the campaign explored), or the
     campaign's own evaluation cases, all or one split: the same units as the flow's, so a model
     the flow evaluated is not rolled out again. Under render or randomisation settings other than the
     campaign explored under, the suite names them (`campaign @ render.mesh_detail=1.0`): such an evaluation
     keeps its own rows beside the campaign's, which the report and the dashboard read."""
     apart = conditions_apart(workspace, config)
-    conditions = f" @ {', '.join(apart)}" if apart else ""
     if tasks_file is not None:
         explored = {task_id for (task_id,) in Catalog(workspace.catalog).query(
             "SELECT DISTINCT task_id FROM episodes WHERE campaign = ?", [config.name])}
-        return f"file:{tasks_file.name}{conditions}", evaluation_cases(file_tasks(tasks_file, config, explored))
+        cases = evaluation_cases(file_tasks(tasks_file, config, explored))
+        return _suite(f"file:{tasks_file.name}", apart, config, _of(cases, family)), cases
     # --split held_out_wording asks for that split whether or not the campaign evaluates it
     cases = evaluation_cases(campaign_tasks(workspace, config),
                              config.evaluate.held_out_wordings or split == HELD_OUT_WORDING)
@@ -199,7 +205,11 @@ def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | 
         cases = [case for case in cases if case[1] == split]
         if not cases:
             raise ConfigError(f"--split: campaign {config.name!r} has no {split} evaluation case")
-    return f"{CAMPAIGN_SUITE}{conditions}", cases
+    return _suite(CAMPAIGN_SUITE, apart, config, _of(cases, family)), cases
+
+
+def _of(cases: list[tuple[TaskRecord, str, str]], family: str | None) -> list[tuple[TaskRecord, str, str]]:
+    return cases if family is None else [case for case in cases if case[0].family == family]
 
 
 def instruction_embeddings(workspace: Workspace, config: CampaignConfig,

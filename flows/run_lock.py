@@ -74,7 +74,7 @@ def rewriting_shard_files(workspace: Workspace) -> Iterator[None]:
 
 @contextmanager
 def _flock(workspace: Workspace, kind: int, busy: str) -> Iterator[None]:
-    with workspace.shard_files_lock.open("a") as handle:
+    with workspace.shard_files_lock.open("a+") as handle:  # readable too: NFS takes a shared flock as a read lock
         try:
             fcntl.flock(handle, kind | fcntl.LOCK_NB)
         except BlockingIOError:

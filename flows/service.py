@@ -87,7 +87,8 @@ def stack(workspace: Workspace, service: ServiceConfig) -> list[ProcessSpec]:
         # choosing. A write's JSON body needs the browser's preflight, which now fails for other origins (and
         # its FastAPI refuses JSON sent as text/plain), so raw API clients (curl, docs/service.md) need no token.
         ProcessSpec("prefect", [_bin("prefect"), "server", "start", "--host", HOST, "--port", str(service.prefect_port)],
-                    {**prefect_env, "PREFECT_UI_API_URL": f"{prefect}/api", "PREFECT_SERVER_CORS_ALLOWED_ORIGINS": prefect},
+                    {**prefect_env, "PREFECT_UI_API_URL": f"{prefect}/api", "PREFECT_SERVER_CORS_ALLOWED_ORIGINS":
+                     f"{prefect},{prefect.replace(HOST, 'localhost')}"},
                     f"{prefect}/api/health", prefect),
         ProcessSpec("mlflow", mlflow_command, mlflow_env, f"{mlflow}/health", mlflow, tracking=own_database),
         ProcessSpec("dashboard", [_bin("sim2act"), "dashboard", "--workspace", str(workspace.root),

@@ -440,12 +440,15 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
                                                              "metaworld_placements"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
-    if config.evaluate.metaworld_placements != "benchmark":  # in the key only where set: older units keep theirs
-        reads["metaworld_placements"] = config.evaluate.metaworld_placements
     per_split = per_split or episodes_per_split(config, cases)
     for task, split, instruction in cases:
         episodes = per_split[split]
         reads["evaluate"]["episodes_per_task"] = episodes  # where it was before the split's count existed: old keys hold
+        # in a MetaWorld case's key only, and only where set: older units and the other families' keep theirs
+        placements = config.evaluate.metaworld_placements if task.family == "metaworld" else "benchmark"
+        reads.pop("metaworld_placements", None)
+        if placements != "benchmark":
+            reads["metaworld_placements"] = placements
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,

@@ -223,7 +223,8 @@ def compact(catalog: Catalog, iterations: Sequence[int] | None = None,
         try:
             path, size, sha = write_compacted(catalog, plan)
         except BadSource as exc:
-            catalog.quarantine(exc.source.path, str(exc), checked_file=True)
+            if not catalog.quarantine(exc.source.path, str(exc), checked_file=True):
+                raise  # not a file the catalog reads any more: planning again would meet it again, forever
             summary.quarantined.append((exc.source.path, str(exc)))
             log.warning("compaction: quarantined unit %s (%s); the next run redoes it", exc.source.unit_key, exc)
             # planned again: its unit's shards of the other tables went with it, out of the plans still to do

@@ -128,6 +128,7 @@ def export_lerobot(
         if out_dir.exists():
             out_dir.rmdir()
         tmp.rename(out_dir)
+        _fsync_tree_entry(out_dir.parent)  # the rename itself
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -150,13 +151,17 @@ def _remove_killed_exports(out_dir: Path) -> None:
             shutil.rmtree(folder, ignore_errors=True)
 
 
+def _fsync_tree_entry(path: Path) -> None:
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
 def _fsync_tree(folder: Path) -> None:
-    for path in sorted(folder.rglob("*"), key=lambda p: -len(p.parts)):  # files before their folders
-        descriptor = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(descriptor)
-        finally:
-            os.close(descriptor)
+    for path in [*sorted(folder.rglob("*"), key=lambda p: -len(p.parts)), folder]:  # files before their folders
+        _fsync_tree_entry(path)
 
 
 def _alive(pid: int) -> bool:

@@ -69,8 +69,12 @@ def _server_failure(exc: BaseException) -> str | None:
     cause = exc
     while cause is not None:
         if isinstance(cause, RuntimeError) and "ephemeral Prefect API server" in str(cause):
-            exit_code = str(cause).rsplit("exited with code", 1)[-1].strip(" .") if "exited with code" in str(cause) else "?"
-            return (f"Prefect's temporary API server died while it started (exit {exit_code}); nothing ran against it. "
+            if "exited with code" in str(cause):
+                code = str(cause).rsplit("exited with code", 1)[-1].strip(" .")
+                what = f"died while it started (exit {code})"
+            else:  # alive but not answering in Prefect's wait: a machine too loaded, most likely
+                what = "did not answer while it started"
+            return (f"Prefect's temporary API server {what}; nothing ran against it. "
                     "Run the same command again to resume (finished units are kept)")
         cause = cause.__cause__ or cause.__context__
 

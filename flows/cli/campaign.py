@@ -130,7 +130,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from flows.tracking import Tracking
     from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
 
-    suite, cases = eval_cases(workspace, config, args.tasks, args.split)  # bad input refused here, before any work
+    suite, cases = eval_cases(workspace, config, args.tasks, args.split, args.family)  # bad input refused here, first
     per_split = episodes_per_split(config, cases)  # the split's whole size, a family's cases or not: the same units
     if args.family:
         cases = [case for case in cases if case[0].family == args.family]

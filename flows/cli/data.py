@@ -56,7 +56,7 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
             bar.append(Progress(logging.getLogger("sim2act.export"), "export lerobot", total, "episodes", "episodes"))
         bar[0].advance(1, 1, log=done == total or done % max(total // 100, 1) == 0)
 
-    with reading_shard_files(workspace, "export lerobot"):
+    with reading_shard_files(workspace, "export lerobot") if catalog.path.exists() else nullcontext():
         summary = export_lerobot(catalog, args.out_dir, args.where, fps=args.fps, include_rejected=args.include_rejected,
                                  repo_id=args.repo_id, progress=report,
                                  fetch_mb=FETCH_MB if args.fetch_mb is None else args.fetch_mb)

@@ -81,7 +81,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
               flush=True)
     sock = listening_socket(args.host, args.port)  # a port in use: one line, before saying where it serves
     print(f"sim2act: dashboard over {workspace.root} at http://{args.host}:{args.port}", flush=True)
-    serve(workspace, sock)
+    serve(workspace, sock, args.host)
     return 0
 
 

@@ -7,9 +7,10 @@ import pyarrow as pa
 import pytest
 
 from envs.suite import generate_tasks
-from flows.model_eval import conditions_apart, eval_cases, started_as_trained
+from flows.model_eval import _suite, conditions_apart, eval_cases, started_as_trained
 from schemas.config import ConfigError, RandomiseConfig, RenderConfig, TasksConfig, load_config
 from schemas.tables import EPISODES
+from schemas.tasks import TaskRecord
 from schemas.workspace import Workspace
 from stages.evaluate import Agent, EvalUnit
 from stages.explore import ExploreUnit, unit_summary
@@ -41,8 +42,15 @@ def test_an_evaluation_under_other_frames_than_the_campaign_explored_is_a_suite_
                                         "randomise": {"light": [0.5, 1.5]}})
     assert conditions_apart(workspace, other) == ["randomise.light=[0.5, 1.5]", "render.mesh_detail=1.0",
                                                   "render.shadows=true"]
+    # evaluate.metaworld_placements names the suite where MetaWorld cases are evaluated (exploration takes MT1's)
     fresh = config.model_copy(update={"evaluate": config.evaluate.model_copy(update={"metaworld_placements": "fresh"})})
-    assert conditions_apart(workspace, fresh) == ["evaluate.metaworld_placements=fresh"]  # exploration takes MT1's
+    assert conditions_apart(workspace, fresh) == []
+    metaworld = TaskRecord(task_id="mw-reach", spec="mw-reach", family="metaworld", env_name="reach-v3",
+                           object_colours={}, instructions=["reach the goal", "go to the goal", "move to the goal"], split="seen",
+                           horizon=150)
+    assert _suite("campaign", [], fresh, [(metaworld, "seen", "reach the goal")]) == \
+        "campaign @ evaluate.metaworld_placements=fresh"
+    assert _suite("campaign", ["render.shadows=true"], fresh, []) == "campaign @ render.shadows=true"
     tasks = tmp_path / "elsewhere.yaml"
     tasks.write_text(NEW_TASKS)
     assert eval_cases(workspace, config, tasks, None)[0] == "file:elsewhere.yaml"

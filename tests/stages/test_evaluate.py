@@ -228,3 +228,20 @@ def test_an_rl_agent_meets_its_familys_cases_with_the_campaigns_episodes_per_spl
     # counted on the family alone, a split half the size would get twice the episodes: other units
     assert not set(everyone) >= {u.unit_key for u in evaluation_units(workspace, config, "m", agent, navigation,
                                                                       embeddings)}
+
+
+def test_a_familys_group_holds_each_task_once_said_canonically():
+    """A seen task said again in a held-out paraphrase replays its episode seeds: pooled into `success.<family>`
+    beside its canonical case it counted twice as independent episodes."""
+    from stages.evaluate import TaskEvaluation, group_success
+
+    def case(task_id: str, split: str, successes: int) -> TaskEvaluation:
+        return TaskEvaluation(task_id=task_id, family="robosuite", split=split, instruction="x", episodes=10,
+                              successes=successes, ci_low=0, ci_high=1, mean_return=0, mean_length=1,
+                              episode_lengths=[1] * 10, episode_successes=[True] * successes + [False] * (10 - successes),
+                              uncertainty=0, success_video=None, failure_video=None)
+
+    groups = {g.group: g for g in group_success([case("lift-red", "seen", 8), case("lift-red", "unseen_paraphrase", 2),
+                                                 case("lift-purple", "unseen", 5)])}
+    assert (groups["robosuite"].episodes, groups["robosuite"].successes) == (20, 13)  # seen and unseen, once each
+    assert groups["robosuite/unseen_paraphrase"].successes == 2 and groups["unseen_paraphrase"].episodes == 10
