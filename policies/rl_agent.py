@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.gym_env import adapter_action, agent_observation
+from warehouse.store import fsync_path
 from envs.observation import DISCRETE_FAMILIES, Observation
 from schemas.workspace import read_json_written
 
@@ -124,22 +124,13 @@ def save_checkpoint(agent, env, folder: Path) -> None:
     # on disk before the swap: a machine that stops (not only the process) right after a save must not find a
     # renamed-in checkpoint of empty or cut files with the one before already removed
     for path in (*writing.iterdir(), writing):
-        _fsync(path)
+        fsync_path(path)
     if current.exists():  # else a kill between renames left `previous` the only whole one: kept until replaced
         shutil.rmtree(previous, ignore_errors=True)
         current.rename(previous)
     writing.rename(current)
-    _fsync(folder)  # the renames themselves
+    fsync_path(folder)  # the renames themselves
     shutil.rmtree(previous, ignore_errors=True)
-
-
-def _fsync(path: Path) -> None:
-    """Flush a file's bytes, or a folder's entries, to the disk."""
-    handle = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(handle)
-    finally:
-        os.close(handle)
 
 
 def remove_checkpoints(folder: Path) -> None:

@@ -183,7 +183,7 @@ def _made_aside(path: Path) -> Iterator[Path]:
     # a killed maker's file and its SQLite journal (`.making-<pid>-journal`); a live one's is still being made
     for stale in path.parent.glob(f"{path.name}.making-*"):
         pid = stale.name.removeprefix(f"{path.name}.making-").split("-")[0]
-        if not (pid.isdigit() and _alive(int(pid))):
+        if not (pid.isdigit() and process_alive(int(pid))):
             stale.unlink(missing_ok=True)
     making = path.with_name(f"{path.name}.making-{os.getpid()}")
     making.unlink(missing_ok=True)  # this process's own, left by an attempt that raised
@@ -197,7 +197,8 @@ def _made_aside(path: Path) -> Iterator[Path]:
         making.unlink(missing_ok=True)
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` runs on this host (another user's counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:

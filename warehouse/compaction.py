@@ -11,7 +11,6 @@ training reader finds the same rows in the same order (warehouse/training_reader
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import logging
 import time
@@ -25,7 +24,7 @@ from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import (ROW_GROUP_ROWS, ZSTD_LEVEL, DiskFull, SchemaMismatch, ShardUnreadable,
-                                    check_schema)
+                                    check_schema, is_disk_full)
 from warehouse.store import ShardStoreUnreachable
 
 log = logging.getLogger("sim2act.warehouse.compaction")
@@ -178,7 +177,7 @@ def write_compacted(catalog: Catalog, plan: CompactionPlan) -> tuple[str, int, s
     try:
         catalog.store.put_new(path, data, sha)  # the same bytes already there (a rerun after a kill) are kept
     except OSError as exc:  # a bare `[Errno 28]` names neither the file nor what to do
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+        if not is_disk_full(exc):
             raise
         raise DiskFull(f"no space left on device writing the compacted {plan.table} file of iteration {plan.iteration} "
                        f"({catalog.store.location(path)}); nothing of it is registered and its sources are kept: free "

@@ -33,7 +33,9 @@ import pyarrow.parquet as pq
 
 from schemas.errors import Sim2ActError
 from schemas.frames import decode_frame
+from schemas.settings import process_alive
 from warehouse.catalog import Catalog
+from warehouse.store import fsync_path
 from warehouse.video import CONTROL_FPS, VIDEO_CODEC, video_writer
 
 CODEBASE_VERSION = "v3.0"
@@ -128,7 +130,7 @@ def export_lerobot(
         if out_dir.exists():
             out_dir.rmdir()
         tmp.rename(out_dir)
-        _fsync_tree_entry(out_dir.parent)  # the rename itself
+        fsync_path(out_dir.parent)  # the rename itself
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -147,31 +149,13 @@ def _remove_killed_exports(out_dir: Path) -> None:
     prefix = _partial_folder(out_dir, 0).name[:-1]
     for folder in out_dir.parent.glob(glob.escape(prefix) + "*"):
         pid = folder.name[len(prefix):]
-        if pid.isdigit() and not _alive(int(pid)):
+        if pid.isdigit() and not process_alive(int(pid)):
             shutil.rmtree(folder, ignore_errors=True)
-
-
-def _fsync_tree_entry(path: Path) -> None:
-    descriptor = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
 
 
 def _fsync_tree(folder: Path) -> None:
     for path in [*sorted(folder.rglob("*"), key=lambda p: -len(p.parts)), folder]:  # files before their folders
-        _fsync_tree_entry(path)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's
-        return True
-    return True
+        fsync_path(path)
 
 
 # -- selection -----------------------------------------------------------------------------------

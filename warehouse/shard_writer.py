@@ -87,6 +87,11 @@ def _open_shard(table_name: str, path: Path, store: ShardStore | None) -> pq.Par
     return parquet
 
 
+def is_disk_full(exc: OSError) -> bool:
+    """No space (or quota) left where a file was being written: a DiskFull's cause."""
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
 def inspect_shard(table_name: str, path: Path, store: ShardStore | None = None) -> int:
     """Check a shard file without reading its data. Returns its row count. `path` is the shard's path
     under the warehouse folder; with a `store`, the shard is read where the store keeps it."""
@@ -111,7 +116,7 @@ def write_shard(table_name: str, rows: pa.Table, path: Path, store: ShardStore |
         else:
             store.put_new(store.rel(path), data, sha)
     except OSError as exc:  # a bare `[Errno 28]` names neither the shard nor what to do
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+        if not is_disk_full(exc):
             raise
         raise DiskFull(
             f"no space left on device writing the {table_name} shard of unit {path.stem} ({path}); the unit is not "

@@ -193,6 +193,15 @@ class FolderStore(ShardStore):
         (self.warehouse / rel).unlink(missing_ok=True)
 
 
+def fsync_path(path: Path) -> None:
+    """Flush a file's bytes, or a folder's entries (a rename in it), to the disk."""
+    handle = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(handle)
+    finally:
+        os.close(handle)
+
+
 def write_new_file(path: Path, data: pa.Buffer, sha: str) -> None:
     """`data` at `path` through a temporary file (fsynced, then linked): never partial, never over
     other bytes."""

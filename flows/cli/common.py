@@ -25,14 +25,17 @@ def output_file(text: str) -> Path:
     path = Path(text)
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"expected a file to write, got the folder {path}")
-    folder = path.parent
-    while not folder.exists():
-        folder = folder.parent
+    folder = _first_existing(path.parent)
     if not folder.is_dir():
         raise argparse.ArgumentTypeError(f"expected a file to write, got {path}, under {folder}: a file, not a folder")
     if not os.access(folder, os.W_OK):
         raise argparse.ArgumentTypeError(f"cannot write {path}: the folder {folder} is not writable")
     return path
+
+
+def _first_existing(path: Path) -> Path:
+    """`path`, or the nearest folder above it that exists (a relative path ends at '.', an absolute one at '/')."""
+    return next(p for p in (path, *path.parents) if p.exists())
 
 
 def positive_int(text: str) -> int:
@@ -62,8 +65,8 @@ def non_negative_float(text: str) -> float:
 def scratch_folder(text: str) -> Path:
     """argparse's type for a folder to work in (bench --scratch): made if missing, so not a file, nor under one."""
     path = Path(text)
-    found = next((p for p in (path, *path.parents) if p.exists()), None)
-    if found is not None and not found.is_dir():
+    found = _first_existing(path)
+    if not found.is_dir():
         raise argparse.ArgumentTypeError(f"expected a folder (made if missing), got {path}"
                                          f"{'' if found == path else f', under {found}'}: a file")
     return path

@@ -83,8 +83,6 @@ def test_a_checkpoint_is_on_disk_before_it_is_swapped_in(tmp_path, monkeypatch):
     """Every file of the new checkpoint and its folder are fsynced before the renames, the folder after them."""
     import os
 
-    import policies.rl_agent as rl_agent
-
     class Saved:
         num_timesteps = 200
 
@@ -107,7 +105,7 @@ def test_a_checkpoint_is_on_disk_before_it_is_swapped_in(tmp_path, monkeypatch):
     def rename(self, target):
         events.append(f"rename {self.name}")
         return real_rename(self, target)
-    monkeypatch.setattr(rl_agent.os, "fsync", fsync)
+    monkeypatch.setattr(os, "fsync", fsync)  # the module the checkpoint's fsync_path (warehouse.store) calls
     monkeypatch.setattr(type(tmp_path), "rename", rename)
     save_checkpoint(Saved(), Counted(), tmp_path)
     events.clear()
