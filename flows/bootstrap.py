@@ -93,8 +93,9 @@ def explore_flow(
 
 
 @stage_task(name="filter")
-def filter_task(workspace: str, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
-    return run_filter(Workspace.at(workspace), config, iteration, explore_keys)
+def filter_task(workspace: str, config: CampaignConfig, iteration: int, explore_keys: list[str],
+                earlier_filter_keys: list[str]) -> FilterResult:
+    return run_filter(Workspace.at(workspace), config, iteration, explore_keys, earlier_filter_keys)
 
 
 @stage_task(name="index")
@@ -208,7 +209,7 @@ def iteration_flow(
         workspace, config, iteration, tasks.unit_key, explorer
     )
     _log_stage(tracking, run_id, explore)
-    filtered = filter_task(workspace, config, iteration, explore.unit_keys)
+    filtered = filter_task(workspace, config, iteration, explore.unit_keys, previous.filter_units if previous else [])
     _log_stage(tracking, run_id, filtered)
     index = index_task(workspace, config, iteration, explore.unit_keys, filtered.unit_keys, previous)
     _log_stage(tracking, run_id, index)

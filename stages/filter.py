@@ -9,6 +9,7 @@ import math
 import struct
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import pyarrow as pa
@@ -104,9 +105,12 @@ def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
     return by_episode
 
 
-def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str]) -> FilterResult:
+def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str],
+               earlier_filter_keys: Sequence[str] = ()) -> FilterResult:
     """Unit of work: one explore shard's episodes, keyed by the filter settings, the frame size and
-    the explore unit. Registers one `filter_decisions` shard: each episode kept or rejected, why."""
+    the explore unit. Registers one `filter_decisions` shard: each episode kept or rejected, why.
+    A duplicate is an episode the same as one kept in this dataset's lineage: these units or
+    `earlier_filter_keys` (the earlier iterations' filter units, IndexResult.filter_units)."""
     catalog = Catalog(workspace.catalog)
     units = StageUnits(catalog, STAGE, config.name, iteration)
     reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth,
@@ -114,10 +118,14 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
     keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
     pending = set(units.pending(keys.values()))
     families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
-    # Units are decided in a fixed order, so a resumed run dedupes exactly as an uninterrupted one.
+    # Units are decided in a fixed order, so a resumed run dedupes exactly as an uninterrupted one. Only this
+    # lineage's decisions: another filter setting's (a changed filter.*, earlier in the campaign) kept the same
+    # episodes, and read here they would turn each one into a duplicate of itself.
+    lineage = sorted(set(earlier_filter_keys) | set(keys.values()))
     kept_digests = dict(catalog.query(
-        "SELECT episode_digest, min(episode_id) FROM filter_decisions WHERE kept AND campaign = ? GROUP BY 1",
-        [config.name],
+        "SELECT episode_digest, min(episode_id) FROM filter_decisions "
+        "WHERE kept AND campaign = ? AND list_contains(?, filter_key) GROUP BY 1",
+        [config.name, lineage],
     ))
     reasons: Counter[str] = Counter()
     for explore_key, key in keys.items():

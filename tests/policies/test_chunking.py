@@ -143,6 +143,15 @@ def test_the_moving_average_warms_up_then_trails_the_weights():
     assert int(average.weights["1.num_batches_tracked"]) == 1
 
 
+def test_a_resumed_average_lives_on_its_models_device():
+    """A checkpoint is loaded to the CPU; the average resumed from it must follow a model elsewhere
+    (the meta device stands in for a GPU here), or its first update would mix devices."""
+    model = torch.nn.Linear(2, 2)
+    saved = WeightAverage(model, 0.5).weights  # on the CPU, as torch.load(map_location="cpu") gives it
+    resumed = WeightAverage(model.to("meta"), 0.5, saved)
+    assert {w.device.type for w in resumed.weights.values()} == {"meta"}
+
+
 def test_a_checkpoint_registers_the_average_and_keeps_the_last_weights(tmp_path: Path):
     model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1), DIMS)
     average = {name: torch.zeros_like(value) for name, value in model.state_dict().items()}

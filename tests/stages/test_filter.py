@@ -6,7 +6,10 @@ import pytest
 from bench.synthetic import explore_unit
 from schemas.config import FilterConfig
 from schemas.frames import encode_depth, encode_frame
-from stages.filter import STEP_COLUMNS, decide, episode_facts
+from schemas.workspace import Workspace
+from stages.filter import STEP_COLUMNS, decide, episode_facts, run_filter
+from tests.warehouse.filled import CONFIG, fill, register_explore
+from warehouse.catalog import Catalog
 
 BOUNDS = (-1.0, 1.0)
 
@@ -72,3 +75,28 @@ def test_rejection_sampling_on_success_and_return():
     assert decide(_episode(error="MujocoException: unstable"), facts, FilterConfig(), {})[0] == "env_error"
     assert decide(_episode(success=False), facts, FilterConfig(require_success=True), {}) == ("not_successful", None)
     assert decide(_episode(episode_return=0.5), facts, FilterConfig(min_return=1.0), {})[0] == "low_return"
+
+
+def test_a_changed_filter_setting_decides_the_same_episodes_again_and_dedupes_within_its_lineage(tmp_path):
+    """Another filter.* gives new filter units over the same explore units: the episodes the first setting kept
+    are not duplicates of themselves. A duplicate is one kept earlier in this dataset's lineage."""
+    workspace = Workspace.at(tmp_path / "ws")
+    workspace.create()
+    explored = fill(workspace, iterations=1, units=2)[0]
+    catalog = Catalog(workspace.catalog)
+    first = run_filter(workspace, CONFIG, 0, explored)
+    assert first.skipped_units == 2 and first.reasons == {}  # fill() decided them already
+    looser = CONFIG.model_copy(update={"filter": FilterConfig(min_return=-1e9)})
+    second = run_filter(workspace, looser, 0, explored)
+    assert "duplicate" not in second.reasons and second.reasons["kept"] == sum(second.reasons.values()) > 0
+    kept_first = catalog.query("SELECT count(*) FROM filter_decisions WHERE kept AND list_contains(?, filter_key)",
+                               [first.unit_keys])[0][0]
+    assert 0 < kept_first <= second.reasons["kept"]
+
+    # iteration 1 explores the same episodes again (the same seed): duplicates of its lineage's, and only of those
+    register_explore(workspace, "explore-again", 1, seed=0)
+    again = run_filter(workspace, looser, 1, ["explore-again"], earlier_filter_keys=second.unit_keys)
+    assert set(again.reasons) == {"duplicate"}
+    alone = run_filter(workspace, looser.model_copy(update={"filter": FilterConfig(min_return=-1e8)}), 1,
+                       ["explore-again"])
+    assert "duplicate" not in alone.reasons

@@ -107,10 +107,14 @@ def test_a_sigkilled_ensemble_training_resumes_to_the_same_weights(campaign, tmp
     assert victim.returncode == -signal.SIGKILL
     saved = [torch.load(states[0].with_name(f"train-state-{m}.pt"), weights_only=False) for m in (0, 1)]
     killed_at = saved[0]["step"] + saved[1]["step"]  # the first member finished: its steps, then the second's
+    # as if the killed part had run in the other precision (another host, train.amp changed): the resume says
+    # so; the flag is all that differs, so the weights below still end as the straight run's
+    torch.save({**saved[1], "bf16": not saved[1]["bf16"]}, states[0].with_name("train-state-1.pt"))
 
     resumed = _train(config_file, killed, *ensemble)
     output = resumed.communicate(timeout=600)[0]
     assert resumed.returncode == 0 and f"resumed at step {killed_at}" in output, output
+    assert "the training mixes precisions" in output and output.count("mixes precisions") == 1, output
     # the compute it took counts the killed run's training too, not only the resumed part
     [(wall_s,)] = Catalog(Workspace.at(killed).catalog).query("SELECT wall_s FROM stage_runs WHERE stage = 'train'")
     assert wall_s > saved[0]["wall_s"] + saved[1]["wall_s"] > 0
