@@ -56,12 +56,19 @@ def allocate(scores: dict[str, float], per_task: int, floor: float) -> dict[str,
 
 def plan_priorities(catalog: Catalog, campaign: str, champion_key: str, tasks: list[TaskRecord], per_task: int,
                     floor: float) -> list[TaskPriority]:
-    """The champion's evaluation of each seen task (the flow's, canonical instruction) -> its share."""
+    """The champion's evaluation of each seen task (the flow's, canonical instruction) -> its share.
+    The first one registered of each case, not current_evaluations' longest: the shares are in the explore
+    units' keys, and a later `sim2act eval --episodes` of the champion would otherwise re-plan, and so
+    explore again, every finished iteration it had explored."""
     seen = [t for t in tasks if t.split == "seen"]
     evaluated = {
         task_id: (success, uncertainty) for task_id, success, uncertainty in catalog.query(
-            "SELECT task_id, success_rate, uncertainty FROM current_evaluations "
-            "WHERE campaign = ? AND model_key = ? AND suite = ? AND split = 'seen'", [campaign, champion_key, CAMPAIGN_SUITE])
+            "SELECT e.task_id, e.success_rate, e.uncertainty FROM evaluations e "
+            "LEFT JOIN stage_runs r ON r.unit_key = e.unit_key "
+            "WHERE e.campaign = ? AND e.model_key = ? AND e.suite = ? AND e.split = 'seen' "
+            "QUALIFY row_number() OVER (PARTITION BY e.task_id, e.instruction "
+            "ORDER BY r.finished_at NULLS LAST, e.unit_key) = 1",
+            [campaign, champion_key, CAMPAIGN_SUITE])
     }
     scores = priority_scores(evaluated, seen)
     counts = allocate(scores, per_task, floor)

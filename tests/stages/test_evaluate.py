@@ -124,6 +124,14 @@ def test_a_case_evaluated_twice_counts_once_where_evaluations_are_summed(tmp_pat
     assert len(every) == 4
     groups = {g.group: g for g in group_success([e for _, e in current])}
     assert (groups["seen"].successes, groups["seen"].episodes) == (15, 23)
+    # the next iteration's episode shares (in its explore keys) read the first evaluation, which stays: an
+    # iteration explored with this champion plans the same after `sim2act eval --episodes` re-evaluates it
+    from schemas.tasks import TaskRecord
+    from warehouse.priority import plan_priorities
+    tasks = [TaskRecord(task_id=t, spec=t[:-4], family="navigation", env_name="Nav", object_colours={},
+                        instructions=["go", "reach", "find"], split="seen", horizon=10) for t in ("nav-ball-red", "nav-box-red")]
+    [ball, box] = plan_priorities(catalog, "c", "train-m", tasks, per_task=4, floor=0.25)
+    assert (ball.success, box.success) == (0.5, 1.0)
 
 
 def test_promotion_compares_the_champion_on_the_new_models_own_episodes(tmp_path):
