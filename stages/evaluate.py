@@ -203,15 +203,22 @@ def evaluation_videos(evaluations: list[TaskEvaluation]) -> list[tuple[str, str]
             for video in (t.success_video, t.failure_video) if video]
 
 
-def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluations: list[TaskEvaluation]) -> Promotion:
+def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluations: list[TaskEvaluation],
+                     registered_model: str, alias: str) -> Promotion:
     """Promote when there is no champion, or when the new model's mean success over the evaluation cases both
     met (seen, unseen, held-out paraphrases) beats the champion's on the same episodes. A case's episodes are
     seeded by their index, so where one side played more (`sim2act eval --episodes 50` of the champion), the
-    first N of its episodes are the other's N: each case compares those, not 50 episodes against 10."""
+    first N of its episodes are the other's N: each case compares those, not 50 episodes against 10.
+
+    The champion is who holds `alias` of `registered_model` now: the last registered deployment's, not the
+    highest iteration's (a campaign re-run with other settings deploys its iteration 0 after an older run's
+    iteration 3), and none under another registered model or alias (redeploy.* changed: its first model is
+    promoted, so the alias exists where redeploy reads it)."""
     success = float(np.mean([t.success_rate for t in evaluations]))
     champion = catalog.query(
-        "SELECT champion_model_key FROM deployments WHERE campaign = ? AND model_key <> ? "
-        "ORDER BY iteration DESC LIMIT 1", [campaign, model_key],
+        "SELECT d.champion_model_key FROM deployments d LEFT JOIN stage_runs r ON r.unit_key = d.unit_key "
+        "WHERE d.campaign = ? AND d.registered_model = ? AND d.alias = ? AND d.model_key <> ? "
+        "ORDER BY r.finished_at DESC NULLS LAST, d.iteration DESC LIMIT 1", [campaign, registered_model, alias, model_key],
     )
     if not champion:
         return Promotion(promote=True, reason="no champion yet", success=success, champion_success=None)
@@ -524,6 +531,7 @@ def run_evaluate(
                                           Agent(kind="sim2act", path=checkpoint),
                                           evaluation_cases(tasks, config.evaluate.held_out_wordings), embeddings)
     catalog = Catalog(workspace.catalog)
-    promotion = decide_promotion(catalog, config.name, model_key, evaluations)
+    promotion = decide_promotion(catalog, config.name, model_key, evaluations, config.registered_model_name,
+                                 config.redeploy.alias)
     log.info("evaluate it%d: %s: %s", iteration, "promote" if promotion.promote else "keep the champion", promotion.reason)
     return EvaluateResult(model_key=model_key, tasks=evaluations, skipped_units=skipped, promotion=promotion)

@@ -1,5 +1,7 @@
 """Success rates with Wilson intervals, pooled per split and family; model references for `sim2act eval`."""
 
+import functools
+
 import pytest
 
 from flows.model_eval import parse_registry_ref
@@ -150,17 +152,25 @@ def test_promotion_compares_the_champion_on_the_new_models_own_episodes(tmp_path
                                                  "suite": "campaign", "model_key": "train-champion",
                                                  **champion.model_dump(), "success_rate": champion.success_rate}]})
     new = [_case("nav-ball-red", "navigation", "seen", [True] * 4 + [False] * 6)]
-    assert decide_promotion(catalog, "c", "train-new", new).reason == "no champion yet"
-    catalog.register_unit(unit_key="redeploy-0", stage="redeploy", campaign="c", iteration=0, summary={}, rows={
-        "deployments": [{"unit_key": "redeploy-0", "model_key": "train-champion", "campaign": "c", "iteration": 0,
-                         "registered_model": "m", "version": 1, "alias": "champion", "champion_version": 1,
-                         "champion_model_key": "train-champion", "promoted": True, "decision": "",
-                         "mlflow_run_id": ""}]})
-    promotion = decide_promotion(catalog, "c", "train-new", new)
+    decide = functools.partial(decide_promotion, catalog, "c", "train-new", registered_model="m", alias="champion")
+    assert decide(new).reason == "no champion yet"
+
+    def deploy(unit: str, iteration: int, champion_key: str) -> None:
+        catalog.register_unit(unit_key=unit, stage="redeploy", campaign="c", iteration=iteration, summary={}, rows={
+            "deployments": [{"unit_key": unit, "model_key": champion_key, "campaign": "c", "iteration": iteration,
+                             "registered_model": "m", "version": 1, "alias": "champion", "champion_version": 1,
+                             "champion_model_key": champion_key, "promoted": True, "decision": "",
+                             "mlflow_run_id": ""}]})
+
+    deploy("redeploy-3-earlier-settings", 3, "train-old")  # an earlier run of the campaign, to iteration 3
+    deploy("redeploy-0", 0, "train-champion")  # this run's iteration 0, deployed since: it holds the alias
+    promotion = decide(new)
     assert (promotion.promote, promotion.success, promotion.champion_success) == (True, 0.4, 0.3)
     assert promotion.reason == "success 40% beats the champion's 30% on 1 cases"
     other = [_case("nav-box-red", "navigation", "seen", [True] * 10)]  # a case the champion never met
-    assert decide_promotion(catalog, "c", "train-new", other).reason == "the champion was never evaluated on these tasks"
+    assert decide(other).reason == "the champion was never evaluated on these tasks"
+    # redeploy.registered_model changed: no champion there yet, so the first model makes the alias
+    assert decide(new, registered_model="m-renamed").reason == "no champion yet"
 
 
 def test_an_agent_acting_otherwise_than_it_trained_is_never_registered_as_the_model(tmp_path):
