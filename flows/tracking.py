@@ -18,6 +18,7 @@ from schemas.keys import key_fields
 from schemas.settings import tracking_uri
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
+from stages.train import EXECUTION_FIELDS as TRAIN_EXECUTION_FIELDS
 
 EXPERIMENT = "sim2act"
 
@@ -35,6 +36,10 @@ def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
 
 MLFLOW_SOURCE_CHARACTERS = 65_535  # the longest dataset source MLflow accepts (mlflow.utils.validation)
 
+# How a campaign runs, not what it makes (the unit keys leave them out): per config section.
+EXECUTION_FIELDS = {"explore": {"workers", "dask_address"}, "evaluate": {"workers"}, "baselines": {"workers"},
+                    "train": TRAIN_EXECUTION_FIELDS}
+
 
 def campaign_settings(config: CampaignConfig) -> dict:
     """What tells one campaign's MLflow run from another's: its name plus everything but the iteration count
@@ -51,8 +56,21 @@ def campaign_settings(config: CampaignConfig) -> dict:
 
 
 def campaign_hash(config: CampaignConfig) -> str:
+    """The `sim2act.config` tag: every setting, how the campaign runs included (runs made before
+    `sim2act.settings` existed are found by it)."""
     settings = json.dumps(campaign_settings(config), sort_keys=True, default=str)
     return hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
+
+
+def settings_hash(config: CampaignConfig) -> str:
+    """The `sim2act.settings` tag: campaign_settings less how the campaign runs, as the unit keys leave it
+    out (EXECUTION_FIELDS), so a campaign resumed with fewer workers continues its run."""
+    settings = campaign_settings(config)
+    for section, fields in EXECUTION_FIELDS.items():
+        for name in fields:
+            settings.get(section, {}).pop(name, None)
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.blake2b(text.encode(), digest_size=6).hexdigest()
 
 
 class Tracking:
@@ -69,25 +87,37 @@ class Tracking:
         self.experiment_id = (
             experiment.experiment_id if experiment else self.client.create_experiment(EXPERIMENT, artifact_location=location)
         )
-        self.config_hash = campaign_hash(config)
+        self.config_hash, self.settings_hash = campaign_hash(config), settings_hash(config)
 
     def _find_or_create(self, tags: dict[str, str], name: str, params: dict[str, str] | None = None) -> str:
-        query = " and ".join(f"tags.`{k}` = '{v}'" for k, v in tags.items())
-        found = self.client.search_runs([self.experiment_id], query, max_results=1)
+        """The run with `tags`; where they name the campaign's settings, one made before its `sim2act.settings`
+        tag existed (found by `sim2act.config`, and tagged now); else a new one."""
+        def search(wanted: dict[str, str]):
+            query = " and ".join(f"tags.`{k}` = '{v}'" for k, v in wanted.items())
+            return self.client.search_runs([self.experiment_id], query, max_results=1)
+
+        found = search(tags)
+        if not found and "sim2act.settings" in tags:
+            earlier = {k: v for k, v in tags.items() if k != "sim2act.settings"}
+            found = search({**earlier, "sim2act.config": self.config_hash})
+            if found:
+                self.client.set_tag(found[0].info.run_id, "sim2act.settings", tags["sim2act.settings"])
         if found:
             return found[0].info.run_id
+        if "sim2act.settings" in tags:
+            tags = {**tags, "sim2act.config": self.config_hash}
         run = self.client.create_run(self.experiment_id, tags={**tags, MLFLOW_RUN_NAME: name}, run_name=name)
         if params:
             self.client.log_batch(run.info.run_id, params=[Param(k, v[:6000]) for k, v in params.items()])
         return run.info.run_id
 
     def campaign_run(self) -> str:
-        tags = {"sim2act.campaign": self.config.name, "sim2act.config": self.config_hash, "sim2act.kind": "campaign"}
+        tags = {"sim2act.campaign": self.config.name, "sim2act.settings": self.settings_hash, "sim2act.kind": "campaign"}
         return self._find_or_create(tags, f"{self.config.name}", _flatten(self.config.model_dump(mode="json")))
 
     def iteration_run(self, campaign_run_id: str, iteration: int) -> str:
         tags = {
-            "sim2act.campaign": self.config.name, "sim2act.config": self.config_hash,
+            "sim2act.campaign": self.config.name, "sim2act.settings": self.settings_hash,
             "sim2act.kind": "iteration", "sim2act.iteration": str(iteration), MLFLOW_PARENT_RUN_ID: campaign_run_id,
         }
         return self._find_or_create(tags, f"{self.config.name}-iteration-{iteration}", {"iteration": str(iteration)})

@@ -7,7 +7,7 @@ import json
 
 from mlflow import MlflowClient
 
-from flows.tracking import MLFLOW_SOURCE_CHARACTERS, Tracking, campaign_hash, campaign_settings
+from flows.tracking import MLFLOW_SOURCE_CHARACTERS, Tracking, campaign_hash, campaign_settings, settings_hash
 from schemas.config import load_config
 from schemas.workspace import Workspace
 
@@ -49,3 +49,28 @@ def test_a_campaign_keeps_its_mlflow_run_when_newer_code_adds_config_fields():
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"explore": {"expert_takeover": 0.5}}))
     assert campaign_hash(config) != campaign_hash(config.model_copy(update={"name": "other"}))
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"baselines": {"sac_encoder": "critic"}}))
+
+
+def test_a_campaign_resumed_with_other_workers_continues_its_mlflow_runs(tmp_path):
+    """How a campaign runs (workers, threads, a device) is not what it makes: the same campaign run and
+    iteration run; a run made before the `sim2act.settings` tag is found by its `sim2act.config` one."""
+    workspace = Workspace.at(tmp_path).create()
+    config = load_config("smoke")
+    fewer = load_config("smoke", None, {"evaluate": {"workers": 1}, "explore": {"workers": 1},
+                                        "train": {"threads": 1, "checkpoint_every": 7}})
+    assert campaign_hash(config) != campaign_hash(fewer) and settings_hash(config) == settings_hash(fewer)
+    assert settings_hash(config) != settings_hash(load_config("smoke", None, {"train": {"steps": 11}}))
+    first = Tracking(workspace, config)
+    campaign = first.campaign_run()
+    iteration = first.iteration_run(campaign, 0)
+    again = Tracking(workspace, fewer)
+    assert again.campaign_run() == campaign and again.iteration_run(campaign, 0) == iteration
+
+    # as older code made it: no settings tag
+    client = MlflowClient(tracking_uri=workspace.tracking_uri)
+    older = client.create_run(first.experiment_id, tags={"sim2act.campaign": "older", "sim2act.kind": "campaign",
+                                                         "sim2act.config": campaign_hash(config.model_copy(
+                                                             update={"name": "older"}))}).info.run_id
+    found = Tracking(workspace, config.model_copy(update={"name": "older"})).campaign_run()
+    assert found == older and client.get_run(older).data.tags["sim2act.settings"] == settings_hash(
+        config.model_copy(update={"name": "older"}))
