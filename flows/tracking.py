@@ -88,6 +88,7 @@ class Tracking:
             experiment.experiment_id if experiment else self.client.create_experiment(EXPERIMENT, artifact_location=location)
         )
         self.config_hash, self.settings_hash = campaign_hash(config), settings_hash(config)
+        self.created: list[str] = []  # runs this Tracking made (a command ends those it opened)
 
     def _find_or_create(self, tags: dict[str, str], name: str, params: dict[str, str] | None = None) -> str:
         """The run with `tags`; where they name the campaign's settings, one made before its `sim2act.settings`
@@ -107,6 +108,7 @@ class Tracking:
         if "sim2act.settings" in tags:
             tags = {**tags, "sim2act.config": self.config_hash}
         run = self.client.create_run(self.experiment_id, tags={**tags, MLFLOW_RUN_NAME: name}, run_name=name)
+        self.created.append(run.info.run_id)
         if params:
             self.client.log_batch(run.info.run_id, params=[Param(k, v[:6000]) for k, v in params.items()])
         return run.info.run_id
@@ -171,5 +173,11 @@ class Tracking:
         )
         self.client.log_inputs(run_id, [DatasetInput(dataset, [InputTag("mlflow.data.context", "training")])])
 
-    def finish(self, run_id: str) -> None:
-        self.client.set_terminated(run_id, "FINISHED")
+    def finish(self, run_id: str, status: str = "FINISHED") -> None:
+        self.client.set_terminated(run_id, status)
+
+    def finish_created(self, status: str = "FINISHED") -> None:
+        """End the runs this Tracking opened, newest first (a command's own campaign and iteration runs;
+        those it found belong to whatever made them)."""
+        for run_id in reversed(self.created):
+            self.finish(run_id, status)

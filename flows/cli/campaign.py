@@ -101,18 +101,26 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_id = tracking.iteration_run(tracking.campaign_run(), dataset.iteration)
     print(f"sim2act: training on campaign {config.name!r} iteration {dataset.iteration}'s dataset "
           f"({dataset.triplets:,} triplets), MLflow run {run_id}", flush=True)
-    with reading_shard_files(workspace, "train"):  # a compaction would delete the files its dataset lists
-        result = run_train(
-            workspace, config, dataset.iteration, dataset, tasks_key,
-            load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
-            on_metrics=tracking.step_logger(run_id, "train."),
-        )
+    try:
+        with reading_shard_files(workspace, "train"):  # a compaction would delete the files its dataset lists
+            result = run_train(
+                workspace, config, dataset.iteration, dataset, tasks_key,
+                load_embeddings(workspace, tasks_key, config.train.model.language_encoder),
+                on_metrics=tracking.step_logger(run_id, "train."),
+            )
+    except KeyboardInterrupt:  # runs this command opened do not stay RUNNING
+        tracking.finish_created("KILLED")
+        raise
+    except Exception:
+        tracking.finish_created("FAILED")
+        raise
     if result.skipped:
         state = "already trained"
     else:
         tracking.log_training_dataset(run_id, result.dataset_digest, result.dataset_shards, result.samples)
         resumed = f"resumed at step {result.resumed_at_step}, " if result.resumed_at_step else ""
         state = f"{resumed}final loss {result.history[-1]['loss']:.4f}"
+    tracking.finish_created()  # another train.seed's campaign and iteration runs, opened by this command
     print(f"model {result.model_key}: {state}; checkpoint {result.checkpoint}")
     return 0
 

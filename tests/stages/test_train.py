@@ -175,6 +175,10 @@ def test_train_alone_logs_losses_lr_throughput_and_the_dataset_to_mlflow(campaig
     [dataset] = iteration_run.inputs.dataset_inputs
     [(digest,)] = Catalog(Workspace.at(workspace).catalog).query("SELECT dataset_digest FROM models")
     assert dataset.dataset.digest == digest
+    # the campaign and iteration runs this command opened (no campaign had run here) end with it
+    runs = client.search_runs([client.get_experiment_by_name("sim2act").experiment_id])
+    assert sorted(r.data.tags["sim2act.kind"] for r in runs) == ["campaign", "iteration"]
+    assert {r.info.status for r in runs} == {"FINISHED"}
 
 
 def test_the_policy_acts_on_both_kinds_of_action_with_an_uncertainty(campaign, tmp_path):
