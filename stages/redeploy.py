@@ -114,13 +114,18 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
 
     example = input_example(catalog, config.name)
     signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
-    with _fluent_tracking(tracking_uri(workspace)), mlflow.start_run(run_id=mlflow_run_id):
-        info = mlflow.pyfunc.log_model(
-            name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
-            signature=signature, input_example=example, pip_requirements=["sim2act", "torch==2.13.0"],
-        )
-        return int(mlflow.register_model(info.model_uri, config.registered_model_name,
-                                         tags={MODEL_KEY_TAG: model_key}).version)
+    with _fluent_tracking(tracking_uri(workspace)):
+        with mlflow.start_run(run_id=mlflow_run_id):
+            info = mlflow.pyfunc.log_model(
+                name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
+                signature=signature, input_example=example, pip_requirements=["sim2act", "torch==2.13.0"],
+            )
+            version = int(mlflow.register_model(info.model_uri, config.registered_model_name,
+                                                tags={MODEL_KEY_TAG: model_key}).version)
+        # the fluent run ended FINISHED as its block closed; the iteration goes on (redeploy.training_seeds'
+        # trainings, for hours) and the flow ends its run when the iteration has finished
+        mlflow.MlflowClient().update_run(mlflow_run_id, status="RUNNING")
+    return version
 
 
 @contextmanager

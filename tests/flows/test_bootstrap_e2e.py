@@ -469,3 +469,19 @@ def test_training_seeds_measure_each_iteration_beside_its_own_model(finished_cam
         metrics = run.data.metrics
         assert metrics["seeds.success.seen"] == pytest.approx(seen.mean)
         assert metrics["seed1.success.seen"] == pytest.approx(seen.per_seed[1]) and "train.seed1.loss" in metrics
+
+
+def test_registering_a_model_leaves_its_iteration_run_running(finished_campaign, tmp_path):
+    """MLflow's fluent run ends FINISHED as its block closes; the iteration goes on after redeploy registers
+    (redeploy.training_seeds' trainings, for hours), so its run stays RUNNING until the flow ends it."""
+    from stages.redeploy import _register
+
+    workspace = tmp_path / "workspace"  # a copy: the registry gains a version
+    shutil.copytree(finished_campaign[0], workspace)
+    ws = Workspace.at(workspace)
+    catalog = Catalog(ws.catalog)
+    [(model_key, checkpoint)] = catalog.query("SELECT model_key, checkpoint_path FROM models WHERE iteration = 0")
+    client = MlflowClient(tracking_uri=ws.tracking_uri, registry_uri=ws.tracking_uri)
+    run_id = client.create_run(client.get_experiment_by_name("sim2act").experiment_id).info.run_id
+    version = _register(ws, catalog, load_config("smoke"), model_key, str(ws.root / checkpoint), run_id)
+    assert version >= 2 and client.get_run(run_id).info.status == "RUNNING"
