@@ -18,6 +18,7 @@ import time
 import urllib.request
 from urllib.parse import urlsplit
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 
 from flows.lifetime import LINEAGE_ENV
@@ -166,9 +167,22 @@ def log_to_running_stack(workspace: Workspace) -> None:
         os.environ[TRACKING_URI_ENV] = tracking
 
 
+def updated_since(url: str, since: datetime) -> bool:
+    """Prefect's object at `url` (a deployment) was written at or after `since`: the deployments' process
+    started again has served its own, not found the last one's."""
+    try:
+        with urllib.request.urlopen(url, timeout=2.0) as response:
+            return datetime.fromisoformat(json.loads(response.read())["updated"]) >= since
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> None:
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while not answers(spec.health_url):
+    started = datetime.now(timezone.utc)  # the server runs on this host: one clock
+    healthy = (lambda: updated_since(spec.health_url, started)) if spec.name == "deployments" else (
+        lambda: answers(spec.health_url))
+    while not healthy():
         if process.poll() is not None or time.monotonic() > deadline:
             why = f"exited with {process.returncode}" if process.poll() is not None else "did not answer in time"
             tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:])
@@ -176,11 +190,29 @@ def _wait_healthy(spec: ProcessSpec, process: subprocess.Popen, log: Path) -> No
         time.sleep(0.5)
 
 
+def deployments_settings(campaign: CampaignConfig, service: ServiceConfig) -> str:
+    """What the deployments' process serves: the default campaign and the nightly schedule."""
+    return json.dumps({"campaign": campaign.model_dump(mode="json"), "nightly_cron": service.nightly_cron,
+                       "timezone": service.timezone}, sort_keys=True)
+
+
 def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, on_ready=print) -> list[dict]:
     """Start what is not running, wait until each answers its health check; -> process_status.
     `campaign` is the deployments' default. A failed start stops what this call started, so
     nothing is left half up."""
     running = {row["name"] for row in process_status(workspace) if row["state"] != "exited"}
+    state = read_state(workspace) or {"service": service.model_dump(), "processes": {}}
+    if running:  # a stack that is up keeps its ports: what starts now joins it there
+        service = service.model_copy(update={name: port for name, port in state["service"].items()
+                                             if name.endswith("_port")})
+    # the deployments' process reads its campaign and schedule once, as it starts: another one asked for
+    # restarts it (the servers and the dashboard keep running as they were)
+    serves = deployments_settings(campaign, service)
+    recorded = state["processes"].get("deployments", {})
+    if "deployments" in running and recorded.get("serves") != serves:
+        down(workspace, only=["deployments"])
+        running.discard("deployments")
+        on_ready("deployments  stopped: it served another campaign or schedule; starting it again")
     specs = [spec for spec in stack(workspace, service) if spec.name not in running]
     ports = {spec.name: urlsplit(spec.url).port for spec in specs if spec.name != "deployments"}  # it binds none
     taken = [f"{name} port {port}" for name, port in ports.items() if not _port_free(port)]
@@ -188,7 +220,8 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
         raise ServiceError(f"in use by another program: {', '.join(taken)}; choose others (sim2act up --help)")
     workspace.service.mkdir(parents=True, exist_ok=True)
     write_text_atomically(workspace.deployment_config, campaign.model_dump_json(indent=1))
-    state = read_state(workspace) or {"service": service.model_dump(), "processes": {}}
+    state = read_state(workspace) or {"service": service.model_dump(), "processes": {}}  # (down may have changed it)
+    state["service"] = service.model_dump()
     started: list[str] = []
     try:
         for spec in specs:
@@ -198,7 +231,8 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
                                            stdin=subprocess.DEVNULL, start_new_session=True)
             started.append(spec.name)
             state["processes"][spec.name] = {"pid": process.pid, "url": spec.url, "health_url": spec.health_url,
-                                             "log": str(log), "tracking": spec.tracking}
+                                             "log": str(log), "tracking": spec.tracking,
+                                             **({"serves": serves} if spec.name == "deployments" else {})}
             write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
             _wait_healthy(spec, process, log)
             on_ready(f"{spec.name:<12} {spec.url}")

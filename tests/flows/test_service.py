@@ -189,6 +189,27 @@ def test_the_scheduler_queues_the_nightly_run_at_its_local_time(stack):
     assert all(run["parameters"]["continue_campaign"] is True for run in queued)
 
 
+def test_up_again_with_another_schedule_restarts_only_the_deployments(stack):
+    """The deployments' process reads its campaign and schedule as it starts: `sim2act up` with another
+    schedule (no port flags: the stack keeps its own) restarts it alone; the servers keep their processes."""
+    workspace, urls = stack
+    before = json.loads(Workspace.at(workspace).service_state.read_text())["processes"]
+    again = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "45 4 * * *",
+                    "--timezone", "Europe/Berlin")
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "deployments  stopped: it served another campaign or schedule" in again.stdout
+    after = json.loads(Workspace.at(workspace).service_state.read_text())["processes"]
+    assert {name: p["pid"] for name, p in after.items() if name != "deployments"} == {
+        name: p["pid"] for name, p in before.items() if name != "deployments"}
+    assert after["deployments"]["pid"] != before["deployments"]["pid"] and not is_alive(before["deployments"]["pid"])
+    [schedule] = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")["schedules"]
+    assert schedule["schedule"]["cron"] == "45 4 * * *"
+    same = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "45 4 * * *",
+                   "--timezone", "Europe/Berlin")
+    assert same.returncode == 0 and "stopped" not in same.stdout, same.stdout[-3000:] + same.stderr[-3000:]
+    assert json.loads(Workspace.at(workspace).service_state.read_text())["processes"] == after
+
+
 def test_down_stops_every_process(stack):
     """The last test on the stack: the fixture's own `down` then finds nothing to stop."""
     workspace, urls = stack
