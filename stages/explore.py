@@ -258,11 +258,15 @@ def relabel(rows: list[dict], achieved: TaskRecord, plan: EpisodePlan, intended:
     instruction its rows are recorded under, its explorer_stats naming what it set out to do, success).
     The instruction is one of the achieved task's, drawn from the episode's seed; the rows' expert labels
     are dropped (they led to the intended goal: the executed actions are what reached this one) and the
-    last step succeeds."""
+    last step succeeds. The rewards become the achieved task's sparse ones (0, then 1 at the last step):
+    the recorded ones measured progress toward the intended goal (navigation's often negative, away from
+    it), which the filter's min_return would have read as this success's return."""
     instruction = achieved.instructions[np.random.default_rng([plan.seed, 2]).integers(len(achieved.instructions))]
     for row in rows:
         row["expert_action"] = None
+        row["reward"] = 0.0
     rows[-1]["success"] = True
+    rows[-1]["reward"] = 1.0
     return ({"task_id": achieved.task_id, "instruction": instruction},
             {**(stats or {}), "relabelled_from": intended.task_id, "intended_instruction": plan.instruction}, True)
 

@@ -287,6 +287,8 @@ def test_a_failed_episode_that_did_another_seen_task_is_relabelled_as_it(tmp_pat
             assert episode["success"] and rows[-1]["success"] and episode["instruction"] in achieved.instructions
             assert all(s["task_id"] == achieved.task_id and s["instruction"] == episode["instruction"]
                        and s["expert_action"] is None for s in rows)
+            # the achieved task's sparse reward, not progress toward the room it set out for
+            assert [s["reward"] for s in rows] == [0.0] * (len(rows) - 1) + [1.0] and episode["episode_return"] == 1.0
     assert relabelled > 0
     # off by default: the same plan without it relabels nothing, and keeps its keys
     plain = _plan(CampaignConfig(**{**config.model_dump(), "explore": {**config.explore.model_dump(), "relabel": False}}),
