@@ -142,6 +142,7 @@ class Scene:
 
 
 _MESH_OBJECT = frozenset(ASPECTS) - {"size"}
+_FIXED_OBJECT = _MESH_OBJECT - {"mass", "friction"}  # no free body: nothing to weigh or slide (the door's hinged)
 _NUT_GEOMS = {nut: tuple(f"{nut}_g{i}_visual" for i in range(count)) for nut, count in (("SquareNut", 5), ("RoundNut", 9))}
 ROBOSUITE_SCENES: dict[str, Scene] = {
     "Lift": Scene({"target": ("cube_g0_vis",)}, "pick_place", _lift),
@@ -154,7 +155,7 @@ ROBOSUITE_SCENES: dict[str, Scene] = {
     "NutAssemblyRound": Scene({"nut": _NUT_GEOMS["RoundNut"]}, "pick_place", _nuts),
     "NutAssembly": Scene({"square": _NUT_GEOMS["SquareNut"], "round": _NUT_GEOMS["RoundNut"]}, "pick_place", _nuts),
     # the latched door: its handle must be turned before it opens
-    "Door": Scene({"door": ("Door_panel_visual",)}, "open_door", _door, {"use_latch": True}, _MESH_OBJECT),
+    "Door": Scene({"door": ("Door_panel_visual",)}, "open_door", _door, {"use_latch": True}, _FIXED_OBJECT),
 }
 
 MODEL_SEED = 0
