@@ -21,6 +21,7 @@ from schemas.config import RenderConfig  # noqa: E402
 from schemas.tasks import TaskRecord  # noqa: E402
 
 BENCHMARK_SEED = 0  # fixes MetaWorld's 50 pre-sampled object/goal variations per task
+METAWORLD_PATH_LENGTH = 500  # SawyerXYZEnv.max_path_length: the steps its episodes take at most
 PLACEMENT_STREAM = 0x9A5E  # a "fresh" placement's generator: (episode seed, this), apart from randomisation's
 CAMERAS = {"agentview": "corner", "frontview": "corner2", "sideview": "corner3", "birdview": "topview"}
 IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
@@ -112,6 +113,8 @@ class MetaWorldEnv:
             raise ValueError(f"placements: expected 'benchmark' or 'fresh', got {placements!r}")
         variations = self.benchmark.train_tasks
         self.env.set_task(variations[seed % len(variations)])  # the task's class and settings (and its placement)
+        # MetaWorld refuses a step past its own 500 (max_path_length); tasks.horizon may ask for more
+        self.env.max_path_length = max(METAWORLD_PATH_LENGTH, task.horizon)
         if placements == "fresh":  # drawn at reset from the env's generator (its reset ignores a seed): seeded here
             self.env._freeze_rand_vec, self.env.seeded_rand_vec = False, True
             self.env.np_random = np.random.default_rng([seed, PLACEMENT_STREAM])

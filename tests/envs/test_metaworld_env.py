@@ -196,3 +196,13 @@ def test_without_shadows_no_shadow_map_is_made_and_the_frames_are_the_same(pick_
         mapped.close()
     assert len(episodes[0]) > 10 and all(np.array_equal(a["image"], b["image"]) and np.array_equal(a["depth"], b["depth"])
                                          for a, b in zip(*episodes))
+
+
+def test_an_episode_longer_than_metaworlds_own_500_steps_runs_to_its_horizon(pick_place):
+    """MetaWorld refuses a step past its max_path_length (500); tasks.horizon may ask for more."""
+    env, task = pick_place
+    longer = task.model_copy(update={"horizon": 503})
+    rows, _, success = rollout(env, longer, seed=1, act=lambda obs: np.zeros(ACTION_DIM, np.float32))
+    assert len(rows) == 503 and not success
+    rollout(env, task, seed=1, act=lambda obs: np.zeros(ACTION_DIM, np.float32))  # and back to the task's own
+    assert env.env.max_path_length == 500
