@@ -423,8 +423,18 @@ def run_in_pool(
         threads = ThreadPoolExecutor(max_workers=count, thread_name_prefix="sim2act-pool")
         try:
             futures = {threads.submit(run_with_retries, pool, work, unit, label(unit)): unit for unit in units}
+            handed = set()
             for future in as_completed(futures):
+                if future.exception() is not None:
+                    # units that finished while the caller was busy are its to register before the failure
+                    # ends the run (those still running are abandoned with the pool)
+                    for other in futures:
+                        if other not in handed and other.done() and not other.cancelled() and not other.exception():
+                            result, seconds = other.result()
+                            yield futures[other], result, seconds
+                    future.result()  # raises
                 result, seconds = future.result()
+                handed.add(future)
                 yield futures[future], result, seconds
         finally:
             threads.shutdown(wait=False, cancel_futures=True)

@@ -89,9 +89,20 @@ def rollout_task_runner(explore: ExploreConfig) -> TaskRunner:
 def _submitted(units: list[ExploreUnit], pool_id: str | None) -> Completed:
     futures = [explore_shard.submit(unit, pool_id) for unit in units]
     by_run = {future.task_run_id: unit for future, unit in zip(futures, units)}
+    handed: set = set()
     try:
         for future in as_completed(futures):
-            shards, seconds = future.result()
+            try:
+                shards, seconds = future.result()
+            except BaseException:
+                # shards that finished while the caller was registering are its to register before the
+                # failure ends the stage (those still running are left as they are)
+                for other in futures:
+                    if other.task_run_id not in handed and other is not future and other.state.is_completed():
+                        done, other_seconds = other.result()
+                        yield by_run[other.task_run_id], done, other_seconds
+                raise
+            handed.add(future.task_run_id)
             yield by_run[future.task_run_id], shards, seconds
     finally:
         # stopped early (a signal, a failed unit): the units still queued for a thread never start,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ctypes
 import os
 import signal
+import time
 from pathlib import Path
 
 import psutil
@@ -20,6 +21,7 @@ class Job(BaseModel):
     n: int
     attempts_dir: str
     dies: str | None = None  # "sigkill" or "segfault" on the first attempt
+    sleep_s: float = 0.0  # before it answers
 
 
 def attempt(job: Job) -> tuple[int, int]:
@@ -31,6 +33,7 @@ def attempt(job: Job) -> tuple[int, int]:
         os.kill(os.getpid(), signal.SIGKILL)
     if first and job.dies == "segfault":
         ctypes.string_at(0)  # reads address 0: SIGSEGV
+    time.sleep(job.sleep_s)
     if job.n < 0:
         raise ValueError(f"negative job {job.n}")
     return job.n * job.n, os.getpid()
@@ -64,6 +67,19 @@ def test_a_unit_that_raises_is_not_retried_and_says_why(tmp_path):
     with pytest.raises(UnitFailed, match="ValueError: negative job -1"):
         list(run_in_pool(attempt, jobs, workers=1, label=lambda job: f"job {job.n}"))
     assert len(list(tmp_path.iterdir())) == 1
+
+
+def test_units_that_finished_before_a_failure_is_handed_back_still_reach_the_caller(tmp_path):
+    """The caller registers each result as it comes; while it was busy, one unit failed and then another
+    finished: that one is handed back before the failure is raised, not dropped with the rest."""
+    jobs = [Job(n=1, attempts_dir=str(tmp_path)), Job(n=-1, attempts_dir=str(tmp_path), sleep_s=0.5),
+            Job(n=2, attempts_dir=str(tmp_path), sleep_s=1.0)]
+    handed = []
+    with pytest.raises(UnitFailed, match="negative job -1"):
+        for job, (square, _), _ in run_in_pool(attempt, jobs, workers=3, label=lambda job: f"job {job.n}"):
+            handed.append(job.n)
+            time.sleep(2.5)  # registering it: meanwhile job -1 fails, then job 2 finishes
+    assert handed == [1, 2]
 
 
 def test_stages_under_keep_workers_share_one_pool_until_one_stops_early(tmp_path):

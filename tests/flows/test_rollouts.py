@@ -177,6 +177,39 @@ def test_a_stopped_explore_cancels_the_shards_still_queued(prefect_here, monkeyp
     assert len(units) == 8 and stopped() <= 2  # the first, and at most the one a thread took meanwhile
 
 
+def test_shards_that_finished_before_a_failed_one_is_handed_back_still_reach_the_stage(prefect_here, monkeypatch):
+    """While the stage registered the first shard, the second failed and then the third finished: the third is
+    handed back (and registered) before the failure ends the stage."""
+    from prefect import task
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    from stages.explore import plan_explore
+
+    config = CONFIG.model_copy(update={"explore": CONFIG.explore.model_copy(update={"episodes_per_shard": 1})})
+    units = plan_explore(config, 0, generate_tasks(config.tasks, config.seed), None, {}, Workspace.at("unused"))[:3]
+    delays = {units[0].unit_key: 0.0, units[1].unit_key: 0.5, units[2].unit_key: 1.0}
+
+    @task(name="explore-shard-probe")
+    def probe(unit, pool_id):
+        time.sleep(delays[unit.unit_key])
+        if unit.unit_key == units[1].unit_key:
+            raise RuntimeError("a simulator failure")
+        return [], delays[unit.unit_key]
+
+    monkeypatch.setattr(flows.rollouts, "explore_shard", probe)
+
+    @flow(name="explore-failed", task_runner=ThreadPoolTaskRunner(max_workers=3))
+    def failed() -> list[str]:
+        handed = []
+        with pytest.raises(RuntimeError, match="a simulator failure"):
+            for unit, _, _ in flows.rollouts._submitted(units, None):
+                handed.append(unit.unit_key)
+                time.sleep(2.5)  # registering it: meanwhile the second fails, then the third finishes
+        return handed
+
+    assert failed() == [units[0].unit_key, units[2].unit_key]
+
+
 def test_two_hosts_sharing_no_folder_explore_into_s3_and_a_killed_host_costs_only_its_retried_shards(
         reference, tmp_path, monkeypatch):
     """The drill of docs/scale-out.md at small size: a Dask scheduler and one worker per "host" (its own
