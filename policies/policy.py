@@ -85,11 +85,16 @@ def weights_of(state: dict, weights: str = "registered") -> str:
 
 
 def save_atomically(path: Path, state: dict) -> None:
-    """Whole or not at all: a kill while saving leaves the previous file."""
+    """Whole or not at all: a kill while saving leaves the previous file; the bytes are on the disk
+    before the name is (a power cut after a rename of unflushed bytes leaves an empty file under it)."""
+    from warehouse.store import fsync_path
+
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     torch.save(state, tmp)
+    fsync_path(tmp)
     tmp.replace(path)
+    fsync_path(path.parent)
 
 
 @dataclass
