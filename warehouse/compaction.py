@@ -25,7 +25,7 @@ from schemas.version import SCHEMA_VERSION
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import (ROW_GROUP_ROWS, ZSTD_LEVEL, DiskFull, SchemaMismatch, ShardUnreadable,
                                     check_schema, is_disk_full)
-from warehouse.store import ShardStoreUnreachable
+from warehouse.store import ShardStoreRefused, ShardStoreUnreachable
 
 log = logging.getLogger("sim2act.warehouse.compaction")
 
@@ -123,14 +123,17 @@ def _source_rows(catalog: Catalog, table: str, source: Source) -> pa.Table:
 
     Raises:
         BadSource: naming the source and which check it failed.
-        ShardStoreUnreachable: the store, not the source (nothing to quarantine).
+        ShardStoreUnreachable, ShardStoreRefused: the store, not the source (nothing to quarantine).
     """
     where = catalog.store.location(source.path)
     try:
         with catalog.store.read(source.path) as handle:
             data = handle.read_buffer()
-    except ShardStoreUnreachable:
+    except (ShardStoreUnreachable, ShardStoreRefused):
         raise
+    except PermissionError as exc:  # this user may not read it: the file is not the fault
+        raise ShardStoreRefused(f"{where}: {exc.strerror or exc}: this user may not read it; nothing was changed") \
+            from None
     except OSError as exc:
         raise BadSource(source, f"{where}: not readable ({exc})") from None
     sha = hashlib.sha256(data).hexdigest()

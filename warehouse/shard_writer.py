@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 from schemas.errors import Sim2ActError
 from schemas.tables import SHARD_TABLES
 from schemas.version import SCHEMA_VERSION
-from warehouse.store import ShardConflict, ShardStore, ShardStoreUnreachable, write_new_file
+from warehouse.store import ShardConflict, ShardStore, ShardStoreRefused, ShardStoreUnreachable, write_new_file
 from warehouse.store import sha256_of as store_sha256_of
 
 __all__ = ["ShardConflict", "ShardFile", "SchemaMismatch", "ShardUnreadable", "DiskFull", "write_shard",
@@ -79,8 +79,11 @@ def _open_shard(table_name: str, path: Path, store: ShardStore | None) -> pq.Par
     where = path if store is None else store.location(store.rel(path))
     try:
         parquet = pq.ParquetFile(path) if store is None else store.parquet(where)
-    except ShardStoreUnreachable:
+    except (ShardStoreUnreachable, ShardStoreRefused):
         raise  # the server, not the shard: nothing to quarantine
+    except PermissionError as exc:  # this process may not read it: not a bad shard either
+        raise ShardStoreRefused(f"{where}: {exc.strerror or exc}: this user may not read it; nothing was changed") \
+            from None
     except (OSError, pa.ArrowException) as exc:
         raise ShardUnreadable(f"{where}: not a readable Parquet file ({exc})") from None
     check_schema(table_name, parquet.schema_arrow)

@@ -59,6 +59,20 @@ class ShardStoreUnreachable(Sim2ActError, OSError):
     """The S3 server did not answer for STORE_WAIT_S; one line naming it and how to resume."""
 
 
+class ShardStoreRefused(Sim2ActError, PermissionError):
+    """The store refused a read or write (credentials, clock, permissions): not a bad shard, never quarantined."""
+
+
+# S3's refusals of a request (not of a key: NoSuchKey is a missing shard): a wrong, expired or temporary key
+# without its token, a signature made by a clock over 15 minutes off
+_REFUSALS = ("ACCESS_DENIED", "AccessDenied", "InvalidAccessKeyId", "SignatureDoesNotMatch", "RequestTimeTooSkewed",
+             "ExpiredToken", "InvalidToken", "HTTP response code: 403")
+
+
+def _refused(exc: BaseException) -> bool:
+    return isinstance(exc, PermissionError) or (isinstance(exc, OSError) and any(s in str(exc) for s in _REFUSALS))
+
+
 def _unreachable(exc: BaseException) -> bool:
     """pyarrow's S3 client failing to reach the server (as opposed to a refusal: no such key, access denied)."""
     text = str(exc)
@@ -264,9 +278,14 @@ class S3Store(ShardStore):
             return retrying(_unreachable, within_s=STORE_WAIT_S, wait_s=0.5, backoff_max_s=4.0, log=log,
                             what=f"shard store {self.url}")(action, *args)
         except OSError as exc:
+            detail = str(exc).split("; Details:")[0].split(": AWS Error ")[-1]
+            if _refused(exc):
+                raise ShardStoreRefused(
+                    f"the shard store {self.url} refused the request ({detail}): check AWS_ACCESS_KEY_ID, "
+                    "AWS_SECRET_ACCESS_KEY (and AWS_SESSION_TOKEN for temporary keys) and this host's clock (S3 "
+                    "refuses signatures over 15 minutes off); nothing was changed") from None
             if not _unreachable(exc):
                 raise
-            detail = str(exc).split("; Details:")[0].split(": AWS Error ")[-1]
             raise ShardStoreUnreachable(
                 f"the shard store {self.url} ({self._host or 'AWS'}) did not answer for {STORE_WAIT_S:.0f} s "
                 f"({detail}): start it, then run the same command again to resume") from None

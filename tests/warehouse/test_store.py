@@ -13,7 +13,7 @@ from tests.warehouse.filled import fill
 from warehouse.catalog import Catalog
 from warehouse.shard_writer import ShardConflict, write_shard
 from warehouse.sql import run_sql
-from warehouse.store import FOLDER, SHARD_STORE_ENV, ShardStoreError, canonical_url, open_store
+from warehouse.store import FOLDER, SHARD_STORE_ENV, ShardStoreError, ShardStoreRefused, canonical_url, open_store
 from warehouse.training_reader import StepBatches, select_rows
 
 COUNTS = ("SELECT (SELECT count(*) FROM steps), (SELECT count(*) FROM episodes), "
@@ -114,6 +114,19 @@ def test_verify_quarantines_and_clean_orphans_deletes_objects_on_s3(s3, tmp_path
     with pytest.raises(ShardConflict, match="exists with other content"):
         write_shard("filter_decisions", same.slice(1), workspace.warehouse / path, catalog.store)
     assert again.num_rows == same.num_rows
+
+
+def test_a_refused_key_is_one_line_and_quarantines_nothing(s3, tmp_path, monkeypatch):
+    """A wrong (rotated, expired) secret or a skewed clock makes S3 refuse every request (403): that is the store's
+    answer, not a bad shard; verify stops on it in one line, and every unit stays registered."""
+    workspace = _filled(tmp_path, s3.environ("s3://shards/lab/refused"), monkeypatch)
+    registered = Catalog(workspace.catalog).query("SELECT count(*) FROM shards")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "a-rotated-secret")
+    catalog = Catalog(workspace.catalog)
+    with pytest.raises(ShardStoreRefused, match=r"refused the request .*AWS_SECRET_ACCESS_KEY.*nothing was changed"):
+        catalog.verify(full=True)
+    assert Catalog(workspace.catalog).query("SELECT count(*) FROM shards") == registered
+    assert not [key for key in s3.keys("shards") if key.startswith("lab/refused/quarantine/")]
 
 
 def test_store_settings_are_refused_in_one_line(tmp_path):
