@@ -66,11 +66,13 @@ def measure_agent(case: RLCase) -> RLStepCost:
     from envs.gym_env import InstructedTasksEnv
     from policies.rl_agent import new_agent
     from policies.rl_encoder import encoder_precision
+    from stages.baselines import target_entropy
 
     rng = np.random.default_rng(0)
     said = {text: rng.standard_normal(EMBEDDING_SIZE).astype(np.float32)
             for task in case.tasks for text in task.instructions}
-    env = InstructedTasksEnv(case.tasks, said, case.config.render, case.config.randomise)
+    env = InstructedTasksEnv(case.tasks, said, case.config.render, case.config.randomise,
+                             case.config.baselines.end_on_success)
     env.action_space.seed(0)
     env.reset(seed=0)
     env_steps = max(1, case.steps // 2)
@@ -81,7 +83,8 @@ def measure_agent(case: RLCase) -> RLStepCost:
             env.reset()
     env_ms = (time.process_time() - started) / env_steps * 1e3
     agent = new_agent(case.algorithm, env, case.budget or 400_000, case.config.seed, case.config.baselines.replay_size,
-                      case.config.baselines.sac_encoder)
+                      case.config.baselines.sac_encoder,
+                      target_entropy(case.algorithm, case.family, case.config.baselines.sac_target_entropy))
     precision = "fp32"
     if case.config.train.amp:  # as the stage decides it, measured afresh (a throwaway cache)
         with tempfile.TemporaryDirectory() as scratch:

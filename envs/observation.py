@@ -18,6 +18,9 @@ PROPRIO_DIM = 9
 # Families that act by the index of an action from a discrete set, stored as [index] (navigation).
 DISCRETE_FAMILIES = frozenset({"navigation"})
 NAVIGATION_ACTIONS = ("forward", "turn_left", "turn_right", "backward")  # its discrete action set, by index
+# The continuous components a family's simulator acts on: MetaWorld's Sawyer moves and grips, no wrist
+# rotation (envs/metaworld_env.to_metaworld_action drops rx, ry, rz).
+ACTING_COMPONENTS = {"metaworld": ("dx", "dy", "dz", "grip")}
 NO_IMAGE = np.zeros((0, 0, 3), dtype=np.uint8)  # what a camera-less adapter returns
 
 

@@ -50,8 +50,11 @@ def campaign_settings(config: CampaignConfig) -> dict:
     from stages.explore import LEGACY_VALUES as EXPLORE_LEGACY_VALUES
     from stages.train import LEGACY_VALUES as TRAIN_LEGACY_VALUES
 
+    # the baselines' fields whose default changed as they were added count as absent at that default: a campaign
+    # keeps its run, while the unit keys (stages.baselines.LEGACY_VALUES) tell the new agents from the old
+    baselines = {**BASELINES_LEGACY_VALUES, "end_on_success": False, "sac_target_entropy": "acting"}
     legacy = {"render": RENDER_LEGACY_VALUES, "explore": EXPLORE_LEGACY_VALUES, "train": TRAIN_LEGACY_VALUES,
-              "baselines": BASELINES_LEGACY_VALUES}
+              "baselines": baselines}
     return key_fields(config, {"iterations", "adapt"}, legacy)
 
 

@@ -42,7 +42,7 @@ def agent_class(algorithm: str, sac_encoder: str = "separate"):
 
 
 def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int | None = None,
-              sac_encoder: str = "separate"):
+              sac_encoder: str = "separate", target_entropy: float | None = None):
     """An untrained agent, SB3's defaults but for the sizes a small budget needs: PPO collects
     rollouts of at most 512 steps (its default 2,048 would be a whole small budget), sized so that
     whole rollouts pass the budget by less than one step each, minibatches of 64; SAC's replay
@@ -51,7 +51,8 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
     (policies/rl_encoder.py: in bf16 on batches once `encoder_precision` says so), its optimisers torch's fused
     Adam (SB3's hyperparameters); SAC's actor
     loss skips the critic's encoder (`skip_critic_encoder_in_actor_loss`: the same updates, less work), or,
-    with `sac_encoder="critic"`, the actor reads the critic's one encoder (`policies.rl_sac`: less still)."""
+    with `sac_encoder="critic"`, the actor reads the critic's one encoder (`policies.rl_sac`: less still).
+    `target_entropy`: SAC's entropy target (None: SB3's, minus the action dimensions)."""
     from policies.rl_encoder import AutocastExtractor, skip_critic_encoder_in_actor_loss
 
     def common(adam_eps: float) -> dict:
@@ -66,7 +67,9 @@ def new_agent(algorithm: str, env, env_steps: int, seed: int, replay_size: int |
         n_steps = math.ceil(env_steps / rollouts)
         return without_log_folder(agent_class("ppo")(n_steps=n_steps, batch_size=min(64, n_steps), **common(1e-5)))
     agent = agent_class("sac", sac_encoder)(buffer_size=replay_buffer_size(env_steps, replay_size),
-                                            learning_starts=min(1000, env_steps // 10), batch_size=64, **common(1e-8))
+                                            learning_starts=min(1000, env_steps // 10), batch_size=64,
+                                            target_entropy="auto" if target_entropy is None else target_entropy,
+                                            **common(1e-8))
     skip_critic_encoder_in_actor_loss(agent)
     return without_log_folder(agent)
 
@@ -141,7 +144,7 @@ def remove_checkpoints(folder: Path) -> None:
 def learn_with_checkpoints(
     algorithm: str, env, env_steps: int, seed: int, folder: Path, every: int, replay_size: int | None = None,
     on_progress: Callable[[int, int], None] | None = None, precision_cache: Path | None = None,
-    sac_encoder: str = "separate",
+    sac_encoder: str = "separate", target_entropy: float | None = None,
 ):
     """Train an agent to `env_steps` environment steps, from the last checkpoint in `folder` where a
     kill interrupted an earlier run, saving one every `every` steps at the start of a rollout (after
@@ -159,7 +162,7 @@ def learn_with_checkpoints(
 
     last = last_checkpoint(folder)
     if last is None:
-        agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size, sac_encoder), 0
+        agent, resumed = new_agent(algorithm, env, env_steps, seed, replay_size, sac_encoder, target_entropy), 0
     else:
         agent = without_log_folder(agent_class(algorithm, sac_encoder).load(last / "agent.zip", env=env, device="cpu"))
         if algorithm == "sac":

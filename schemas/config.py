@@ -486,6 +486,14 @@ class BaselinesConfig(_Strict):
         "its gradients stopped (SAC-AE, DrQ; three encoder passes an update); separate: SB3's default, an encoder "
         "each (five passes and two backward ones). critic: 1.4-1.5x faster a step at 84 px but it learned less per "
         "environment step on a pixel probe (docs/bench-rl.md), so SB3's stays the default")
+    end_on_success: bool = Field(
+        default=False, description="end a training episode at its first success; default: at the horizon, as "
+        "MetaWorld's and robosuite's RL benchmarks run theirs (their dense rewards pay nearly as much just short of "
+        "success as at it, so ending there pays hovering more: envs/gym_env.py). true: the baselines before 2026-12-05")
+    sac_target_entropy: Literal["acting", "all"] = Field(
+        default="acting", description="SAC's entropy target: minus the action components the family acts on "
+        "(MetaWorld's 4 of the 7: the 3 it ignores would take the entropy and leave the 4 little noise); all: SB3's "
+        "default, minus all 7 (the baselines before 2026-12-05)")
 
 
 SHIFTED_DOMAIN = RandomiseConfig(

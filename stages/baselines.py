@@ -30,7 +30,8 @@ from stages.evaluate import (SPLITS, Agent, TaskEvaluation, episodes_per_split, 
 from warehouse.catalog import Catalog
 
 STAGE, VERSION = "baselines", 1
-LEGACY_VALUES = {"sac_encoder": "separate"}  # fields added since version 1, at the values that did what it did
+# fields added since version 1, at the values that did what it did
+LEGACY_VALUES = {"sac_encoder": "separate", "end_on_success": True, "sac_target_entropy": "all"}
 EXPERT = "expert"
 # beside an agent's agent.zip, for `sim2act report` while it trains: what it trains, and how far it got
 PLAN, PROGRESS = "plan.json", "progress.json"
@@ -49,6 +50,8 @@ class RLUnit(BaseModel):
     replay_size: int  # SAC's replay buffer, transitions
     checkpoint_every: int  # environment steps between resumable checkpoints
     sac_encoder: str = "separate"  # SAC's: the critic's, shared with the actor (policies/rl_sac.py), or one each
+    end_on_success: bool = True  # an episode ends at its first success (baselines.end_on_success)
+    target_entropy: float | None = None  # SAC's; None: SB3's, minus the action dimensions
     seed: int
     path: str  # where the trained agent is saved; its checkpoints beside it
     # train.amp's rule for its encoder's updates: the workspace's measured precision choices; None: fp32
@@ -134,6 +137,16 @@ def progress_callback(progress: Progress, folder: Path, env) -> Callable[[int, i
     return on_progress
 
 
+def target_entropy(algorithm: str, family: str, rule: str) -> float | None:
+    """SAC's entropy target under baselines.sac_target_entropy, where it is not SB3's own (minus the action
+    dimensions): minus the components the family acts on."""
+    from envs.observation import ACTING_COMPONENTS
+
+    if algorithm != "sac" or rule == "all" or family not in ACTING_COMPONENTS:
+        return None
+    return -float(len(ACTING_COMPONENTS[family]))
+
+
 def train_rl_agent(unit: RLUnit) -> RLTrained:
     """Worker: train one agent from scratch for its budget of environment steps (from its last
     checkpoint where a kill interrupted it) and save it."""
@@ -143,7 +156,7 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
 
     log_stages_to_stderr()  # a worker has no Prefect handler, and an agent trains for hours: its progress on stderr
     env = InstructedTasksEnv(unit.tasks, {k: np.asarray(v, dtype=np.float32) for k, v in unit.embeddings.items()},
-                             unit.render, unit.randomise)
+                             unit.render, unit.randomise, unit.end_on_success)
     path = Path(unit.path)
     path.parent.mkdir(parents=True, exist_ok=True)
     progress = Progress(log, f"baselines: {unit.algorithm} on {unit.family}", unit.env_steps, "env steps", "env steps")
@@ -152,7 +165,7 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
                                                    unit.checkpoint_every, unit.replay_size,
                                                    progress_callback(progress, path.parent, env),
                                                    Path(unit.precision_cache) if unit.precision_cache else None,
-                                                   unit.sac_encoder)
+                                                   unit.sac_encoder, unit.target_entropy)
     finally:
         progress.close()
     tmp = path.with_name(path.stem + ".tmp.zip")
@@ -196,13 +209,19 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
             smaller_replay = [f"replay {replay}"] if algorithm == "sac" and replay < steps else []
             # likewise the critic's shared encoder: SAC agents trained with an encoder each keep their keys
             shared_encoder = ["encoder critic"] if algorithm == "sac" and config.baselines.sac_encoder == "critic" else []
+            # and agents whose episodes ended at their first success, or whose SAC aimed at all 7 components' entropy
+            to_horizon = [] if config.baselines.end_on_success else ["episodes to the horizon"]
+            target = target_entropy(algorithm, family, config.baselines.sac_target_entropy)
+            acting_target = [] if target is None else [f"target entropy {target:g}"]
             key = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
                                             "seed": config.seed},
-                           [tasks_key, algorithm, family, str(steps), *smaller_replay, *shared_encoder])  # tasks key: campaign, tasks, encoder
+                           [tasks_key, algorithm, family, str(steps), *smaller_replay, *shared_encoder, *to_horizon,
+                            *acting_target])  # tasks key: campaign, tasks, encoder
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, replay_size=replay,
                                 checkpoint_every=config.baselines.checkpoint_every, seed=config.seed,
                                 sac_encoder=config.baselines.sac_encoder,
+                                end_on_success=config.baselines.end_on_success, target_entropy=target,
                                 path=str(workspace.models / key / "agent.zip"),
                                 precision_cache=str(workspace.precision_choices) if config.train.amp else None))
     return units

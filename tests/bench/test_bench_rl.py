@@ -41,8 +41,9 @@ def test_sacs_encoders_side_by_side_and_in_the_agents_key(tmp_path):
     from schemas.workspace import Workspace
     from stages.baselines import rl_units
 
+    # episodes ended at their first success, as the agents before baselines.end_on_success were trained
     config = CampaignConfig(name="t", tasks=TasksConfig(specs=["lift", "nav-room"], colours=["red", "green"]),
-                            baselines={"agents": ["ppo", "sac"]})
+                            baselines={"agents": ["ppo", "sac"], "end_on_success": True})
     tasks = generate_tasks(config.tasks, config.seed)
     cases = rl_cases(config, tasks, 10, {}, ["critic", "separate"])
     assert [(c.algorithm, c.family, c.config.baselines.sac_encoder) for c in cases if c.algorithm == "sac"] == [

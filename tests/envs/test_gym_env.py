@@ -54,6 +54,35 @@ def test_episodes_draw_tasks_and_end_at_the_horizon_counted():
     assert (env.episodes_finished, env.successes) == (6, 0)
 
 
+@pytest.mark.parametrize("end_on_success", [False, True])
+def test_a_success_ends_the_episode_only_when_told_and_counts_once(end_on_success):
+    """By default an episode runs to its horizon past its success (dense rewards: ended there, hovering would
+    pay more); `end_on_success` ends it at the first. Either way it counts as one success."""
+    env = _env(["nav-room"], ["red"])
+    env.end_on_success = end_on_success
+    env.reset(seed=1)
+    adapter_step, steps = env._env.step, []
+
+    def succeeding_at_three(action):
+        obs, reward, _ = adapter_step(action)
+        steps.append(1)
+        return obs, reward, len(steps) >= 3  # the goal reached at the third step, and stayed at
+
+    env._env.step = succeeding_at_three
+    try:
+        done, ends = False, []
+        while not done:
+            _, _, terminated, truncated, info = env.step(0)
+            done = terminated or truncated
+            ends.append((terminated, truncated))
+    finally:
+        env._env.step = adapter_step
+    horizon = env.tasks[0].horizon
+    assert ends[-1] == ((True, False) if end_on_success else (False, True))
+    assert len(ends) == (3 if end_on_success else horizon) and info["success"]
+    assert (env.episodes_finished, env.successes) == (1, 1)
+
+
 def test_a_family_with_more_scenes_than_a_worker_keeps_still_runs_its_episodes(monkeypatch):
     from envs.rollout import _ENVS, close_envs
     from schemas.settings import SCENES_PER_WORKER_ENV

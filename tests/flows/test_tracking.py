@@ -42,7 +42,8 @@ def test_a_campaign_keeps_its_mlflow_run_when_newer_code_adds_config_fields():
     for section, added in (("render", "wrist_camera"), ("render", "mesh_detail"), ("render", "decimate_colliding"),
                            ("explore", "expert_takeover"), ("train", "language_augment"),
                            ("train", "proprio_dropout"), ("explore", "policy_steps"),
-                           ("explore", "first_episodes_per_task"), ("baselines", "sac_encoder")):
+                           ("explore", "first_episodes_per_task"), ("baselines", "sac_encoder"),
+                           ("baselines", "end_on_success"), ("baselines", "sac_target_entropy")):
         assert added not in settings[section]  # as code from before the field existed hashed the campaign
     assert campaign_settings(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))["render"]["wrist_camera"]
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))

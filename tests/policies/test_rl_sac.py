@@ -60,6 +60,8 @@ def test_sb3s_sac_takes_five_passes_and_two_backward_ones(lift):
     """The same count on SB3's own layout (an encoder each, the actor's loss through the critic's encoder
     skipped): the actor's encoder twice and backward once more, the critic's twice, the target's once."""
     agent = new_agent("sac", lift, 1_000, 3, sac_encoder="separate")
+    assert agent.target_entropy == -7.0  # SB3's: minus the action dimensions
+    assert new_agent("sac", lift, 1_000, 3, target_entropy=-4.0).target_entropy == -4.0  # baselines.sac_target_entropy
     actor_graphs = []
     agent.actor.features_extractor.register_forward_hook(
         lambda m, _i, out: actor_graphs.append(out.requires_grad) if m.training else None)

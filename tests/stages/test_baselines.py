@@ -1,7 +1,12 @@
-"""The baselines stage's plan, without training anything: which agent the pool starts first."""
+"""The baselines stage's plan, without training anything: which agent the pool starts first, the units' keys."""
 
-from schemas.config import RandomiseConfig, RenderConfig
-from stages.baselines import RLUnit, longest_first
+import numpy as np
+
+from envs.suite import generate_tasks
+from schemas.config import RandomiseConfig, RenderConfig, load_config, render_key_fields
+from schemas.keys import unit_key
+from schemas.workspace import Workspace
+from stages.baselines import STAGE, VERSION, RLUnit, longest_first, rl_units
 
 
 def _unit(algorithm: str, family: str, env_steps: int) -> RLUnit:
@@ -51,3 +56,26 @@ def test_a_training_writes_its_progress_at_its_start_and_at_each_percent(tmp_pat
         assert latest.pop("rate") > 0  # this run's pace, the checkpoint's 130,000 steps not counted
         assert latest == {"num_timesteps": 132_231, "episodes": 720, "successes": 1}
         assert [r.getMessage().split(",")[0] for r in caplog.records] == ["sac on robosuite: 132231/455956 env steps"]
+
+
+def test_agents_trained_to_the_horizon_and_at_the_acting_entropy_are_new_units_and_the_old_keep_their_keys():
+    """baselines.end_on_success and sac_target_entropy changed what the agents are: the defaults make new units;
+    the values the earlier agents were trained with give those agents' keys, as before the fields existed."""
+    def keys(**baselines) -> dict[tuple[str, str], RLUnit]:
+        config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
+                                             "baselines": {"agents": ["ppo", "sac"], **baselines}})
+        tasks = generate_tasks(config.tasks, config.seed)
+        said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
+        return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
+                                                             {"robosuite": 1000, "metaworld": 1000})}
+
+    new, old = keys(), keys(end_on_success=True, sac_target_entropy="all")
+    assert all(new[case].unit_key != old[case].unit_key for case in new)
+    assert (new["sac", "metaworld"].target_entropy, new["sac", "robosuite"].target_entropy) == (-4.0, None)
+    assert not new["sac", "metaworld"].end_on_success and old["sac", "metaworld"].end_on_success
+    assert old["sac", "metaworld"].target_entropy is None
+    # the earlier agents' keys, as the code before the fields computed them
+    config = load_config("smoke")
+    before = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
+                                       "seed": config.seed}, ["tasks-k", "sac", "metaworld", "1000"])
+    assert old["sac", "metaworld"].unit_key == before
