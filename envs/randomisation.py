@@ -96,10 +96,7 @@ class SceneRandomiser:
         self.bodies = np.asarray(bodies, dtype=int)
         self.geoms = np.asarray([g for g in range(model.ngeom)
                                  if model.geom_bodyid[g] in bodies and model.geom_type[g] in _PRIMITIVES], dtype=int)
-        # friction acts where the bodies touch: their colliding geoms of any type (a PickPlace object's are
-        # meshes, which the size leaves alone)
-        self.contact_geoms = np.asarray([g for g in range(model.ngeom) if model.geom_bodyid[g] in bodies
-                                         and (model.geom_contype[g] or model.geom_conaffinity[g])], dtype=int)
+
         self.nominal = {name: getattr(model, name).copy() for name in _NOMINAL_FIELDS}
         self.nominal_headlight = model.vis.headlight.diffuse.copy()
 
@@ -129,8 +126,8 @@ class SceneRandomiser:
         if r.mass is not None and len(self.bodies):
             for name in ("body_mass", "body_inertia"):
                 getattr(model, name)[self.bodies] = nominal[name][self.bodies] * r.mass
-        if r.friction is not None and len(self.contact_geoms):
-            model.geom_friction[self.contact_geoms, 0] = nominal["geom_friction"][self.contact_geoms, 0] * r.friction
+        if r.friction is not None and len(self.geoms):
+            model.geom_friction[self.geoms, 0] = nominal["geom_friction"][self.geoms, 0] * r.friction
 
     def rest_on_support(self, data: mujoco.MjData, r: Randomisation | None) -> None:
         """Raise (or lower) free objects by their change in half-height: a simulator that places

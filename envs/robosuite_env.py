@@ -141,8 +141,10 @@ class Scene:
     achieved: Callable[[Any, TaskRecord, TaskRecord], bool] | None = None
 
 
-_MESH_OBJECT = frozenset(ASPECTS) - {"size"}
-_FIXED_OBJECT = _MESH_OBJECT - {"mass", "friction"}  # no free body: nothing to weigh or slide (the door's hinged)
+# Mesh objects keep their size and their friction (scaled on primitive geoms only; on the meshes it would change
+# the physics every evaluation so far was made under): recorded as null, as is a hinged door's mass.
+_MESH_OBJECT = frozenset(ASPECTS) - {"size", "friction"}
+_FIXED_OBJECT = _MESH_OBJECT - {"mass"}  # no free body: nothing to weigh (the door is hinged)
 _NUT_GEOMS = {nut: tuple(f"{nut}_g{i}_visual" for i in range(count)) for nut, count in (("SquareNut", 5), ("RoundNut", 9))}
 ROBOSUITE_SCENES: dict[str, Scene] = {
     "Lift": Scene({"target": ("cube_g0_vis",)}, "pick_place", _lift),
