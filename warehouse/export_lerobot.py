@@ -348,8 +348,8 @@ def _image_stats(frames: np.ndarray) -> dict[str, np.ndarray]:
 
 class _Aggregate:
     """Dataset stats from episode stats as LeRobot's aggregate_stats makes them: count-weighted
-    mean and variance, min of mins, max of maxes, and for quantiles the envelope (the lowest of
-    the lower ones, the highest of the upper ones)."""
+    mean and variance, min of mins, max of maxes, and each quantile the count-weighted mean of the
+    episodes' (an estimate, as LeRobot's: not the pooled frames' quantile)."""
 
     def __init__(self) -> None:
         self.acc: dict[str, dict[str, np.ndarray]] = {}
@@ -358,16 +358,13 @@ class _Aggregate:
         for feature, s in stats.items():
             n = float(s["count"][0])
             new = {"n": np.array(n), "sum": s["mean"] * n, "sumsq": (s["std"] ** 2 + s["mean"] ** 2) * n,
-                   "min": s["min"], "max": s["max"], **{q: s[q] for q in QUANTILES}}
+                   "min": s["min"], "max": s["max"], **{q: s[q] * n for q in QUANTILES}}
             a = self.acc.setdefault(feature, new)
             if a is new:
                 continue
-            for key in ("n", "sum", "sumsq"):
+            for key in ("n", "sum", "sumsq", *QUANTILES):
                 a[key] = a[key] + new[key]
-            for key in ("min", *(q for q, v in QUANTILES.items() if v <= 0.5)):
-                a[key] = np.minimum(a[key], new[key])
-            for key in ("max", *(q for q, v in QUANTILES.items() if v > 0.5)):
-                a[key] = np.maximum(a[key], new[key])
+            a["min"], a["max"] = np.minimum(a["min"], new["min"]), np.maximum(a["max"], new["max"])
 
     def result(self) -> dict[str, dict[str, list]]:
         out = {}
@@ -375,7 +372,8 @@ class _Aggregate:
             mean = a["sum"] / a["n"]
             std = np.sqrt(np.maximum(a["sumsq"] / a["n"] - mean**2, 0.0))
             out[feature] = {"min": a["min"].tolist(), "max": a["max"].tolist(), "mean": mean.tolist(),
-                            "std": std.tolist(), "count": [int(a["n"])], **{q: a[q].tolist() for q in QUANTILES}}
+                            "std": std.tolist(), "count": [int(a["n"])],
+                            **{q: (a[q] / a["n"]).tolist() for q in QUANTILES}}
         return out
 
 

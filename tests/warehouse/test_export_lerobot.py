@@ -188,6 +188,10 @@ def test_export_writes_a_lerobot_v3_dataset(warehouse, tmp_path):
     assert stats["action"]["min"] == pytest.approx(actions.min(0).tolist())
     assert stats["action"]["count"] == [total]
     assert set(stats["action"]) == {"min", "max", "mean", "std", "count", "q01", "q10", "q50", "q90", "q99"}
+    # each quantile: the episodes' own, weighted by their frames (LeRobot's aggregate_feature_stats)
+    episode_q50 = np.stack([np.quantile(truth[e]["actions"], 0.5, axis=0) for e in kept])
+    weights = np.array([len(truth[e]["actions"]) for e in kept], np.float64)[:, None]
+    assert stats["action"]["q50"] == pytest.approx(((episode_q50 * weights).sum(0) / weights.sum()).tolist(), abs=1e-5)
     assert stats["index"]["max"] == [total - 1]
     pixels = np.stack([f for e in kept for f in truth[e]["frames"]]).reshape(-1, 3) / 255
     assert np.asarray(stats[CAMERA]["mean"]).shape == (3, 1, 1)
