@@ -16,6 +16,7 @@ import numpy as np
 
 from dashboards.reads import episode_frames
 from schemas.frames import decode_frame
+from schemas.tasks import CONTROL_HZ
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 
@@ -61,7 +62,10 @@ class EpisodeVideos:
         """The episode's MP4, or None when it has no stored frames (unknown, failed, camera-less)."""
         from warehouse.video import CONTROL_FPS, video_writer
 
-        path = self.folder / f"{hashlib.sha256(episode_id.encode()).hexdigest()[:24]}.mp4"
+        family = self.catalog.query("SELECT t.family FROM episodes e JOIN task_families t USING (campaign, task_id) "
+                                    "WHERE e.episode_id = ? LIMIT 1", [episode_id])
+        fps = CONTROL_HZ.get(family[0][0], CONTROL_FPS) if family else CONTROL_FPS  # played at the family's rate
+        path = self.folder / f"{hashlib.sha256(f'{episode_id}@{fps}'.encode()).hexdigest()[:24]}.mp4"
         with self._lock:
             if path.exists():
                 return path
@@ -69,7 +73,7 @@ class EpisodeVideos:
             if not frames:
                 return None
             partial = path.with_name(f".{path.name}.partial.mp4")
-            writer = video_writer(partial, fps=CONTROL_FPS)
+            writer = video_writer(partial, fps=fps)
             try:
                 for blob in frames:
                     writer.append_data(_enlarged(decode_frame(blob)))

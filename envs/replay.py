@@ -23,10 +23,9 @@ from envs.observation import MujocoState
 from envs.randomisation import Randomisation
 from schemas.config import RenderConfig, recorded_render
 from schemas.errors import Sim2ActError
-from schemas.tasks import TaskRecord
+from schemas.tasks import CONTROL_HZ, TaskRecord
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
-from warehouse.video import CONTROL_FPS
 
 
 
@@ -152,8 +151,7 @@ def replay(workspace: Workspace, episode_id: str, camera: str | None = None, siz
            out: Path | None = None, fps: int | None = None) -> ReplayResult:
     """Re-render an episode into an MP4 at `out` (default: default_video_path). Everything is
     checked (episode, camera, size, fps, path) before anything is rendered."""
-    fps = CONTROL_FPS if fps is None else fps
-    if fps < 1:
+    if fps is not None and fps < 1:
         raise ReplayError(f"replay: --fps must be at least 1, got {fps}")
     if out is not None and out.suffix.lower() != ".mp4":
         raise ReplayError(f"replay: --out must name an .mp4 file, got {out}")
@@ -164,5 +162,5 @@ def replay(workspace: Workspace, episode_id: str, camera: str | None = None, siz
     if render.image_size % 2:
         raise ReplayError(f"replay: --size must be even for an MP4 (yuv420p), got {render.image_size}")
     path = out or default_video_path(episode_id, render)
-    frames = write_video(replay_frames(episode, render), path, fps)
+    frames = write_video(replay_frames(episode, render), path, CONTROL_HZ[episode.task.family] if fps is None else fps)
     return ReplayResult(path=path, frames=frames, render=render)

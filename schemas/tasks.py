@@ -24,6 +24,9 @@ UNSEEN_PARAPHRASE = "unseen_paraphrase"
 CAMPAIGN_SUITE = "campaign"  # evaluations.suite of the flow's own evaluation (`sim2act eval` names others)
 Family = Literal["robosuite", "metaworld", "navigation"]
 FAMILIES: tuple[str, ...] = get_args(Family)
+# Steps a second, one action (and one stored frame) a step: robosuite's control_freq, MetaWorld's frame_skip 5 of
+# 2.5 ms physics steps, navigation's 0.1 s (envs/*_env.py). Videos and LeRobot datasets play at these.
+CONTROL_HZ = {"robosuite": 20, "metaworld": 80, "navigation": 10}
 
 
 class TaskRecord(BaseModel):

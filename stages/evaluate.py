@@ -22,7 +22,7 @@ from envs.rollout import rollout, worker_env
 from envs.shadow import CaseShadow, shadow_episode
 from schemas.config import Acting, CampaignConfig, RandomiseConfig, RenderConfig, render_key_fields
 from schemas.keys import derive_seed, unit_key
-from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE, Split, TaskRecord
+from schemas.tasks import CAMPAIGN_SUITE, CONTROL_HZ, UNSEEN_PARAPHRASE, Split, TaskRecord
 from schemas.wordings import HELD_OUT_WORDING, held_out_wording
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
@@ -239,11 +239,11 @@ def decide_promotion(catalog: Catalog, campaign: str, model_key: str, evaluation
     return Promotion(promote=better, reason=reason, success=success, champion_success=before)
 
 
-def _write_video(frames: list[np.ndarray], path: Path) -> None:
-    from warehouse.video import CONTROL_FPS, video_writer
+def _write_video(frames: list[np.ndarray], path: Path, fps: int) -> None:
+    from warehouse.video import video_writer
 
     tmp = path.with_name(path.stem + ".tmp.mp4")
-    writer = video_writer(tmp, fps=CONTROL_FPS)
+    writer = video_writer(tmp, fps=fps)
     for frame in frames:
         writer.append_data(frame)
     writer.close()
@@ -325,7 +325,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
         if unit.video_stem and bool(success) not in videos and final.image.size:
             path = Path(f"{unit.video_stem}-{'success' if success else 'failure'}.mp4")
             path.parent.mkdir(parents=True, exist_ok=True)
-            _write_video([r["image"] for r in rows] + [final.image], path)
+            _write_video([r["image"] for r in rows] + [final.image], path, CONTROL_HZ[unit.task.family])
             videos[bool(success)] = str(path)
     successes = sum(outcomes)
     low, high = wilson_interval(successes, len(outcomes))

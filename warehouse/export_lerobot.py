@@ -34,6 +34,7 @@ import pyarrow.parquet as pq
 from schemas.errors import Sim2ActError
 from schemas.frames import decode_frame
 from schemas.settings import process_alive
+from schemas.tasks import CONTROL_HZ
 from warehouse.catalog import Catalog
 from warehouse.store import fsync_path
 from warehouse.video import CONTROL_FPS, VIDEO_CODEC, video_writer
@@ -79,7 +80,7 @@ def export_lerobot(
     out_dir: Path,
     where: str | None = None,
     *,
-    fps: int = CONTROL_FPS,
+    fps: int | None = None,
     include_rejected: bool = False,
     repo_id: str = "sim2act/export",
     progress: Callable[[int, int], None] | None = None,
@@ -90,7 +91,8 @@ def export_lerobot(
     """Write the whole episodes whose steps match `where` (SQL over the steps view; by default
     only episodes the filter kept) to `out_dir` as a LeRobotDataset v3.0. `progress(done, total)`
     is called after each episode. Memory is bounded by `fetch_mb`: the episodes are read in groups of
-    about that many MB of encoded frames (one episode at least), whatever the selection's size."""
+    about that many MB of encoded frames (one episode at least), whatever the selection's size. `fps`:
+    the selection's family's control rate by default (schemas.tasks.CONTROL_HZ; a mix of rates asks for one)."""
     out_dir = Path(out_dir)
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise ExportError(f"{out_dir} exists and is not an empty folder: export into a new one")
@@ -99,6 +101,14 @@ def export_lerobot(
     state_dim = _one_dim(episodes, "proprio", lambda e: e.state_dims)
     if action_dim == 0:
         raise ExportError("the selected steps have no action")
+    families = _families(catalog, episodes)
+    if fps is None:
+        rates = {CONTROL_HZ.get(family, CONTROL_FPS) for family in families} or {CONTROL_FPS}
+        if len(rates) > 1:
+            raise ExportError(f"the selection mixes families of other control rates ({', '.join(sorted(families))}: "
+                              f"{', '.join(f'{CONTROL_HZ[f]} Hz' for f in sorted(families))}); pass --fps, or "
+                              "export each family apart")
+        fps = rates.pop()
 
     # A crash leaves no half-written dataset at out_dir: all is written beside it, then renamed.
     tmp = _partial_folder(out_dir, os.getpid())
@@ -125,7 +135,7 @@ def export_lerobot(
                 done += 1
                 if progress is not None:
                     progress(done, len(episodes))
-        writer.finish(repo_id, _robot_type(catalog, episodes))
+        writer.finish(repo_id, _robot_type(families))
         _fsync_tree(tmp)  # on disk before the name says finished: past a power loss, whole or absent
         if out_dir.exists():
             out_dir.rmdir()
@@ -211,13 +221,17 @@ def _groups(episodes: list[_Episode], fetch_bytes: int) -> Iterator[list[_Episod
         yield group
 
 
-def _robot_type(catalog: Catalog, episodes: list[_Episode]) -> str | None:
+def _families(catalog: Catalog, episodes: list[_Episode]) -> set[str]:
+    """The selection's task families (none where the catalog has no tasks rows)."""
     task_ids = sorted({e.task_id for e in episodes})
     rows = catalog.query("SELECT DISTINCT family FROM tasks WHERE list_contains(?, task_id)", [task_ids])
-    families = {family for (family,) in rows}
+    return {family for (family,) in rows}
+
+
+def _robot_type(families: set[str]) -> str | None:
     if len(families) != 1:
         return None  # unknown (no tasks rows) or mixed
-    family = families.pop()
+    family = next(iter(families))
     return ROBOT_TYPES.get(family, family)
 
 

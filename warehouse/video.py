@@ -6,8 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 VIDEO_CODEC = "h264"
-# robosuite's and MetaWorld's control rate (navigation steps at 10 Hz): one frame a step.
-CONTROL_FPS = 20
+CONTROL_FPS = 20  # where a family is unknown: robosuite's control rate (each family's: schemas.tasks.CONTROL_HZ)
 
 
 def video_writer(path: Path, fps: int):

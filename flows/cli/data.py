@@ -14,7 +14,6 @@ from flows.cli.common import Commands, add_workspace_option, open_catalog, outpu
 from flows.run_lock import exclusive_run, reading_shard_files, rewriting_shard_files
 from schemas.config import ConfigError
 from schemas.workspace import Workspace, write_text_atomically
-from warehouse.video import CONTROL_FPS
 
 
 def cmd_sql(args: argparse.Namespace) -> int:
@@ -43,7 +42,7 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
     from envs.pool import Progress
     from warehouse.export_lerobot import FETCH_MB, export_lerobot
 
-    if args.fps < 1:
+    if args.fps is not None and args.fps < 1:
         raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
     if args.fetch_mb is not None and args.fetch_mb <= 0:
         raise ConfigError(f"export lerobot: --fetch-mb must be positive, got {args.fetch_mb:g}")
@@ -173,7 +172,9 @@ def register(commands: Commands) -> None:
     lerobot.add_argument("--fetch-mb", type=float,
                          help="MB of encoded frames read per query (default 64): bounds the export's memory, "
                               "whatever its size")
-    lerobot.add_argument("--fps", type=int, default=CONTROL_FPS, help="control rate of the episodes (robosuite: 20)")
+    lerobot.add_argument("--fps", type=int, default=None,
+                         help="frames per second; default: the family's control rate (robosuite 20, MetaWorld 80, "
+                              "navigation 10)")
     lerobot.add_argument("--repo-id", default="sim2act/export")
     add_workspace_option(lerobot).set_defaults(handler=cmd_export_lerobot)
 
@@ -182,7 +183,8 @@ def register(commands: Commands) -> None:
     replay.add_argument("--camera", help="default: the episode's own (agentview, frontview, birdview, sideview)")
     replay.add_argument("--size", type=int, help="image side in pixels; default: the episode's own")
     replay.add_argument("--out", type=output_file, help="default: ./<episode_id>_<camera>_<size>px.mp4")
-    replay.add_argument("--fps", type=int, default=None, help=f"frames per second (one frame per step; default {CONTROL_FPS})")
+    replay.add_argument("--fps", type=int, default=None,
+                        help="frames per second (one frame per step; default: the family's control rate)")
     add_workspace_option(replay).set_defaults(handler=cmd_replay)
 
     labels = commands.add_parser(

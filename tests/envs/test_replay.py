@@ -88,6 +88,9 @@ def test_the_cli_writes_an_mp4_with_one_frame_per_step(workspace, tmp_path, caps
     assert len(frames) == len(stored) == STEPS
     # H.264 is lossy: the video is near the stored frames, not equal to them
     assert max(np.abs(f.astype(int) - s.astype(int)).mean() for f, s in zip(frames, stored)) < 8
+    import cv2
+
+    assert cv2.VideoCapture(str(out)).get(cv2.CAP_PROP_FPS) == 10  # navigation's 10 steps a second, in real time
 
     monkeypatch.chdir(tmp_path)  # no --out: a file named after the episode, in the current folder
     assert main(["replay", episode_id, "--workspace", root, "--camera", "birdview", "--size", "64"]) == 0

@@ -81,7 +81,7 @@ def _build(root, spec=EPISODES_SPEC, wrist: set[str] = frozenset()) -> tuple[Cat
     ]
     tasks = [
         _row(CATALOG_TABLES["tasks"].schema, campaign="t", task_id=task_id, unit_key="u0",
-             family="navigation" if task_id.startswith("nav") else "robosuite")
+             family={"nav": "navigation", "mw-": "metaworld"}.get(task_id[:3], "robosuite"))
         for task_id in sorted({task_id for task_id, *_ in spec.values()})
     ]
     catalog.register_unit(unit_key="u0", stage="explore", campaign="t", iteration=0, summary={}, shards=shards,
@@ -311,6 +311,23 @@ def test_mixed_action_shapes_are_refused_naming_both(tmp_path):
                                           r"\(tasks lift-red, stack-blue\).*--where"):
         export_lerobot(catalog, tmp_path / "out")
     assert export_lerobot(catalog, tmp_path / "out", where="task_id LIKE 'nav%'").frames == 4
+    assert json.loads((tmp_path / "out/meta/info.json").read_text())["fps"] == 10  # navigation's control rate
+
+
+def test_each_family_plays_at_its_control_rate_and_a_mix_of_rates_asks_for_one(tmp_path):
+    """MetaWorld steps at 80 Hz (frame_skip 5 of 2.5 ms), robosuite at 20: one dataset has one fps, so a
+    selection of both is refused unless --fps says which; each alone takes its own."""
+    spec = {"ep-mw": ("mw-reach", "reach the goal", 5, True, 7), **EPISODES_SPEC}
+    catalog, _ = _build(tmp_path / "ws", spec)
+    with pytest.raises(ExportError, match=r"mixes families of other control rates \(metaworld, robosuite: 80 Hz, "
+                                          r"20 Hz\); pass --fps"):
+        export_lerobot(catalog, tmp_path / "mixed")
+    assert not (tmp_path / "mixed").exists()
+    export_lerobot(catalog, tmp_path / "mw", where="task_id LIKE 'mw-%'")
+    info = json.loads((tmp_path / "mw/meta/info.json").read_text())
+    assert info["fps"] == 80 and info["features"][CAMERA]["info"]["video.fps"] == 80
+    assert export_lerobot(catalog, tmp_path / "both", fps=20).frames == 5 + 6 + 5  # the kept episodes, at 20
+    assert json.loads((tmp_path / "both/meta/info.json").read_text())["fps"] == 20
 
 
 def test_two_view_frames_go_out_as_two_cameras(tmp_path):
