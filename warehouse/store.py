@@ -9,7 +9,7 @@ another one is refused: a warehouse never has shards in two places.
 
 S3: `SIM2ACT_SHARD_STORE=s3://bucket/prefix`, with the variables every S3 client reads
 (`AWS_ENDPOINT_URL` for a server other than AWS, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`,
-`AWS_REGION`), from the environment or the secrets file (schemas.settings), never a config.
+`AWS_SESSION_TOKEN` with temporary keys, `AWS_REGION`), from the environment or the secrets file (schemas.settings), never a config.
 An object is whole once written (S3 has no partial objects), so the temporary name the folder store
 needs is not needed there; the registrar checks every shard's bytes before it registers the unit.
 """
@@ -146,6 +146,11 @@ class ShardStore(ABC):
         """A local file holding `location` (a worker loads the champion's checkpoint from it)."""
         return Path(location)
 
+    def patiently(self, action, *args):
+        """`action(*args)`, a read of this store's files (a row group of an opened Parquet file): a folder's
+        at once; S3Store's tried again while the server does not answer, as its own reads are."""
+        return action(*args)
+
     def sha256(self, rel: str) -> str:
         with self.read(rel) as handle:
             return sha256_of(handle)
@@ -252,6 +257,7 @@ class S3Store(ShardStore):
         if endpoint and (scheme not in ("http", "https") or not urlsplit(endpoint).netloc):
             raise ShardStoreError(f"AWS_ENDPOINT_URL: expected http(s)://host:port, got {endpoint!r}")
         self._key, self._secret = environ["AWS_ACCESS_KEY_ID"], environ["AWS_SECRET_ACCESS_KEY"]
+        self._token = environ.get("AWS_SESSION_TOKEN") or None  # temporary keys (STS, SSO) come with one
         self._region = environ.get("AWS_REGION") or environ.get("AWS_DEFAULT_REGION") or "us-east-1"
         self._host, self._scheme = urlsplit(endpoint).netloc if endpoint else "", scheme
         self._fs = None
@@ -264,13 +270,17 @@ class S3Store(ShardStore):
         if self._fs is None:
             from pyarrow.fs import S3FileSystem
 
-            self._fs = S3FileSystem(access_key=self._key, secret_key=self._secret, region=self._region,
+            self._fs = S3FileSystem(access_key=self._key, secret_key=self._secret, session_token=self._token,
+                                    region=self._region,
                                     endpoint_override=self._host or None, scheme=self._scheme,
                                     connect_timeout=10, request_timeout=60)
         return self._fs
 
     def _path(self, rel: str) -> str:
         return f"{self.root}/{rel}"
+
+    def patiently(self, action, *args):
+        return self._patient(action, *args)
 
     def _patient(self, action, *args):
         """`action(*args)`, tried again while the server does not answer, for STORE_WAIT_S at most."""
@@ -358,7 +368,8 @@ class S3Store(ShardStore):
         bucket, _, prefix = self.root.partition("/")
         base = f"{prefix}/" if prefix else ""
         client = boto3.client("s3", endpoint_url=f"{self._scheme}://{self._host}" if self._host else None,
-                              aws_access_key_id=self._key, aws_secret_access_key=self._secret, region_name=self._region)
+                              aws_access_key_id=self._key, aws_secret_access_key=self._secret,
+                              aws_session_token=self._token, region_name=self._region)
         aborted = []
         try:
             for page in client.get_paginator("list_multipart_uploads").paginate(Bucket=bucket, Prefix=f"{base}{under}/"):
@@ -409,6 +420,8 @@ class S3Store(ShardStore):
                    "SCOPE": self.url + "/"}
         if self._host:
             options["ENDPOINT"] = self._host
+        if self._token:
+            options["SESSION_TOKEN"] = self._token
         settings = ", ".join(f"{name} {quote(value)}" for name, value in options.items())
         con.execute(f"CREATE TEMPORARY SECRET {_DUCKDB_SECRET} (TYPE s3, {settings}, "
                     f"USE_SSL {'true' if self._scheme == 'https' else 'false'})")

@@ -201,6 +201,8 @@ class StepBatches(IterableDataset):
         """The selected rows of one file, reading only the row groups they fall in (and, for chunks,
         the look-ahead columns of the rows up to chunk-1 past them)."""
         parquet = pq.ParquetFile(Path(path)) if self.store is None else self.store.parquet(path)
+        # S3's ranged reads are waited for as its footer reads are: a blip does not end a training
+        read = (lambda action, *args: action(*args)) if self.store is None else self.store.patiently
         sizes = [parquet.metadata.row_group(g).num_rows for g in range(parquet.num_row_groups)]
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         for group, first in enumerate(starts[:-1]):
@@ -208,11 +210,11 @@ class StepBatches(IterableDataset):
             wanted = [(max(a, first) - first, min(b, last) - first) for a, b in spans if a < last and b > first]
             if not wanted:
                 continue
-            table = parquet.read_row_group(group, columns=COLUMNS)
+            table = read(lambda: parquet.read_row_group(group, columns=COLUMNS))
             ahead = None
             if self.chunk > 1:
                 low, high = min(a for a, _ in wanted), max(b for _, b in wanted) + self.chunk - 1
-                ahead = self._lookahead(parquet, starts, group, low, high)
+                ahead = read(self._lookahead, parquet, starts, group, low, high)
             for a, b in wanted:
                 rows = table.slice(a, b - a).to_pylist()
                 if ahead is not None:

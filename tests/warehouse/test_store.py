@@ -175,6 +175,14 @@ def test_a_store_that_restarts_is_waited_for_and_one_that_stays_down_is_one_line
     store.put_new("shards/a.bin", pa.py_buffer(data), hashlib.sha256(data).hexdigest())
     assert 2.5 < time.monotonic() - began < store_module.STORE_WAIT_S
     assert store.exists("shards/a.bin") and store.sha256("shards/a.bin") == hashlib.sha256(data).hexdigest()
+    # a training's ranged read of an opened shard (its row groups, read as its batches need them) waits the same
+    [(path,)] = catalog.query("SELECT path FROM shards WHERE table_name = 'steps' ORDER BY path LIMIT 1")
+    parquet = catalog.store.parquet(catalog.store.location(path))
+    stop(s3)
+    threading.Timer(3.0, start, [s3]).start()
+    began = time.monotonic()
+    assert catalog.store.patiently(lambda: parquet.read_row_group(0)).num_rows > 0
+    assert 2.5 < time.monotonic() - began < store_module.STORE_WAIT_S
     monkeypatch.setattr(store_module, "STORE_WAIT_S", 2.0)
     stop(s3)
     registered = catalog.query("SELECT count(*) FROM shards")
