@@ -96,7 +96,6 @@ class SceneRandomiser:
         self.bodies = np.asarray(bodies, dtype=int)
         self.geoms = np.asarray([g for g in range(model.ngeom)
                                  if model.geom_bodyid[g] in bodies and model.geom_type[g] in _PRIMITIVES], dtype=int)
-
         self.nominal = {name: getattr(model, name).copy() for name in _NOMINAL_FIELDS}
         self.nominal_headlight = model.vis.headlight.diffuse.copy()
 

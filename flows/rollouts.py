@@ -94,7 +94,7 @@ def _submitted(units: list[ExploreUnit], pool_id: str | None) -> Completed:
         for future in as_completed(futures):
             try:
                 shards, seconds = future.result()
-            except BaseException:
+            except Exception:  # a failed shard (a signal's interrupt ends the stage at once)
                 # shards that finished while the caller was registering are its to register before the
                 # failure ends the stage (those still running are left as they are)
                 for other in futures:
