@@ -150,22 +150,8 @@ class Tracking:
         self.client.log_artifact(run_id, path, folder)
 
     def step_logger(self, run_id: str, prefix: str):
-        """(step, metrics) -> logged to the run under `prefix`: a stage's live metrics. A step the run holds
-        already is not logged again: a training resumed from its checkpoint replays the steps a kill cut
-        after it (the same values), which would stand twice in the run's curves."""
-        last: dict[str, int] = {}  # metric -> the last step the run held when this logger first met it
-
-        def log(step: int, metrics: Mapping[str, float]) -> None:
-            fresh = {}
-            for key, value in metrics.items():
-                name = f"{prefix}{key}"
-                if name not in last:
-                    last[name] = max((m.step for m in self.client.get_metric_history(run_id, name)), default=-1)
-                if step > last[name]:
-                    fresh[name] = value
-            if fresh:
-                self.log_metrics(run_id, fresh, step)
-        return log
+        """(step, metrics) -> logged to the run under `prefix`: a stage's live metrics."""
+        return lambda step, metrics: self.log_metrics(run_id, {f"{prefix}{k}": v for k, v in metrics.items()}, step)
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])
