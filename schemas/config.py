@@ -26,9 +26,6 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-CONNECTION_FIELDS = {"timeout_s", "retries", "api_key_env"}  # how an endpoint is reached, not what it answers
-
-
 class ChatEndpointConfig(_Strict):
     """An OpenAI-compatible chat-completions endpoint (Ollama, vLLM, llama.cpp server, a hosted API)."""
 

@@ -13,7 +13,7 @@ import pyarrow as pa
 
 from envs.registry import check_render
 from envs.suite import generate_tasks
-from schemas.config import CONNECTION_FIELDS, CampaignConfig
+from schemas.config import CampaignConfig
 from schemas.keys import unit_key
 from schemas.tables import INSTRUCTIONS
 from schemas.task_spec import load_specs
@@ -48,12 +48,9 @@ class TasksResult(StageResult):
 
 def tasks_unit_key(config: CampaignConfig, tasks: list[TaskRecord]) -> str:
     """Keyed by the template tasks themselves (editing a spec file makes new tasks) and the
-    proposer settings: an LLM is asked once per key, and its answer is what gets registered. Not by
-    how it is reached (CONNECTION_FIELDS): a longer timeout asking again would make other tasks, and
-    every unit after them with them."""
-    proposer = config.tasks.proposer
+    proposer settings: an LLM is asked once per key, and its answer is what gets registered."""
     reads = {"campaign": config.name, "encoder": config.train.model.language_encoder,
-             "proposer": proposer and proposer.model_dump(exclude=CONNECTION_FIELDS)}
+             "proposer": config.tasks.proposer}
     return unit_key(STAGE, VERSION, reads, [t.model_dump_json() for t in tasks])
 
 

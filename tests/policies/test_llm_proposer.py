@@ -95,22 +95,3 @@ def test_a_proposal_that_repeats_a_held_out_instruction_is_not_trained_on(serve_
     assert {"raise the red block high", "lift the red block up"} <= set(lift_red.instructions)
     assert "hoist the red block into the air" not in lift_red.instructions
     assert outcome.rejected == {"held_out_instruction": 1}
-
-
-def test_how_the_proposer_is_reached_is_not_in_the_tasks_key():
-    """A longer timeout, more retries or another key variable would ask the LLM again (other tasks, and every
-    unit after them redone); another model or temperature asks again."""
-    from schemas.config import CampaignConfig
-    from stages.generate_tasks import tasks_unit_key
-
-    def key(**proposer) -> str:
-        config = CampaignConfig(tasks=_config("http://127.0.0.1:1/v1", **proposer))
-        return tasks_unit_key(config, generate_tasks(config.tasks, seed=0))
-
-    assert key() == key(api_key_env="OTHER_KEY")
-    plain = CampaignConfig(tasks=_config("http://127.0.0.1:1/v1"))  # (_config sets timeout_s and retries)
-    slower = plain.model_copy(update={"tasks": plain.tasks.model_copy(update={
-        "proposer": plain.tasks.proposer.model_copy(update={"timeout_s": 120, "retries": 5})})})
-    templates = generate_tasks(plain.tasks, seed=0)
-    assert tasks_unit_key(plain, templates) == tasks_unit_key(slower, templates)
-    assert key() != key(temperature=0.1) and key() != key(proposals=3)
