@@ -164,8 +164,11 @@ def plan_explore(
                       and t.task_id != task.task_id]
         test = ACHIEVED_TESTS.get((task.family, task.env_name)) if relabel_to else None
         for shard, first in enumerate(range(0, count, explore.episodes_per_shard)):
+            # where relabelling can happen: the scene's test, and the relabelled episodes' rewards made the achieved
+            # task's sparse ones (units explored before keep their keys and their episodes' dense rewards)
             key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count),
-                                                   *([f"achieved test {test}"] if test else [])])
+                                                   *([f"achieved test {test}", "relabelled rewards sparse"]
+                                                     if test else [])])
             episodes = []
             for index in range(first, min(first + explore.episodes_per_shard, count)):
                 seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)

@@ -122,7 +122,7 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
             )
             version = int(mlflow.register_model(info.model_uri, config.registered_model_name,
                                                 tags={MODEL_KEY_TAG: model_key}).version)
-        # the fluent run ended FINISHED as its block closed; the iteration goes on (redeploy.training_seeds'
+        # the fluent run ended FINISHED as its block closed; the iteration goes on (evaluate.training_seeds'
         # trainings, for hours) and the flow ends its run when the iteration has finished
         mlflow.MlflowClient().update_run(mlflow_run_id, status="RUNNING")
     return version

@@ -473,7 +473,7 @@ def test_training_seeds_measure_each_iteration_beside_its_own_model(finished_cam
 
 def test_registering_a_model_leaves_its_iteration_run_running(finished_campaign, tmp_path):
     """MLflow's fluent run ends FINISHED as its block closes; the iteration goes on after redeploy registers
-    (redeploy.training_seeds' trainings, for hours), so its run stays RUNNING until the flow ends it."""
+    (evaluate.training_seeds' trainings, for hours), so its run stays RUNNING until the flow ends it."""
     from stages.redeploy import _register
 
     workspace = tmp_path / "workspace"  # a copy: the registry gains a version
