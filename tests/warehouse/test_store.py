@@ -143,6 +143,13 @@ def test_store_settings_are_refused_in_one_line(tmp_path):
     with pytest.raises(ShardStoreError, match="AWS_ENDPOINT_URL: expected http"):
         open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://b/p", "AWS_ENDPOINT_URL": "127.0.0.1:9000", **keys})
     assert open_store(tmp_path, "s3://b/p", keys).url == "s3://b/p"  # the recorded store, the keys from the environment
+    # temporary keys (STS, SSO) come with a session token: every client signs with it
+    temporary = open_store(tmp_path, "s3://b/p", {**keys, "AWS_SESSION_TOKEN": "a-session-token"})
+    assert temporary.filesystem.__reduce__()[1][0]["session_token"] == "a-session-token"
+    with duckdb.connect() as con:
+        temporary.prepare(con)
+        [(secret,)] = con.execute("SELECT secret_string FROM duckdb_secrets()").fetchall()  # values redacted
+        assert "session_token=redacted" in secret
     # a catalog made before stores existed keeps its shards in its folder, whatever the variable says
     workspace = Workspace.at(tmp_path / "old").create()
     Catalog(workspace.catalog).initialise()
