@@ -76,6 +76,24 @@ def settings_hash(config: CampaignConfig) -> str:
     return hashlib.blake2b(text.encode(), digest_size=6).hexdigest()
 
 
+class StepLogger:
+    """A training's metrics into its run under `prefix`, each step once: told where a resumed training goes on
+    from (`resumed_at`, stages.train), it skips the steps after it that the run holds already: the kill cut them
+    after the checkpoint, and they come again with the same values. A fresh training logs every step."""
+
+    def __init__(self, tracking: Tracking, run_id: str, prefix: str):
+        self.tracking, self.run_id, self.prefix = tracking, run_id, prefix
+        self.replayed = range(0)  # the steps the run holds that a resumed training goes through again
+
+    def resumed_at(self, step: int) -> None:
+        history = self.tracking.client.get_metric_history(self.run_id, f"{self.prefix}loss")
+        self.replayed = range(step + 1, max((m.step for m in history), default=step) + 1)
+
+    def __call__(self, step: int, metrics: Mapping[str, float]) -> None:
+        if step not in self.replayed:
+            self.tracking.log_metrics(self.run_id, {f"{self.prefix}{k}": v for k, v in metrics.items()}, step)
+
+
 class Tracking:
     def __init__(self, workspace: Workspace, config: CampaignConfig):
         uri = tracking_uri(workspace)
@@ -149,9 +167,9 @@ class Tracking:
     def log_artifact(self, run_id: str, path: str, folder: str) -> None:
         self.client.log_artifact(run_id, path, folder)
 
-    def step_logger(self, run_id: str, prefix: str):
+    def step_logger(self, run_id: str, prefix: str) -> StepLogger:
         """(step, metrics) -> logged to the run under `prefix`: a stage's live metrics."""
-        return lambda step, metrics: self.log_metrics(run_id, {f"{prefix}{k}": v for k, v in metrics.items()}, step)
+        return StepLogger(self, run_id, prefix)
 
     def set_tags(self, run_id: str, tags: Mapping[str, str]) -> None:
         self.client.log_batch(run_id, tags=[RunTag(k, v) for k, v in tags.items()])

@@ -45,7 +45,9 @@ LEGACY_VALUES = {"state_weight": 0.0, "init_from": None, "steps": None, "seed": 
                  "proprio_dropout": 0.0, "model": MODEL_LEGACY_VALUES}
 log = logging.getLogger("sim2act.stages.train")
 
-OnMetrics = Callable[[int, dict[str, float]], None]  # (step, metrics) every train.log_every steps
+# (step, metrics) every train.log_every steps; a sink with a `resumed_at(step)` method is also told the step a
+# resumed training goes on from (the steps a kill cut after it come again: flows.tracking.StepLogger logs them once)
+OnMetrics = Callable[[int, dict[str, float]], None]
 
 
 class TrainResult(StageResult):
@@ -400,6 +402,8 @@ def _train_member(run: _Run, member: int) -> _Member:
             average = WeightAverage(model, cfg.ema, state["ema"])
         earlier_wall_s = state.get("wall_s", 0.0)  # states saved before it was recorded: unknown, not counted
         log.info("train it%d: resuming %s, %sat step %d/%d", run.iteration, key, which, step, total_steps)
+        if (resumed_at := getattr(run.on_metrics, "resumed_at", None)) is not None:
+            resumed_at(offset + step)
         if state.get("bf16", run.bf16) != run.bf16:  # precision is how a unit runs, not in its key: said, not refused
             log.warning("train it%d: %s ran its first %d steps in %s and goes on in %s (train.amp or this host's "
                         "bf16 choice differs): the training mixes precisions", run.iteration, key, step,

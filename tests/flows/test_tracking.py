@@ -75,3 +75,23 @@ def test_a_campaign_resumed_with_other_workers_continues_its_mlflow_runs(tmp_pat
     found = Tracking(workspace, config.model_copy(update={"name": "older"})).campaign_run()
     assert found == older and client.get_run(older).data.tags["sim2act.settings"] == settings_hash(
         config.model_copy(update={"name": "older"}))
+
+
+def test_a_resumed_training_logs_each_step_once_and_a_fresh_one_every_step(tmp_path):
+    """A training killed after logging steps 2-8 with its checkpoint at 4 goes on from 4: steps 6 and 8 come again
+    and are not logged twice. A fresh training into the same run (no resume) logs all of its own."""
+    workspace = Workspace.at(tmp_path).create()
+    tracking = Tracking(workspace, load_config("smoke"))
+    run_id = tracking.iteration_run(tracking.campaign_run(), 0)
+    killed = tracking.step_logger(run_id, "train.")
+    for step in (2, 4, 6, 8):
+        killed(step, {"loss": 1.0 / step})
+    resumed = tracking.step_logger(run_id, "train.")
+    resumed.resumed_at(4)
+    for step in (6, 8, 10):
+        resumed(step, {"loss": 1.0 / step})
+    history = MlflowClient(tracking_uri=workspace.tracking_uri).get_metric_history(run_id, "train.loss")
+    assert sorted(m.step for m in history) == [2, 4, 6, 8, 10]
+    fresh = tracking.step_logger(run_id, "train.")
+    fresh(2, {"loss": 0.5})
+    assert len(MlflowClient(tracking_uri=workspace.tracking_uri).get_metric_history(run_id, "train.loss")) == 6
