@@ -61,8 +61,7 @@ def campaign_settings(config: CampaignConfig) -> dict:
 def campaign_hash(config: CampaignConfig) -> str:
     """The `sim2act.config` tag: every setting, how the campaign runs included (runs made before
     `sim2act.settings` existed are found by it)."""
-    settings = json.dumps(campaign_settings(config), sort_keys=True, default=str)
-    return hashlib.blake2b(settings.encode(), digest_size=6).hexdigest()
+    return _digest(campaign_settings(config))
 
 
 def settings_hash(config: CampaignConfig) -> str:
@@ -72,6 +71,10 @@ def settings_hash(config: CampaignConfig) -> str:
     for section, fields in EXECUTION_FIELDS.items():
         for name in fields:
             settings.get(section, {}).pop(name, None)
+    return _digest(settings)
+
+
+def _digest(settings: dict) -> str:
     text = json.dumps(settings, sort_keys=True, default=str)
     return hashlib.blake2b(text.encode(), digest_size=6).hexdigest()
 
