@@ -7,17 +7,19 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from collections import Counter
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from envs.suite import bind_task, task_id_of
+from schemas.experts import load_expert_table
 from policies.openai_chat import ChatUnavailable as ProposerUnavailable
 from policies.openai_chat import complete
 from schemas.config import ProposerConfig, TasksConfig
 from schemas.task_spec import TaskSpec
 from schemas.tasks import Colour, TaskRecord
-from schemas.wordings import held_out_wording
+from schemas.wordings import held_out_word_in, held_out_wording, plain
 
 log = logging.getLogger("sim2act.policies.llm_proposer")
 
@@ -69,30 +71,56 @@ def _check(proposal: Proposal, specs: dict[str, TaskSpec]) -> str | None:
         return "colour_not_allowed"
     if len(set(proposal.colours.values())) != len(proposal.colours):
         return "repeated_colour"
-    if any(c not in text for text in proposal.instructions for c in proposal.colours.values()):
+    if any(not re.search(rf"\b{re.escape(c)}\b", text, re.IGNORECASE)
+           for text in proposal.instructions for c in proposal.colours.values()):
         return "colour_not_said"
     return None
 
 
-def _held_out(task: TaskRecord) -> set[str]:
-    """What evaluation says to `task` and training must never: its held-out paraphrases, and the held-out
-    wording of its instructions (stages/evaluate.py's held_out_wording split). A model's proposal that
-    repeats one is dropped (counted `held_out_instruction`), not trained on."""
-    return set(task.unseen_instructions) | {held_out_wording(text) for text in task.instructions}
+def _held_out(unseen_instructions: list[str], instructions: list[str]) -> set[str]:
+    """What evaluation says to a task and training must never (compared plain: any case, no punctuation):
+    its held-out paraphrases, and the held-out wording of its instructions (stages/evaluate.py's
+    held_out_wording split says the canonical one's; a new task's canonical is not known before the filter)."""
+    return {plain(text) for text in [*unseen_instructions, *map(held_out_wording, instructions)]}
+
+
+def _keep_instructions(said: list[str], known: list[str], held_out: set[str], others: set[str],
+                       rejected: Counter[str]) -> list[str]:
+    """The proposed instructions training may use for a task that already says `known`, each counted in
+    `rejected` if dropped: empty, a repeat (any case or punctuation), another task's instruction, or
+    held-out text (one of `held_out`, or a word only the held-out wording uses)."""
+    seen = {plain(text) for text in known}
+    kept = []
+    for text in (text.strip() for text in said):
+        key = plain(text)
+        reason = ("empty_instruction" if not key else "repeated_instruction" if key in seen
+                  else "other_task_instruction" if key in others
+                  else "held_out_instruction" if key in held_out or held_out_word_in(text) else None)
+        if reason:
+            rejected[reason] += 1
+            continue
+        seen.add(key)
+        kept.append(text)
+    return kept
 
 
 def merge_proposals(
     content: str, specs: dict[str, TaskSpec], config: TasksConfig, tasks: list[TaskRecord]
 ) -> ProposalOutcome:
-    """Pure: the tasks after adding the valid proposals in `content` (the model's answer)."""
+    """Pure: the tasks after adding the valid proposals in `content` (the model's answer). A new binding
+    becomes a task only if the config would take it (tasks.include, a scripted expert at target unless
+    tasks.weak_experts: keep) and at least tasks.paraphrases of its instructions survive the filter."""
     rejected: Counter[str] = Counter()
     try:
         raw = json.loads(content).get("tasks", [])
     except (json.JSONDecodeError, AttributeError):
         return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"not_json": 1})
+    if not isinstance(raw, list):
+        return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"schema": 1})
+    weak = load_expert_table().flagged() if config.weak_experts == "skip" else set()
     by_id = {t.task_id: t for t in tasks}
     valid = new = 0
-    for item in raw if isinstance(raw, list) else []:
+    for item in raw:
         try:
             proposal = Proposal.model_validate(item)
         except ValidationError:
@@ -102,27 +130,32 @@ def merge_proposals(
         if reason:
             rejected[reason] += 1
             continue
-        valid += 1
         spec = specs[proposal.spec]
         colours = {role: proposal.colours[role] for role in spec.objects}  # the spec's role order
         task_id = task_id_of(spec, colours)
-        said = [text.strip() for text in proposal.instructions]
+        if task_id not in by_id and config.include is not None and task_id not in config.include:
+            rejected["not_included"] += 1
+            continue
+        if task_id not in by_id and task_id in weak:
+            rejected["weak_expert"] += 1
+            continue
+        others = {plain(text) for other in by_id.values() if other.task_id != task_id
+                  for text in [*other.instructions, *other.unseen_instructions]}
         if task_id in by_id:
             known = by_id[task_id]
-            extra = [text for text in said if text not in known.instructions]
-            kept = [text for text in extra if text not in _held_out(known)]
-            if len(kept) < len(extra):
-                rejected["held_out_instruction"] += len(extra) - len(kept)
+            kept = _keep_instructions(proposal.instructions, known.instructions,
+                                      _held_out(known.unseen_instructions, known.instructions), others, rejected)
             by_id[task_id] = known.model_copy(update={"instructions": known.instructions + kept})
         else:
-            bound = bind_task(spec, colours, list(dict.fromkeys(said)), config)
-            kept = [text for text in bound.instructions if text not in _held_out(bound)]
-            if len(kept) < len(bound.instructions):
-                rejected["held_out_instruction"] += len(bound.instructions) - len(kept)
-            if not kept:
+            unseen = [template.format(**colours) for template in spec.split.unseen_templates]  # as bind_task says them
+            kept = _keep_instructions(proposal.instructions, [], _held_out(unseen, proposal.instructions), others,
+                                      rejected)
+            if len(kept) < max(3, config.paraphrases):
+                rejected["too_few_instructions"] += 1
                 continue
-            by_id[task_id] = bound.model_copy(update={"instructions": kept})
+            by_id[task_id] = bind_task(spec, colours, kept, config)
             new += 1
+        valid += 1
     return ProposalOutcome(tasks=list(by_id.values()), new_tasks=new, valid=valid, rejected=dict(rejected))
 
 

@@ -43,10 +43,11 @@ def _classify(exc: Exception) -> tuple[Failure, str]:
 
 
 def _transient(exc: BaseException) -> bool:
-    """Worth another try: a timeout, a refused or dropped connection, a 5xx. Not a 4xx (the request
-    itself is wrong) nor a malformed reply (the server does not speak the protocol)."""
+    """Worth another try: a timeout, a refused or dropped connection, a 5xx, a 408 or 429 (the server's
+    timeout and rate limit). Not another 4xx (the request itself is wrong) nor a malformed reply (the
+    server does not speak the protocol)."""
     if isinstance(exc, httpx.HTTPStatusError):
-        return exc.response.status_code >= 500
+        return exc.response.status_code >= 500 or exc.response.status_code in (408, 429)
     return isinstance(exc, httpx.TransportError)
 
 

@@ -74,6 +74,13 @@ class TasksConfig(_Strict):
         default="skip", description="tasks whose scripted expert is below 90% in docs/experts.md: skip or keep"
     )
 
+    @model_validator(mode="after")
+    def _specs_once(self) -> TasksConfig:
+        repeated = sorted({name for name in self.specs if self.specs.count(name) > 1})
+        if repeated:  # each would bind the same tasks twice
+            raise ValueError(f"specs: expected each spec once, got {repeated[0]!r} {self.specs.count(repeated[0])} times")
+        return self
+
 
 class RenderConfig(_Strict):
     """How frames are rendered; recorded per campaign so training and evaluation see alike."""

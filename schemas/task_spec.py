@@ -65,10 +65,15 @@ class TaskSpec(_Strict):
     @model_validator(mode="after")
     def _templates_name_roles(self) -> TaskSpec:
         for template in [*self.templates, *self.split.unseen_templates]:
-            fields = {name for _, name, _, _ in string.Formatter().parse(template) if name}
+            fields = {name for _, name, _, _ in string.Formatter().parse(template) if name is not None}
+            if "" in fields or any(name.isdigit() for name in fields):
+                raise ValueError(f"template {template!r} has a positional field: name a role, e.g. {{target}}")
             unknown = sorted(fields - set(self.objects))
             if unknown:
                 raise ValueError(f"template {template!r} names {unknown}, which are not in objects")
+            unsaid = sorted(set(self.objects) - fields)
+            if unsaid:  # tasks that differ only in that role's colour would be said alike
+                raise ValueError(f"template {template!r} does not name {unsaid}: every template names every role")
         for sub in self.subtasks:
             unknown = sorted(set(sub.objects.values()) - set(self.objects))
             if unknown:

@@ -45,6 +45,22 @@ TRAINING_LEXICON = {
 }
 
 
+def plain(text: str) -> str:
+    """`text` as a comparison sees it: lower case, words only (MiniLM is uncased and ignores most
+    punctuation, so "Lift the red block." and "lift the red block" are one instruction to it)."""
+    return " ".join(re.findall(r"[a-z0-9]+", text.lower()))
+
+
+# every word or phrase the held-out wording introduces: training text must say none of them
+HELD_OUT_VOCABULARY = sorted({new for _, new in [*HELD_OUT_COLOURS.items(), *HELD_OUT_PHRASES, *HELD_OUT_NOUNS]})
+
+
+def held_out_word_in(text: str) -> str | None:
+    """The first held-out word or phrase `text` says (whole words, any case), else None."""
+    said = f" {plain(text)} "
+    return next((word for word in HELD_OUT_VOCABULARY if f" {word} " in said), None)
+
+
 def _substitute(text: str, pairs: list[tuple[str, str]], every: bool) -> str:
     """Replace whole-word occurrences of the pairs' first phrase: the first pair found, or every pair."""
     for old, new in pairs:

@@ -7,9 +7,10 @@ import json
 
 import pytest
 
-from envs.suite import generate_tasks
-from policies.llm_proposer import ProposerUnavailable, chat, propose
+from envs.suite import generate_tasks, suite_tasks
+from policies.llm_proposer import ProposerUnavailable, chat, merge_proposals, propose
 from schemas.config import ProposerConfig, TasksConfig
+from schemas.experts import load_expert_table
 from schemas.task_spec import load_specs
 from tests.chat_server import closed_port
 
@@ -42,7 +43,8 @@ def test_valid_proposals_become_tasks_and_invalid_ones_are_counted(serve_chat, m
     templates = generate_tasks(config, seed=0)
     outcome = propose(config, _specs(config), templates)
     assert (outcome.valid, outcome.new_tasks) == (2, 1)
-    assert outcome.rejected == {"schema": 1, "unknown_spec": 1, "colour_not_said": 1, "repeated_colour": 1}
+    assert outcome.rejected == {"schema": 1, "unknown_spec": 1, "colour_not_said": 1, "repeated_colour": 1,
+                                "repeated_instruction": 1}  # lift-red says `pick up the red block` already
     tasks = {t.task_id: t for t in outcome.tasks}
     assert tasks["lift-purple"].instructions[0] == "lift the purple cube" and tasks["lift-purple"].horizon == 80
     assert tasks["lift-red"].instructions[0] == "pick up the red block"  # the canonical stays first
@@ -74,10 +76,11 @@ def test_fallback_to_templates_only_when_the_config_says_so():
     assert outcome.tasks == templates and outcome.rejected == {"unreachable": 1}
 
 
-def test_server_errors_are_retried_then_reported(serve_chat):
-    server = serve_chat(("{}", 503, 0.0))
+@pytest.mark.parametrize("status", [503, 429, 408])  # a server error, its rate limit, its timeout
+def test_server_errors_and_rate_limits_are_retried_then_reported(serve_chat, status):
+    server = serve_chat(("{}", status, 0.0))
     config = ProposerConfig(url=f"http://127.0.0.1:{server.server_port}/v1", model="m", retries=2, timeout_s=5)
-    with pytest.raises(ProposerUnavailable, match="HTTP 503"):
+    with pytest.raises(ProposerUnavailable, match=f"HTTP {status}"):
         chat(config, [{"role": "user", "content": "hi"}])
     assert len(server.requests) == 3
 
@@ -95,3 +98,64 @@ def test_a_proposal_that_repeats_a_held_out_instruction_is_not_trained_on(serve_
     assert {"raise the red block high", "lift the red block up"} <= set(lift_red.instructions)
     assert "hoist the red block into the air" not in lift_red.instructions
     assert outcome.rejected == {"held_out_instruction": 1}
+
+
+def _merged(proposals: list[dict], config: TasksConfig | None = None):
+    config = config or TasksConfig(specs=["lift", "stack"], colours=["red", "green", "blue"])
+    tasks = generate_tasks(config, seed=0)
+    outcome = merge_proposals(json.dumps({"tasks": proposals}), _specs(config), config, tasks)
+    return outcome, {t.task_id: t for t in outcome.tasks}
+
+
+def test_held_out_text_is_refused_in_any_case_or_punctuation_and_by_its_words():
+    """An LLM capitalises and ends with a full stop; MiniLM is uncased. `Hoist the red block into the air.` is
+    lift-red's held-out paraphrase all the same, and `shove`/`brick` are words only the held-out wording says."""
+    said = ["Hoist the red block into the air.", "Raise the red BRICK", "lift the red block up high"]
+    outcome, tasks = _merged([{"spec": "lift", "colours": {"target": "red"}, "instructions": said}])
+    assert "lift the red block up high" in tasks["lift-red"].instructions
+    assert not {"Hoist the red block into the air.", "Raise the red BRICK"} & set(tasks["lift-red"].instructions)
+    assert outcome.rejected == {"held_out_instruction": 2}
+
+
+def test_repeated_empty_and_other_tasks_instructions_are_not_added():
+    said = ["raise the red block", "Raise the red block!", "stack the red block on the green block"]  # stack-red-green's
+    outcome, tasks = _merged([{"spec": "lift", "colours": {"target": "red"}, "instructions": said}])
+    assert tasks["lift-red"].instructions.count("raise the red block") == 1
+    assert outcome.rejected == {"repeated_instruction": 1, "other_task_instruction": 1}
+    config = TasksConfig(specs=["mw-push"])  # no colour to say: an empty instruction passes the colour check
+    outcome, tasks = _merged([{"spec": "mw-push", "instructions": ["", " ", "nudge the puck to the goal"]}], config)
+    assert tasks["mw-push"].instructions[-1] == "nudge the puck to the goal"
+    assert outcome.rejected == {"empty_instruction": 2}
+
+
+def test_the_colour_must_be_said_as_a_word():
+    """`desired` holds `red`; `Red` is red."""
+    unsaid = ["lift the desired block", "lift the stored cube", "raise the covered block"]
+    said = ["Lift the Red block", "RED block up", "raise the red cube"]
+    outcome, tasks = _merged([{"spec": "lift", "colours": {"target": "red"}, "instructions": unsaid},
+                              {"spec": "lift", "colours": {"target": "red"}, "instructions": said}])
+    assert outcome.rejected == {"colour_not_said": 1} and outcome.valid == 1
+
+
+def test_a_new_task_needs_enough_instructions_left_and_a_binding_the_config_takes():
+    """Two of three instructions left after the filter: no task (a TaskRecord says a task three ways; one
+    registered with two would fail every later load). A binding outside tasks.include, or one whose scripted
+    expert is below target, is not made a task by a proposal either."""
+    short = ["lift the purple cube", "Lift the purple cube.", "raise the purple block"]
+    outcome, tasks = _merged([{"spec": "lift", "colours": {"target": "purple"}, "instructions": short}])
+    assert "lift-purple" not in tasks and outcome.rejected == {"repeated_instruction": 1, "too_few_instructions": 1}
+
+    included = TasksConfig(specs=["lift"], colours=["red", "green"], include=["lift-red"])
+    new = ["lift the blue cube", "raise the blue block", "pick the blue block up"]
+    outcome, tasks = _merged([{"spec": "lift", "colours": {"target": "blue"}, "instructions": new}], included)
+    assert "lift-blue" not in tasks and outcome.rejected == {"not_included": 1}
+
+    weak = next(t for t in suite_tasks() if t.task_id in load_expert_table().flagged())
+    spec = load_specs()[weak.spec].spec
+    said = [f"{text} now" for text in weak.instructions]
+    config = TasksConfig(specs=[spec.name])
+    tasks = generate_tasks(config, 0)
+    outcome = merge_proposals(json.dumps({"tasks": [{"spec": spec.name, "colours": weak.object_colours, "instructions": said}]}),
+                              {spec.name: spec}, config, tasks)
+    assert weak.task_id not in {t.task_id for t in outcome.tasks} and outcome.rejected == {"weak_expert": 1}
+

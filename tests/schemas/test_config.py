@@ -35,6 +35,7 @@ def test_file_and_overrides_stack_on_the_preset(tmp_path):
         ("tasks: {specs: [lift, juggle]}\n", "tasks.specs", "unknown spec 'juggle'"),
         ("tasks: {horizon: {stak: 10}}\n", "tasks.horizon", "not one of tasks.specs"),
         ("tasks: {include: [lift-magenta]}\n", "tasks.include", "unknown task 'lift-magenta'"),
+        ("tasks: {specs: [lift, stack, lift]}\n", "tasks", "expected each spec once, got 'lift' 2 times"),
         ("- just a list\n", "", "mapping"),
     ],
 )

@@ -79,6 +79,8 @@ def test_a_user_adds_tasks_by_writing_a_file(tmp_path):
          "'lift the {target} one' is both seen and held out"),
         (("env: Lift", 'env: Lift\n    split: {unseen_templates: ["hoist the {colour} one"]}'),
          "template 'hoist the {colour} one' names ['colour']"),
+        (('"raise the {target} cube"', '"raise the cube"'), "template 'raise the cube' does not name ['target']"),
+        (('"raise the {target} cube"', '"raise the {} cube"'), "template 'raise the {} cube' has a positional field"),
         (("env: Lift", "env: Lift\n    subtasks: [{spec: lift, objects: {target: cube}}]"),
          "subtasks: lift takes the colour of ['cube'], which are not in objects"),
         (("env: Lift", "env: Lift\n    subtasks: [{spec: lifft, objects: {target: target}}]"),
