@@ -75,8 +75,8 @@ class Soak(BaseModel):
     checks: list[Check]
     starts: int
     wall_s: float
-    ended: str  # "finished" (exit status 0) or "stopped" (the soak was told to stop)
-    final_sha256_ok: bool | None  # None until the end's check
+    ended: str  # "finished" (exit status 0 after every kill), "finished after K of N kills", or "stopped" (told to)
+    final_sha256_ok: bool | None  # every check kept the finished parts whole (the end's re-hashes all); None until then
     unit_gap_median_s: float | None  # the campaign's usual time between two registered units
 
 
@@ -181,14 +181,15 @@ def soak(run_args: Sequence[str], workspace: Path, kills: int, seed: int, wait_s
                 _end(run)
             code = run.wait()
             check("after the stop" if stop else f"after kill {len(result.kills)}" if result.kills else "after the run")
-            if code == 0 and len(result.kills) >= kills:
-                result.ended = "finished"
+            if code == 0:  # ended on its own: with fewer kills than asked, a start again would only finish again
+                result.ended = "finished" if len(result.kills) >= kills else f"finished after {len(result.kills)} of {kills} kills"
                 break
             if code != 0 and not killed_this_run and not stop:
                 raise RuntimeError(f"soak: the campaign failed on its own (exit {code}); see {out.name}")
         result.ended = result.ended or "stopped"
-        final = check("end", full=True)
-        result.final_sha256_ok = final.kept and not final.bad_files
+        check("end", full=True)
+        # every check, not the last alone: a unit a kill tore is quarantined and made again, so the end looks whole
+        result.final_sha256_ok = all(c.kept and not c.bad_files for c in result.checks)
         # what each kill cost: from it to the next unit registered, beside the usual gap between two
         finished = sorted(at for (at,) in catalog.query("SELECT finished_at FROM stage_runs")) if catalog.path.exists() else []
         for kill in result.kills:
@@ -264,8 +265,10 @@ def markdown(result: Soak, command_line: str) -> str:
     lines = [
         "# Soak: a campaign SIGKILLed and resumed", "",
         f"`{command_line}` (seed {result.seed}): {len(result.kills)} kills, {result.starts} starts, "
-        f"{result.wall_s / 3600:.2f} h in all, {result.ended or 'running'}. Every registered file's sha256 at the end: "
-        + {None: "not checked yet", True: "as registered", False: "SOME DIFFER OR WENT MISSING"}[result.final_sha256_ok]
+        f"{result.wall_s / 3600:.2f} h in all, {result.ended or 'running'}. Finished parts at every check, and every "
+        "registered file's sha256 at the end: "
+        + {None: "not checked yet", True: "as registered",
+           False: "SOME DIFFER OR WENT MISSING (the checks below say when)"}[result.final_sha256_ok]
         + (f"; the campaign's usual gap between two registered units {result.unit_gap_median_s:.1f} s (median)."
            if result.unit_gap_median_s is not None else "."), "",
         "| kill | what | into its start | ended the campaign | units finished then | outlived it | next unit after |",

@@ -124,7 +124,7 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
                   kinds)
     print(markdown(result, args.command_line))
     print(f"written to {out}")
-    return 0 if result.final_sha256_ok else 1
+    return 0 if result.final_sha256_ok and result.ended in ("finished", "stopped") else 1  # not: too few kills
 
 
 def cmd_bench_panels(args: argparse.Namespace) -> int:

@@ -34,3 +34,34 @@ def test_a_soaked_campaign_keeps_its_finished_parts_and_a_run_ends_with_its_serv
     if any(k["kind"] == "server" for k in result["kills"]):
         assert "Prefect's temporary API server" in logs and "died" in logs
     assert "| kill | what |" in (tmp_path / "soak.md").read_text()
+
+
+def _soak_with(monkeypatch, tmp_path, snapshots: list, kills: int):
+    """bench.soak.soak with a campaign that exits 0 at once and catalog snapshots in the order given."""
+    import sys
+
+    from bench import soak as soak_module
+
+    real_popen = subprocess.Popen
+    monkeypatch.setattr(soak_module.subprocess, "Popen",
+                        lambda command, **kw: real_popen([sys.executable, "-c", "pass"], **kw))
+    calls = iter(snapshots)
+    monkeypatch.setattr(soak_module, "_snapshot", lambda catalog: next(calls))
+    return soak_module.soak(["--preset", "smoke"], tmp_path / "ws", kills, 0, (1.0, 1.0), tmp_path / "logs")
+
+
+def test_a_part_lost_at_any_check_fails_the_soak_though_the_end_looks_whole(monkeypatch, tmp_path):
+    """A kill tore a finished shard: the check after it saw the change, the resume made the unit again, and
+    the end matched that remade state. The verdict reads every check, not the last."""
+    whole, torn = ({"u1"}, {"s1": (10, "aaa")}), ({"u1"}, {"s1": (10, "bbb")})
+    result = _soak_with(monkeypatch, tmp_path, [whole, torn, torn], kills=0)
+    assert [c.kept for c in result.checks] == [True, False, True]
+    assert result.ended == "finished" and result.final_sha256_ok is False
+
+
+def test_a_campaign_that_finishes_before_its_kills_ends_the_soak_unpassed(monkeypatch, tmp_path):
+    """It was started again and again for ever (each start finished at once, no kill landed)."""
+    empty = (set(), {})
+    result = _soak_with(monkeypatch, tmp_path, [empty] * 3, kills=2)
+    assert result.starts == 1 and result.kills == []
+    assert result.ended == "finished after 0 of 2 kills"
