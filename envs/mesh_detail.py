@@ -23,8 +23,11 @@ from __future__ import annotations
 
 import hashlib
 import os
+import tempfile
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
+from importlib.metadata import version
 from pathlib import Path
 
 import mujoco
@@ -70,21 +73,26 @@ def colliding_meshes(model: mujoco.MjModel) -> list[int]:
 
 
 def decimated(vertices: np.ndarray, faces: np.ndarray, keep: float, cache: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(vertices, faces) of the mesh decimated to `keep` of its faces; cached by content, written
-    under a temporary name and renamed, so workers racing on one mesh each read a whole file."""
-    digest = hashlib.sha256(vertices.tobytes() + faces.tobytes() + f"{keep:.4f}/{ALGORITHM}".encode()).hexdigest()
+    """(vertices, faces) of the mesh decimated to `keep` of its faces; cached by content and the
+    decimating library's version (pinned in pyproject.toml: another version may make other meshes),
+    written under a unique temporary name and renamed, so workers racing on one mesh each read a whole
+    file; a cached file that cannot be read is made again."""
+    method = f"{keep:.4f}/{ALGORITHM}/{version('fast-simplification')}"
+    digest = hashlib.sha256(vertices.tobytes() + faces.tobytes() + method.encode()).hexdigest()
     path = cache / f"{digest[:24]}.npz"
-    if path.exists():
+    try:
         with np.load(path) as stored:
             return stored["vertices"], stored["faces"]
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # not made yet, or torn (a full disk): made
+        pass
     import fast_simplification
 
     points, triangles = fast_simplification.simplify(
         vertices.astype(np.float32), faces.astype(np.int32), target_reduction=1.0 - keep)
     points, triangles = np.asarray(points, np.float32), np.asarray(triangles, np.int32)
     cache.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{os.getpid()}-{path.name}")
-    with partial.open("wb") as out:
+    handle, partial = tempfile.mkstemp(dir=cache, prefix=f".{path.stem}-", suffix=".partial")
+    with os.fdopen(handle, "wb") as out:
         np.savez(out, vertices=points, faces=triangles)
     os.replace(partial, path)
     return points, triangles
