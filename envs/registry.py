@@ -100,11 +100,18 @@ WRIST_FAMILIES = {"robosuite"}  # the families with a camera in the hand (render
 
 def check_render(render: RenderConfig, tasks: list[TaskRecord]) -> None:
     """Raises ConfigError (one line) when the render settings ask for a view some task's scene lacks."""
+    def shown(ids: list[str]) -> str:
+        return ", ".join(ids[:4]) + (f" and {len(ids) - 4} more" if len(ids) > 4 else "")
+
     lacking = [t.task_id for t in tasks if render.wrist_camera and t.family not in WRIST_FAMILIES]
     if lacking:
-        shown = ", ".join(lacking[:4]) + (f" and {len(lacking) - 4} more" if len(lacking) > 4 else "")
         raise ConfigError(f"render.wrist_camera: expected {', '.join(sorted(WRIST_FAMILIES))} tasks only (a camera in "
-                          f"the hand), got {shown}")
+                          f"the hand), got {shown(lacking)}")
+    lacking = [t.task_id for t in tasks if render.camera not in cameras(t.family, t.env_name)]
+    if lacking:  # else its workers fail making the scene, late in the run (the bins arena has no sideview)
+        first = next(t for t in tasks if t.task_id == lacking[0])
+        raise ConfigError(f"render.camera: {lacking[0]}'s scene has no {render.camera!r} (it has "
+                          f"{', '.join(cameras(first.family, first.env_name))}); tasks without it: {shown(lacking)}")
 
 
 def make_env(family: str, env_name: str, render: RenderConfig | None):

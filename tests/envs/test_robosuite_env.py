@@ -259,6 +259,17 @@ def test_a_wrist_camera_is_refused_for_families_without_one():
     check_render(RenderConfig(), tasks)
 
 
+def test_a_camera_some_scene_lacks_is_refused_before_the_run():
+    """The bins arena (PickPlace) has no sideview: its workers failed making the scene, late in the run."""
+    from envs.registry import check_render
+    from schemas.config import ConfigError
+
+    tasks = generate_tasks(TasksConfig(specs=["lift", "pick-place-can"], weak_experts="keep"), 0)
+    with pytest.raises(ConfigError, match=r"^render.camera: pick-place-can\S*'s scene has no 'sideview' \(it has "):
+        check_render(RenderConfig(camera="sideview"), tasks)
+    check_render(RenderConfig(camera="sideview"), [t for t in tasks if t.spec == "lift"])
+
+
 def _stack(picked: str, base: str) -> TaskRecord:
     return TaskRecord(task_id=f"stack-{picked}-{base}", spec="stack", family="robosuite", env_name="Stack",
                       object_colours={"pick": picked, "place": base}, instructions=["a", "b", "c"], split="seen",
