@@ -214,7 +214,12 @@ def pending_baselines_markdown(catalog: Catalog, campaign: str, models: Path, ho
 def _reached(points: list[AdaptPoint], start: str, target: float) -> str:
     episodes = episodes_to_reach(points, start, target)
     most = max(p.episodes for p in points)
-    return f"**{episodes}**" if episodes is not None else f"not reached within {most}"
+    if episodes is None:
+        return f"not reached within {most}"
+    fell = sorted(n for (n, at), seeds in pooled(points).items() if at == start and n > episodes
+                  and pooled_score(seeds)[0] < target * pooled_score(seeds)[1])
+    # the fewest that reached it: a noisy curve can dip below again at a larger count, and then says so
+    return f"**{episodes}**" + (f" (below it again at {', '.join(map(str, fell))})" if fell else "")
 
 
 def _pooled_cell(seeds: list[AdaptPoint]) -> str:
@@ -242,7 +247,10 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
              "outside the campaign's own randomisation). The expert explores it; each model trains on the first "
              "episodes of every task, fine-tuned from the champion "
              f"(`{result.source_model}`) or from scratch" + (f", {seeds} training seeds each (pooled; the lowest and highest seed "
-             "in parentheses)" if seeds > 1 else "") + ", and meets the same evaluation episodes there.", ""]
+             "in parentheses)" if seeds > 1 else "") + ", and meets the same evaluation episodes there."
+             + (" Its friction changes no contact: MuJoCo takes a contact's larger friction, and scaled below 1 an "
+                "object's is below the table's and the fingers' (docs/evaluation.md)."
+                if result.domain.friction[1] < 1.0 else ""), ""]
     cells = {point: _pooled_cell(seeds) for point, seeds in pooled(result.points).items()}
     counts = sorted({p.episodes for p in result.points if p.start != "source"})
     lines += _table(["target-domain episodes", "fine-tuned from Sim2Act", "from scratch"],

@@ -24,7 +24,7 @@ BENCHMARK_SEED = 0  # fixes MetaWorld's 50 pre-sampled object/goal variations pe
 METAWORLD_PATH_LENGTH = 500  # SawyerXYZEnv.max_path_length: the steps its episodes take at most
 PLACEMENT_STREAM = 0x9A5E  # a "fresh" placement's generator: (episode seed, this), apart from randomisation's
 CAMERAS = {"agentview": "corner", "frontview": "corner2", "sideview": "corner3", "birdview": "topview"}
-IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+IDENTITY_QUAT = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)  # a constant: read as xyzw, a hand pointing down
 
 
 def known_envs() -> list[str]:
@@ -42,9 +42,10 @@ def from_metaworld_action(action: np.ndarray) -> np.ndarray:
 
 
 class MetaWorldEnv:
-    # Objects keep their size: MetaWorld's scripted policies and success checks assume it.
-    # No colour jitter: its tasks are not told apart by colour.
-    RANDOMISES = (VISUAL_ASPECTS - {"colour_jitter"}) | {"mass", "friction"}
+    # What every scene randomises: objects keep their size (MetaWorld's scripted policies and success checks
+    # assume it); no colour jitter (its tasks are not told apart by colour). Mass and friction come on top
+    # where the scene can change them (`RANDOMISES`, per instance).
+    VISUAL = VISUAL_ASPECTS - {"colour_jitter"}
 
     def __init__(self, env_name: str, render: RenderConfig | None):
         """render=None: no camera at all (scripted experts need no pixels)."""
@@ -65,6 +66,10 @@ class MetaWorldEnv:
             self._scene_configured = False
         self.randomiser = SceneRandomiser(self.env.model, CAMERAS[render.camera] if render else None,
                                           task_geoms=[], object_bodies=free_bodies(self.env.model))
+        # the record says what the episode saw: a mass where a free body moves (24 of the 50 scenes have none: a
+        # door, a drawer, a button), a friction where one has a primitive geom (14 more collide through meshes)
+        self.RANDOMISES = self.VISUAL | {aspect for aspect, scaled in (("mass", self.randomiser.bodies),
+                                                                       ("friction", self.randomiser.geoms)) if len(scaled)}
 
     def _render(self) -> tuple[np.ndarray, np.ndarray | None]:
         """(frame, depth in metres or None), upright."""

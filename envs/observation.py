@@ -1,8 +1,9 @@
 """What every simulator adapter returns, and the action/proprio convention they share.
 
 Manipulation families speak one action space, end-effector deltas and a gripper command:
-(dx, dy, dz, rx, ry, rz, grip) in [-1, 1], grip > 0 closes. Proprio is (eef xyz, eef quat wxyz,
-two gripper coordinates). An adapter maps its simulator's own spaces onto these, so one policy
+(dx, dy, dz, rx, ry, rz, grip) in [-1, 1], grip > 0 closes. Proprio is (eef xyz, eef quat xyzw as
+robosuite gives it, two gripper coordinates); MetaWorld's Sawyer never turns its hand, and its quat is a
+constant (1, 0, 0, 0) — in xyzw a hand pointing down, as the Panda's. An adapter maps its simulator's own spaces onto these, so one policy
 trains across families.
 """
 

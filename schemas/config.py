@@ -154,10 +154,13 @@ class RandomiseConfig(_Strict):
     camera_shift_m: float = Field(default=0.02, ge=0, le=0.2, description="max camera offset per axis, metres")
     camera_rotation_deg: float = Field(default=2.0, ge=0, le=15, description="max camera rotation per axis")
     tint: float = Field(default=0.15, ge=0, lt=1, description="max per-channel scale change of scene colours")
-    colour_jitter: float = Field(default=0.05, ge=0, le=0.2, description="max RGB offset of task object colours")
+    # the cap keeps two palette colours' jittered ranges apart: yellow and orange floors (navigation's, 0.8 of the
+    # palette) differ by 0.28 in their most different channel, so jitter of 0.14 or more would let them meet
+    colour_jitter: float = Field(default=0.05, ge=0, le=0.13, description="max RGB offset of task object colours")
     size: Scale = Field(default=(0.9, 1.1), description="object size scale")
     mass: Scale = Field(default=(0.75, 1.25), description="object mass scale")
-    friction: Scale = Field(default=(0.75, 1.25), description="object sliding friction scale")
+    friction: Scale = Field(default=(0.75, 1.25), description="object sliding friction scale (a contact takes its two "
+                            "geoms' larger: below 1 it meets a grippier table or fingers, so changes no contact)")
 
     @model_validator(mode="after")
     def _ranges_ordered(self) -> RandomiseConfig:

@@ -47,6 +47,22 @@ def test_a_reversed_range_is_refused_naming_the_field():
         load_config("smoke", overrides={"randomise": {"mass": [1.5, 0.5]}})
 
 
+def test_the_largest_colour_jitter_keeps_every_two_colours_apart():
+    """Two colours' jittered ranges (each channel +- colour_jitter) meet when every channel differs by at most
+    twice the jitter: red stays red only below that, for objects and for navigation's floors (0.8 of the palette)."""
+    import itertools
+
+    from schemas.tasks import COLOUR_RGBA
+
+    cap = RandomiseConfig.model_fields["colour_jitter"].metadata[-1].le
+    for scale in (1.0, 0.8):
+        for a, b in itertools.combinations(COLOUR_RGBA, 2):
+            gap = np.abs(np.subtract(COLOUR_RGBA[a][:3], COLOUR_RGBA[b][:3])).max() * scale
+            assert gap > 2 * cap, (a, b, scale)
+    with pytest.raises(ConfigError, match="colour_jitter"):
+        load_config("smoke", overrides={"randomise": {"colour_jitter": 0.15}})
+
+
 def test_robosuite_applies_every_aspect_and_undoes_it_exactly(lift_env):
     model = lift_env.env.sim.model._model
     cube = model.body("cube_main").id
@@ -89,6 +105,19 @@ def test_what_a_scene_cannot_change_is_recorded_as_null():
 
     door = sample_randomisation(RandomiseConfig(), 3, ROBOSUITE_SCENES["Door"].randomises)
     assert door.mass is None and door.friction is None and door.light is not None
+
+
+def test_metaworld_records_mass_and_friction_only_where_its_scene_changes_them():
+    """A button has no free body (no mass to scale); the basketball collides through meshes (no friction);
+    the puck has both. The other aspects' draws are the same whatever a scene applies."""
+    from envs.metaworld_env import MetaWorldEnv
+
+    draws = {name: sample_randomisation(RandomiseConfig(), 3, MetaWorldEnv(name, None).RANDOMISES)
+             for name in ("button-press-v3", "basketball-v3", "push-v3")}
+    assert (draws["button-press-v3"].mass, draws["button-press-v3"].friction) == (None, None)
+    assert draws["basketball-v3"].mass is not None and draws["basketball-v3"].friction is None
+    assert draws["push-v3"].mass is not None and draws["push-v3"].friction is not None
+    assert len({(d.light, tuple(d.tint)) for d in draws.values()}) == 1
 
 
 def test_a_resized_block_collides_at_its_new_size(lift_env):
