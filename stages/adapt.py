@@ -75,12 +75,19 @@ class AdaptResult(StageResult):
 
 def target_campaign(config: CampaignConfig) -> CampaignConfig:
     """The shifted domain's campaign: the same tasks, render and model, one iteration of the expert
-    exploring as many episodes as the largest training takes, no baselines."""
+    exploring as many episodes as the largest training takes, no baselines. What the source campaign's
+    explore and evaluate settings would change about that is reset: a smaller first iteration
+    (first_episodes_per_task: the largest trainings would get fewer episodes than they count), a curriculum
+    (it skips tasks with sub-goals when no policy explores), a VLM explorer, relabelling, and a split-wide
+    episode count (each task gets adapt.eval_episodes)."""
     adapt = config.adapt
     return config.model_copy(update={
         "name": f"{config.name}-adapt", "iterations": 1, "randomise": adapt.domain,
-        "explore": config.explore.model_copy(update={"episodes_per_task": max(adapt.episodes_per_task)}),
-        "evaluate": config.evaluate.model_copy(update={"episodes_per_task": adapt.eval_episodes}),
+        "explore": config.explore.model_copy(update={
+            "episodes_per_task": max(adapt.episodes_per_task), "first_episodes_per_task": None, "curriculum": False,
+            "vlm": None, "relabel": False}),
+        "evaluate": config.evaluate.model_copy(update={"episodes_per_task": adapt.eval_episodes,
+                                                       "episodes_per_split": None}),
         "baselines": BaselinesConfig(), "adapt": AdaptConfig(),
     })
 

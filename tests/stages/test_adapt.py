@@ -174,6 +174,11 @@ def test_the_episodes_to_reach_a_success_count_the_source_at_zero():
     assert episodes_to_reach(points, "scratch", 0.9) is None
     assert episodes_to_reach([point("source", 0, 9)] + points[1:], "fine-tuned", 0.8) == 0
     assert episodes_to_reach([point("source", 0, 9)] + points[1:], "scratch", 0.8) == 12
+    from dashboards.results import _reached
+
+    dipping = points + [point("fine-tuned", 18, 7)]  # 80% at 6, 70% at 18: reached, and the report says it fell
+    assert _reached(dipping, "fine-tuned", 0.8) == "**6** (below it again at 18)"
+    assert _reached(points, "fine-tuned", 0.8) == "**6**" and _reached(points, "scratch", 0.9) == "not reached within 12"
 
 
 def test_the_episodes_to_reach_pool_the_training_seeds():
@@ -199,6 +204,18 @@ def test_adapt_tasks_name_the_campaign_s_seen_tasks():
         bad = config.model_copy(update={"adapt": config.adapt.model_copy(update={"tasks": wrong})})
         with pytest.raises(ConfigError, match=f"adapt.tasks: expected task ids of the campaign's seen tasks .*got {wrong[-1]}$"):
             adapted_tasks(bad, tasks)
+
+
+def test_the_target_campaign_explores_every_task_as_often_as_its_largest_training_counts():
+    """A source campaign's smaller first iteration, curriculum or split-wide evaluation count would make the
+    target's trainings see fewer episodes than they count (or none on tasks with sub-goals)."""
+    config = CampaignConfig.model_validate({
+        **CAMPAIGN, "explore": {**CAMPAIGN["explore"], "first_episodes_per_task": 1, "curriculum": True, "relabel": True},
+        "evaluate": {**CAMPAIGN["evaluate"], "episodes_per_split": 45}})
+    target = target_campaign(config)
+    assert target.explore.episodes_at(0) == max(config.adapt.episodes_per_task)
+    assert (target.explore.curriculum, target.explore.relabel, target.explore.vlm) == (False, False, None)
+    assert target.evaluate.episodes_per_case(2) == config.adapt.eval_episodes
 
 
 def test_a_chosen_task_with_training_seeds(adapted):
