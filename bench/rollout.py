@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel
 
-from bench.tables import Ratio, ratio_table, table
+from bench.tables import Ratio, cores, ratio_table, table
 from envs.pool import run_in_pool
 from schemas.config import CampaignConfig, ExploreConfig, RenderConfig, TasksConfig
 from schemas.tasks import TaskRecord
@@ -257,7 +257,7 @@ def markdown(bench: RolloutBench, command: str) -> str:
     lines = [
         "# Rollout benchmark: our explore stage vs a plain robosuite loop",
         "",
-        f"Made by `{command}` on {datetime.date.today().isoformat()}, 2 cores, no GPU. Task `{bench.task_id}` "
+        f"Made by `{command}` on {datetime.date.today().isoformat()}, {cores()} cores, no GPU used. Task `{bench.task_id}` "
         f"({bench.env}), {bench.image_size}px agentview, {bench.episodes} episodes of at most {bench.horizon} steps "
         f"(ending on success), the same episode seeds in every case; policy: the {bench.policy} with action noise "
         f"{bench.expert_noise}, reading robosuite's raw observation through the adapter's `observe` in (a) and (b). "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 from pydantic import BaseModel
 
 
@@ -35,3 +37,8 @@ def ratio_table(ratios: list[Ratio]) -> list[str]:
         [r.name, r.shown(r.value), "" if r.target is None else ("<= " if r.at_most else ">= ") + r.shown(r.target),
          "" if r.met is None else "✓" if r.met else "✗"]
         for r in ratios])
+
+
+def cores() -> int:
+    """The cores this process may run on (`taskset` and container limits count; os.cpu_count() ignores them)."""
+    return len(os.sched_getaffinity(0))

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import datetime
 import json
-import os
 import shutil
 import statistics
 import itertools
@@ -36,7 +35,7 @@ from pydantic import BaseModel
 
 from bench.rollout import LoadMeter
 from bench.synthetic import TASKS, frame, register_explore_unit
-from bench.tables import Ratio, ratio_table, table
+from bench.tables import Ratio, cores, ratio_table, table
 from envs.observation import PROPRIO_DIM, Observation
 from policies.policy import Policy
 from policies.precision import cpu_has_bf16_units
@@ -318,7 +317,7 @@ def bench_train(sizes: TrainSizes, scratch: Path | None = None) -> TrainBench:
     unknown = sorted(set(sizes.cases) - set(CASES))
     if unknown:
         raise ConfigError(f"bench train: --cases: expected some of {', '.join(CASES)}, got {', '.join(unknown)}")
-    cpus, torch_threads = os.cpu_count() or 1, torch.get_num_threads()
+    cpus, torch_threads = cores(), torch.get_num_threads()
     image_size = CampaignConfig().render.image_size
     wanted = set(sizes.cases) | {"stage"}
     if scratch is not None:  # --scratch names a folder to use: made if missing, like a workspace

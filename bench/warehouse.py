@@ -30,7 +30,7 @@ import pyarrow.parquet as pq
 from pydantic import BaseModel
 
 from bench.synthetic import TASKS, explore_unit, register_explore_unit
-from bench.tables import table as markdown_table
+from bench.tables import cores, table as markdown_table
 from schemas.tables import EPISODES, STEPS
 from schemas.version import SCHEMA_VERSION
 from schemas.workspace import Workspace
@@ -344,7 +344,7 @@ def markdown(measures: list[Measure], command: str) -> str:
     lines = [
         "# Warehouse benchmark",
         "",
-        f"Made by `{command}` on {datetime.date.today().isoformat()}, 2 cores, no GPU. Each figure is the best "
+        f"Made by `{command}` on {datetime.date.today().isoformat()}, {cores()} cores, no GPU used. Each figure is the best "
         "of its repeats; the reference is measured in the same run. Ratio = ours / reference in speed terms "
         "(above 1: faster than the reference).",
         "",
