@@ -108,12 +108,15 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
               mlflow_run_id: str) -> int:
     import mlflow
     from mlflow.models import infer_signature
+    from mlflow.types.schema import ColSpec, Schema
 
     from policies.mlflow_model import MODEL_CODE, predict_frame
     from policies.policy import Policy
 
     example = input_example(catalog, config.name)
     signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
+    # optional: rows of one episode act through its earlier chunks, as evaluation acts (policies/mlflow_model.py)
+    signature.inputs = Schema([*signature.inputs.inputs, ColSpec("string", "episode_id", required=False)])
     with _fluent_tracking(tracking_uri(workspace)):
         with mlflow.start_run(run_id=mlflow_run_id):
             info = mlflow.pyfunc.log_model(

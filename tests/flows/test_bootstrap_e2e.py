@@ -146,7 +146,8 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
 
     with _fluent_tracking(ws.tracking_uri):
         info = get_model_info("models:/sim2act-smoke/2")
-    assert info.signature.inputs.input_names() == ["image", "proprio", "instruction", "family"]
+    assert info.signature.inputs.input_names() == ["image", "proprio", "instruction", "family", "episode_id"]
+    assert not info.signature.inputs.inputs[-1].required  # served rows may leave it out (acted on alone)
     assert info.signature.outputs.input_names() == ["action", "uncertainty"]
 
 

@@ -72,6 +72,35 @@ def test_a_new_instruction_or_episode_starts_from_no_chunk():
     np.testing.assert_allclose(_first_component(EpisodeActor(policy, "robosuite"), 1), [30.0], atol=1e-4)
 
 
+def test_the_served_model_acts_each_episode_as_evaluation_does():
+    """The registry's pyfunc model: rows with an episode id act through that episode's earlier chunks (as
+    EpisodeActor acts in evaluation), episodes apart and across calls; rows without one, alone."""
+    from collections import OrderedDict
+
+    import pandas as pd
+
+    from policies.mlflow_model import predict_frame
+    from schemas.frames import encode_frame
+
+    def rows(*episode_ids):
+        return pd.DataFrame({"image": [encode_frame(OBS.image)] * len(episode_ids), "proprio": [[0.0] * 9] * len(episode_ids),
+                             "instruction": ["go"] * len(episode_ids), "family": ["robosuite"] * len(episode_ids),
+                             "episode_id": list(episode_ids)})
+
+    def first(frame):
+        return [round(action[0] / 0.01, 4) for action in frame["action"]]
+
+    config = ModelConfig(chunk=4, execution="receding", execute_steps=3)
+    episodes = OrderedDict()
+    policy = ScriptedPolicy(config)
+    served = first(predict_frame(policy, rows("a", "a", "b"), episodes)) + first(predict_frame(policy, rows("a", "a"), episodes))
+    # a: predicted at call 0 (0..3), plays 0, 1, then 2 in the next frame and predicts again (call 2: 20..23);
+    # b: its own first chunk (call 1)
+    assert served == [0.0, 1.0, 10.0, 2.0, 20.0]
+    alone = ScriptedPolicy(config)
+    assert first(predict_frame(alone, rows(None, None))) == [0.0, 10.0]  # no episode: each row its chunk's first
+
+
 def test_a_chunked_model_acts_through_its_episode_and_its_checkpoint_round_trips(tmp_path: Path):
     torch.manual_seed(0)
     model = VLAModel(ModelConfig(dim=32, heads=4, vision_depth=1, fusion_depth=1, chunk=4), DIMS)
