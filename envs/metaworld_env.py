@@ -85,7 +85,9 @@ class MetaWorldEnv:
         drawn = self.env.render()
         image, zbuffer = drawn if self.render_config.depth else (drawn, None)
         depth = None if zbuffer is None else metric_depth(zbuffer[::-1], self.env.model)  # flipped as the frame
-        return image[::-1].copy(), depth  # OpenGL rows run bottom-up
+        # rows flipped: the corner cameras are rolled upside down, so this is upright but mirrored left to right
+        # (a half turn would be the true view); kept, as every MetaWorld frame in a warehouse was made so
+        return image[::-1].copy(), depth
 
     def _viewer(self):
         return self.env.mujoco_renderer._get_viewer(self.env.render_mode)
