@@ -541,6 +541,12 @@ def run_train(
     # a fine-tuning keeps its source's heads: the state head as wide as the source's data made it (the generalist's
     # million holds longer simulator states than the five tasks its adaptation trains on)
     state_width = None if source is None else source.get("dims", {}).get("state_dim")
+    if state_width and cfg.state_weight == 0:  # else a strict load fails naming an "architecture"
+        raise SelectionError(f"train.state_weight: {cfg.init_from} has a state head (it trained with "
+                             "train.state_weight > 0); expected train.state_weight > 0 to fine-tune it, got 0")
+    if state_width == 0 and cfg.state_weight > 0:
+        log.warning("train.state_weight %g: %s has no state head, so this fine-tuning has no state loss",
+                    cfg.state_weight, cfg.init_from)
     action_norm, proprio_norm, state_norm = normalisers(catalog, dataset, cfg, state_width)
     if source is not None:  # the source's heads speak in its own units
         action_norm, proprio_norm = Normaliser(*source["action"]), Normaliser(*source["proprio"])

@@ -149,14 +149,21 @@ def test_a_rerun_does_no_work(adapted):
     assert again == result and catalog.query("SELECT count(*) FROM stage_runs")[0][0] == before
 
 
-def test_an_unknown_source_model_is_refused_naming_the_field(adapted):
-    config, workspace, _, result = adapted
+@pytest.mark.parametrize(("init_from", "state_weight", "words"), [
+    ("train-nosuchmodel", None, "train.init_from: no model 'train-nosuchmodel'"),
+    # the source trained with a state head: a strict load failed, naming "another architecture"
+    ("source", 0.0, r"train.state_weight: train-\w+ has a state head .*expected train.state_weight > 0 .*got 0$"),
+])
+def test_a_source_model_it_cannot_fine_tune_is_refused_naming_the_field(adapted, init_from, state_weight, words):
+    config, workspace, source, result = adapted
+    assert source.checkpoint and config.train.state_weight > 0
     target = target_campaign(config)
-    train = target.train.model_copy(update={"init_from": "train-nosuchmodel"})
+    train = target.train.model_copy(update={"init_from": source.model_key if init_from == "source" else init_from,
+                                            **({} if state_weight is None else {"state_weight": state_weight})})
     tasks_key = tasks_unit_key(target, generate_tasks(target.tasks, target.seed))
     catalog = Catalog(workspace.catalog)
     models = catalog.query("SELECT count(*) FROM models")[0][0]
-    with pytest.raises(SelectionError, match="train.init_from: no model 'train-nosuchmodel'"):
+    with pytest.raises(SelectionError, match=words):
         run_train(workspace, target.model_copy(update={"train": train}), 0, latest_index(workspace, result.campaign, 0),
                   tasks_key, load_embeddings(workspace, tasks_key, target.train.model.language_encoder))
     assert catalog.query("SELECT count(*) FROM models")[0][0] == models
