@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from schemas.tables import CURRENT_FILTER_DECISIONS
 from warehouse.catalog import Catalog
 from warehouse.sql import check_read_only
 
@@ -51,12 +52,12 @@ def campaigns(catalog: Catalog) -> list[str]:
 
 
 # The episode browser: explored episodes with the filter's decision, narrowed by the page's choices.
-_EPISODES = """
+_EPISODES = f"""
     SELECT e.episode_id, e.iteration, e.task_id, t.family, t.split, e.instruction, e.explorer,
            e.episode_return, e.success, e.num_steps, e.error, f.kept, f.reason, f.detail
     FROM episodes e
     LEFT JOIN task_families t ON t.campaign = e.campaign AND t.task_id = e.task_id
-    LEFT JOIN filter_decisions f ON f.episode_id = e.episode_id
+    LEFT JOIN {CURRENT_FILTER_DECISIONS} f ON f.episode_id = e.episode_id
     WHERE e.campaign = $campaign
       AND ($iteration IS NULL OR e.iteration = $iteration)
       AND ($task IS NULL OR e.task_id = $task)

@@ -289,6 +289,14 @@ CURRENT_DEPLOYMENTS = """(
     QUALIFY row_number() OVER (PARTITION BY d.campaign, d.iteration
                                ORDER BY r.finished_at DESC NULLS LAST, d.unit_key DESC) = 1)"""
 
+# One filter decision per episode: its latest filter unit's. A campaign run again in its workspace with another
+# `filter.*` decides its episodes again (stages/filter.py keeps each setting's lineage apart); counted together, a
+# view would count those episodes once per setting. A subquery, as CURRENT_DEPLOYMENTS (dashboards/panels.yaml
+# spells it out).
+CURRENT_FILTER_DECISIONS = """(
+    SELECT f.* FROM filter_decisions f LEFT JOIN stage_runs r ON r.unit_key = f.filter_key
+    QUALIFY row_number() OVER (PARTITION BY f.episode_id ORDER BY r.finished_at DESC NULLS LAST, f.filter_key DESC) = 1)"""
+
 # Views over the tables above, ready for `sim2act sql` and the dashboards.
 VIEWS = {
     # One row per evaluation case (campaign, model, suite, task, split, wording): the one of most episodes, then
@@ -305,12 +313,15 @@ VIEWS = {
                s.image AS obs, s.depth AS obs_depth, s.action, s.reward, s.done, s.success,
                COALESCE(n.image, s.next_image) AS next_obs, COALESCE(n.depth, s.next_depth) AS next_obs_depth
         FROM steps s LEFT JOIN steps n ON n.episode_id = s.episode_id AND n.step = s.step + 1""",
-    "kept_steps": """
+    "kept_steps": f"""
         SELECT s.* FROM steps s
-        JOIN filter_decisions f ON f.episode_id = s.episode_id AND f.kept""",
-    # Which task does an id name: one row per (campaign, task), whatever generated it.
+        WHERE s.episode_id IN (SELECT episode_id FROM {CURRENT_FILTER_DECISIONS} WHERE kept)""",
+    # Which task does an id name: one row per (campaign, task), its latest tasks unit's (a changed tasks.* can say
+    # another split or family for the same id).
     "task_families": """
-        SELECT DISTINCT campaign, task_id, family, spec, split FROM tasks""",
+        SELECT t.campaign, t.task_id, t.family, t.spec, t.split FROM tasks t LEFT JOIN stage_runs r ON r.unit_key = t.unit_key
+        QUALIFY row_number() OVER (PARTITION BY t.campaign, t.task_id ORDER BY r.finished_at DESC NULLS LAST,
+                                   t.unit_key DESC) = 1""",
     "task_success": """
         SELECT e.campaign, e.iteration, e.task_id, t.family, t.split, e.explorer,
                count(*) AS episodes, count(*) FILTER (WHERE e.success) AS successes,
@@ -318,16 +329,16 @@ VIEWS = {
                avg(e.num_steps) AS mean_length
         FROM episodes e LEFT JOIN task_families t USING (campaign, task_id)
         GROUP BY ALL""",
-    "filter_pass_rates": """
+    "filter_pass_rates": f"""
         SELECT campaign, iteration, reason, count(*) AS episodes,
                count(*) / sum(count(*)) OVER (PARTITION BY campaign, iteration) AS fraction
-        FROM filter_decisions GROUP BY campaign, iteration, reason""",
-    "dataset_composition": """
+        FROM {CURRENT_FILTER_DECISIONS} GROUP BY campaign, iteration, reason""",
+    "dataset_composition": f"""
         SELECT e.campaign, e.iteration, t.family, e.task_id, e.explorer,
                count(*) AS episodes, count(*) FILTER (WHERE f.kept) AS kept_episodes,
                sum(e.num_steps) AS triplets, coalesce(sum(e.num_steps) FILTER (WHERE f.kept), 0) AS kept_triplets
         FROM episodes e
         LEFT JOIN task_families t USING (campaign, task_id)
-        LEFT JOIN filter_decisions f USING (episode_id)
+        LEFT JOIN {CURRENT_FILTER_DECISIONS} f USING (episode_id)
         GROUP BY ALL""",
 }

@@ -98,6 +98,38 @@ def test_ready_views_agree_with_the_raw_tables(filled):
     assert kept_triplets == catalog.query("SELECT count(*) FROM kept_steps")[0][0]
 
 
+def test_a_campaign_filtered_again_or_its_tasks_made_again_counts_each_episode_once(filled):
+    """A re-run with another filter.* decides the same episodes again, and a changed tasks.* registers the same
+    ids again (here in another split): the views read the latest decision and the latest tasks unit."""
+    import time
+
+    from stages.filter import run_filter
+    from tests.warehouse.filled import CONFIG
+
+    catalog = Catalog(filled.catalog)
+    before = {view: catalog.query(f"SELECT count(*), sum(episodes) FROM {view}")
+              for view in ("task_success", "dataset_composition", "filter_pass_rates")}
+    steps = catalog.query("SELECT count(*) FROM kept_steps")[0][0]
+    time.sleep(0.01)  # after the first filter's units
+    lenient = CONFIG.model_copy(update={"filter": CONFIG.filter.model_copy(update={"min_return": -1e9})})
+    explore = [k for (k,) in catalog.query("SELECT unit_key FROM stage_runs WHERE stage = 'explore' ORDER BY 1")]
+    run_filter(filled, lenient, 0, [k for k in explore if "-i0" in k])
+    run_filter(filled, lenient, 1, [k for k in explore if "-i1" in k])
+    [(episodes,)] = catalog.query("SELECT count(*) FROM episodes")
+    assert catalog.query("SELECT sum(episodes) FROM filter_pass_rates")[0][0] == episodes
+    assert catalog.query("SELECT sum(episodes), sum(kept_episodes) FROM dataset_composition")[0] == (episodes, episodes)
+    assert catalog.query("SELECT count(*) FROM kept_steps")[0][0] == catalog.query("SELECT count(*) FROM steps")[0][0] > steps
+    rows = catalog.query("SELECT * FROM tasks WHERE unit_key = 'tasks-test'")
+    columns = [c for (c,) in catalog.query("SELECT column_name FROM duckdb_columns() WHERE table_name = 'tasks' "
+                                            "ORDER BY column_index")]
+    again = [{**dict(zip(columns, row)), "split": "unseen", "unit_key": "tasks-again"} for row in rows]
+    catalog.register_unit(unit_key="tasks-again", stage="generate_tasks", campaign=CONFIG.name, iteration=0, summary={},
+                          rows={"tasks": again})
+    assert catalog.query("SELECT count(*), count(DISTINCT task_id), min(split) FROM task_families") == \
+        [(len(rows), len(rows), "unseen")]
+    assert catalog.query("SELECT count(*), sum(episodes) FROM task_success") == before["task_success"]
+
+
 def test_a_corrupt_shard_is_quarantined_and_queries_keep_working(filled):
     catalog = Catalog(filled.catalog)
     [(victim, unit)] = catalog.query(
