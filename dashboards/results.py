@@ -20,6 +20,7 @@ from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint
                           episodes_to_reach, points_of_family, pooled, pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from stages.index import CURRENT_ITERATIONS
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
@@ -507,7 +508,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     evaluations = evaluations_by_iteration(catalog, campaign)
     by_iteration = {iteration: group_success(found) for iteration, found in evaluations.items()}
     latest = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
-        "SELECT explore_units, filter_units FROM iterations WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
+        f"SELECT explore_units, filter_units FROM {CURRENT_ITERATIONS} WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
         [campaign])
     if not by_iteration and not latest:
         held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
@@ -545,7 +546,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(
-        "SELECT iteration, episodes, kept_episodes, triplets FROM iterations WHERE campaign = ?", [campaign])}
+        f"SELECT iteration, episodes, kept_episodes, triplets FROM {CURRENT_ITERATIONS} WHERE campaign = ?", [campaign])}
     explorers = {}
     for iteration, explorer, episodes in catalog.query(
             "SELECT iteration, explorer, count(*) FROM episodes WHERE campaign = ? AND list_contains(?, shard_key) "

@@ -105,6 +105,14 @@ def _steps_by_episode(steps: pa.Table) -> dict[str, list[dict]]:
     return by_episode
 
 
+def filter_unit_key(config: CampaignConfig, explore_key: str) -> str:
+    """The filter unit deciding one explore unit's episodes under `config`: keyed by the filter settings, the
+    frame size and the explore unit."""
+    reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth,
+             **({"views": config.render.views} if config.render.views > 1 else {})}  # one view: keys as before
+    return unit_key(STAGE, VERSION, reads, [explore_key])
+
+
 def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, explore_keys: list[str],
                earlier_filter_keys: Sequence[str] = ()) -> FilterResult:
     """Unit of work: one explore shard's episodes, keyed by the filter settings, the frame size and
@@ -113,9 +121,7 @@ def run_filter(workspace: Workspace, config: CampaignConfig, iteration: int, exp
     `earlier_filter_keys` (the earlier iterations' filter units, IndexResult.filter_units)."""
     catalog = Catalog(workspace.catalog)
     units = StageUnits(catalog, STAGE, config.name, iteration)
-    reads = {"filter": config.filter, "image_size": config.render.image_size, "depth": config.render.depth,
-             **({"views": config.render.views} if config.render.views > 1 else {})}  # one view: keys as before
-    keys = {explore_key: unit_key(STAGE, VERSION, reads, [explore_key]) for explore_key in explore_keys}
+    keys = {explore_key: filter_unit_key(config, explore_key) for explore_key in explore_keys}
     pending = set(units.pending(keys.values()))
     families = dict(catalog.query("SELECT task_id, family FROM task_families WHERE campaign = ?", [config.name]))
     # Units are decided in a fixed order, so a resumed run dedupes exactly as an uninterrupted one. Only this

@@ -10,6 +10,7 @@ from schemas.config import CampaignConfig
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
+from stages.filter import filter_unit_key
 from warehouse.catalog import Catalog
 from warehouse.datasets import Selection
 
@@ -42,13 +43,28 @@ class IndexResult(StageResult):
         return Selection(tuple(self.explore_units), tuple(self.filter_units))
 
 
-def latest_index(workspace: Workspace, campaign: str, iteration: int | None = None) -> IndexResult | None:
-    """A campaign's registered dataset of `iteration` (default: its latest), or None."""
+# One dataset per campaign iteration: its latest registered. A campaign run again in its workspace with another
+# filter.* (or explore.*) indexes the same iteration again.
+CURRENT_ITERATIONS = """(
+    SELECT i.* FROM iterations i LEFT JOIN stage_runs r ON r.unit_key = i.unit_key
+    QUALIFY row_number() OVER (PARTITION BY i.campaign, i.iteration ORDER BY r.finished_at DESC NULLS LAST,
+                               i.unit_key DESC) = 1)"""
+
+
+def latest_index(workspace: Workspace, campaign: str, iteration: int | None = None,
+                 config: CampaignConfig | None = None) -> IndexResult | None:
+    """A campaign's registered dataset of `iteration` (default: its latest), or None. With `config`, only a
+    dataset its filter settings decided (another filter.* makes another dataset of the same iteration); of
+    several, the latest registered."""
     rows = Catalog(workspace.catalog).query(
-        "SELECT unit_key, iteration, dataset_digest, explore_units, filter_units, episodes, kept_episodes, triplets "
-        "FROM iterations WHERE campaign = ? AND (? IS NULL OR iteration = ?) ORDER BY iteration DESC LIMIT 1",
+        "SELECT i.unit_key, i.iteration, i.dataset_digest, i.explore_units, i.filter_units, i.episodes, "
+        "i.kept_episodes, i.triplets FROM iterations i LEFT JOIN stage_runs r ON r.unit_key = i.unit_key "
+        "WHERE i.campaign = ? AND (? IS NULL OR i.iteration = ?) "
+        "ORDER BY i.iteration DESC, r.finished_at DESC NULLS LAST, i.unit_key DESC",
         [campaign, iteration, iteration],
     )
+    if config is not None:
+        rows = [row for row in rows if set(row[4]) == {filter_unit_key(config, explore) for explore in row[3]}]
     if not rows:
         return None
     key, it, digest, explore_units, filter_units, episodes, kept, triplets = rows[0]

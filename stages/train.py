@@ -530,6 +530,10 @@ def run_train(
                            dataset_shards=existing[0][1], history=[], resumed_at_step=0, skipped=True)
 
     check_where(cfg.where)
+    if dataset.selection.digest(catalog) != dataset.dataset_digest:  # else it trains on less than its key says
+        raise SelectionError(f"iteration {iteration}'s dataset {dataset.dataset_digest[:12]} has changed since it was "
+                             "indexed (a unit of it quarantined: `sim2act sql \"SELECT * FROM quarantine\"`); "
+                             "run `sim2act run` with this config to make it again, then train")
     source = initial_policy(catalog, workspace, cfg.init_from)
     started = time.monotonic()
     device = training_device(cfg.device)

@@ -85,11 +85,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     check_where(config.train.where)
     workspace, catalog = open_catalog(args)
-    dataset = latest_index(workspace, config.name, args.iteration)
+    dataset = latest_index(workspace, config.name, args.iteration, config)
     if dataset is None:
         which = f"iteration {args.iteration}" if args.iteration is not None else "any iteration"
         raise ConfigError(f"--iteration: campaign {config.name!r} has no dataset for {which} in {workspace.root} "
-                          "(run `sim2act run` with this config first)")
+                          "decided by this config's filter settings (run `sim2act run` with this config first)")
     tasks_key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
     if not catalog.is_registered(tasks_key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")

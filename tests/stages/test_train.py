@@ -241,6 +241,14 @@ def test_a_bad_selection_is_refused_before_any_work(campaign, tmp_path):
     output = run.communicate(timeout=300)[0]
     assert run.returncode != 0 and "leaves no step" in output
     assert not list((workspace / "models").glob("*/*"))
+    # a steps shard of the dataset quarantined since it was indexed: training would read less than its key says
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    [(path,)] = catalog.query("SELECT path FROM shards WHERE table_name = 'steps' ORDER BY path LIMIT 1")
+    assert catalog.quarantine(path, "a test")
+    run = _train(campaign[0], workspace)
+    output = run.communicate(timeout=300)[0]
+    assert run.returncode != 0 and "has changed since it was indexed" in output, output
+    assert not list((workspace / "models").glob("*/*"))
     missing = _train(campaign[0], tmp_path / "nowhere")
     output = missing.communicate(timeout=300)[0]
     assert missing.returncode == 2 and "no warehouse catalog" in output, output

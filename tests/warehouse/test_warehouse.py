@@ -130,6 +130,31 @@ def test_a_campaign_filtered_again_or_its_tasks_made_again_counts_each_episode_o
     assert catalog.query("SELECT count(*), sum(episodes) FROM task_success") == before["task_success"]
 
 
+def test_an_iteration_indexed_under_two_filter_settings_gives_each_config_its_own_dataset(filled):
+    """`sim2act train` took the first row the catalog gave (no tie-break, no check of its filter): the dataset of
+    another filter.* than the config's. Now the config's, and of several the latest registered."""
+    import time
+
+    from stages.filter import run_filter
+    from stages.index import latest_index, run_index
+    from tests.warehouse.filled import CONFIG
+
+    catalog = Catalog(filled.catalog)
+    explore = [k for (k,) in catalog.query("SELECT unit_key FROM stage_runs WHERE stage = 'explore' AND iteration = 0 "
+                                           "ORDER BY 1")]
+    strict = run_index(filled, CONFIG, 0, explore, run_filter(filled, CONFIG, 0, explore).unit_keys, None)
+    time.sleep(0.01)
+    lenient_config = CONFIG.model_copy(update={"filter": CONFIG.filter.model_copy(update={"min_return": -1e9})})
+    lenient = run_index(filled, lenient_config, 0, explore, run_filter(filled, lenient_config, 0, explore).unit_keys,
+                        None)
+    assert lenient.kept_episodes > strict.kept_episodes
+    assert latest_index(filled, CONFIG.name, 0, CONFIG).unit_key == strict.unit_key
+    assert latest_index(filled, CONFIG.name, 0, lenient_config).unit_key == lenient.unit_key
+    assert latest_index(filled, CONFIG.name, 0).unit_key == lenient.unit_key  # the latest registered
+    other = CONFIG.model_copy(update={"filter": CONFIG.filter.model_copy(update={"min_return": 3.0})})
+    assert latest_index(filled, CONFIG.name, 0, other) is None
+
+
 def test_a_corrupt_shard_is_quarantined_and_queries_keep_working(filled):
     catalog = Catalog(filled.catalog)
     [(victim, unit)] = catalog.query(
