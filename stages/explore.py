@@ -162,13 +162,15 @@ def plan_explore(
         expert_rank = {index: rank for rank, index in enumerate(i for i, e in enumerate(explorer_of) if e == EXPERT)}
         relabel_to = [t for t in tasks if explore.relabel and t.split == "seen" and t.env_name == task.env_name
                       and t.task_id != task.task_id]
-        test = ACHIEVED_TESTS.get((task.family, task.env_name)) if relabel_to else None
+        test = ACHIEVED_TESTS.get((task.family, task.env_name))  # a scene whose test came after units were keyed
+        can_relabel = bool(relabel_to) and (test is not None or task.family == "navigation")  # a scene that can tell
         for shard, first in enumerate(range(0, count, explore.episodes_per_shard)):
-            # where relabelling can happen: the scene's test, and the relabelled episodes' rewards made the achieved
+            # where relabelling can happen: the scene's test, the tasks a failure may be filed under (a changed task
+            # set, e.g. a colour held out, changes them), and the relabelled episodes' rewards made the achieved
             # task's sparse ones (units explored before keep their keys and their episodes' dense rewards)
-            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count),
-                                                   *([f"achieved test {test}", "relabelled rewards sparse"]
-                                                     if test else [])])
+            relabelling = [*([f"achieved test {test}"] if test else []), "relabelled rewards sparse",
+                           "relabel to " + ",".join(sorted(t.task_id for t in relabel_to))] if can_relabel else []
+            key = unit_key(STAGE, VERSION, reads, [task.model_dump_json(), str(shard), str(count), *relabelling])
             episodes = []
             for index in range(first, min(first + explore.episodes_per_shard, count)):
                 seed = derive_seed(config.name, config.seed, iteration, task.task_id, shard, index)

@@ -391,6 +391,20 @@ def test_a_unit_that_could_relabel_keys_on_its_scenes_achieved_test(tmp_path, mo
     assert with_test[False] == without[False]
 
 
+def test_a_relabelling_unit_keys_on_the_tasks_it_may_file_a_failure_under(tmp_path):
+    """Holding blue out takes nav-room-blue off nav-room-red's relabelling targets: a cached unit that filed
+    failures under it (a held-out task, in training) must not be reused."""
+    def keys(unseen: list[str]) -> dict[str, str]:
+        config = CampaignConfig(name="relabel-targets", tasks=TasksConfig(specs=["nav-room"], colours=["red", "green", "blue"],
+                                                                          unseen_colours=unseen),
+                                explore=ExploreConfig(episodes_per_task=1, episodes_per_shard=1, workers=1, relabel=True))
+        return {unit.task.task_id: unit.unit_key for unit in _plan(config, tmp_path)}
+
+    every, blue_held_out = keys([]), keys(["blue"])
+    assert sorted(blue_held_out) == ["nav-room-green", "nav-room-red"]
+    assert all(every[task] != blue_held_out[task] for task in blue_held_out)
+
+
 def test_an_iteration_runs_shard_0_of_every_task_before_any_tasks_shard_1(tmp_path):
     """So the first minutes' pace (and ETA) is the whole mix's, not the first family's."""
     config = _config(episodes_per_task=4, episodes_per_shard=2)
