@@ -42,7 +42,7 @@ def allocate(scores: dict[str, float], per_task: int, floor: float) -> dict[str,
     """Pure: share len(scores) * per_task episodes; each task gets ceil(floor * per_task), the
     rest goes in proportion to score (largest remainders, ties to the lower task id). The total
     is always the same budget, so an iteration costs what it would have cost unprioritised."""
-    minimum = min(per_task, math.ceil(floor * per_task))
+    minimum = min(per_task, math.ceil(floor * per_task - 1e-9))  # 0.28 * 25 is 7.000000000000001: 7, not 8
     spare = (per_task - minimum) * len(scores)
     weights = {task_id: score + 1e-9 for task_id, score in scores.items()}  # all zero: equal shares
     total = sum(weights.values())

@@ -28,3 +28,4 @@ def test_the_budget_is_kept_whole_every_task_keeps_its_floor_and_shares_follow_t
     assert allocate({"a": 0.0, "b": 0.0}, per_task=5, floor=0.25) == {"a": 5, "b": 5}  # nothing to tell apart
     assert allocate({"a": 0.0, "b": 1.0}, per_task=4, floor=1.0) == {"a": 4, "b": 4}  # floor 1: prioritising off
     assert allocate({"a": 0.0, "b": 1.0}, per_task=4, floor=0.0) == {"a": 0, "b": 8}
+    assert allocate({"a": 0.0, "b": 1.0}, per_task=25, floor=0.28)["a"] == 7  # 0.28 * 25 is 7.000000000000001
