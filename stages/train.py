@@ -530,10 +530,12 @@ def run_train(
                            dataset_shards=existing[0][1], history=[], resumed_at_step=0, skipped=True)
 
     check_where(cfg.where)
-    if dataset.selection.digest(catalog) != dataset.dataset_digest:  # else it trains on less than its key says
+    units = [*dataset.explore_units, *dataset.filter_units]
+    missing = len(set(units) - catalog.registered_keys(units))
+    if missing:  # quarantined since it was indexed: it would train on less than its key says (a run makes them again)
         raise SelectionError(f"iteration {iteration}'s dataset {dataset.dataset_digest[:12]} has changed since it was "
-                             "indexed (a unit of it quarantined: `sim2act sql \"SELECT * FROM quarantine\"`); "
-                             "run `sim2act run` with this config to make it again, then train")
+                             f"indexed: {missing} of its units quarantined (`sim2act sql \"SELECT * FROM quarantine\"`); "
+                             "run `sim2act run` with this config to make them again, then train")
     source = initial_policy(catalog, workspace, cfg.init_from)
     started = time.monotonic()
     device = training_device(cfg.device)
