@@ -23,6 +23,11 @@ def evaluations_by_iteration(catalog: Catalog, campaign: str) -> dict[int, list[
     by_iteration: dict[int, list[TaskEvaluation]] = {}
     for iteration, evaluation in rows:
         by_iteration.setdefault(iteration, []).append(evaluation)
+    # each case over as many episodes as its split's others: a case evaluated again with more (`sim2act eval
+    # --episodes` on some tasks) would otherwise weigh more in its split, in that iteration alone
+    for iteration, found in by_iteration.items():
+        fewest = {split: min(e.episodes for e in found if e.split == split) for split in {e.split for e in found}}
+        by_iteration[iteration] = [e.first(fewest[e.split]) for e in found]
     return by_iteration
 
 

@@ -114,6 +114,18 @@ def test_success_per_spec_and_split_per_iteration(tmp_path, monkeypatch):
     assert spec_markdown(catalog_one_spec, CAMPAIGN) == []  # one spec: the split table says it all
 
 
+def test_a_case_evaluated_again_with_more_episodes_weighs_as_its_splits_others(tmp_path):
+    """nav-room-red evaluated again over 50 episodes (0 of them successes): pooled with the other seen case's 10,
+    the split read 10/60; each case over its split's 10, 10/20 as before."""
+    from dashboards.report import success_by_iteration
+
+    catalog = _catalog_with_tasks(tmp_path)
+    _register(catalog, 0, {("nav-room-red", "seen"): 0, ("nav-room-sequence-red-green", "seen"): 10})
+    _evaluated(catalog, "train-0", 0, episodes=50, unit="evaluate-0-again")
+    seen = next(g for g in success_by_iteration(catalog, CAMPAIGN)[0] if g.group == "seen")
+    assert (seen.successes, seen.episodes) == (10, 20)
+
+
 def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "d0", iteration: int = 0,
               recipe: dict | None = None, precision: str | None = None) -> None:
     summary = {"final_loss": -seed, "steps": 2400, "members": 1, "resumed_at_step": 0, "where": None,
