@@ -88,6 +88,21 @@ def test_the_success_panels_read_what_the_report_reads(tmp_path):
     assert per_task["nav-room-red"].startswith("9/10")
 
 
+def test_the_iterations_panel_has_one_row_an_iteration_with_the_model_it_deployed(tmp_path):
+    """Three training seeds of an iteration gave three rows, two of them blank."""
+    from dashboards.panels import run_panel
+    from tests.dashboards.test_results import CAMPAIGN, _catalog_with_tasks, _explored, _register, _training
+
+    catalog = _catalog_with_tasks(tmp_path)
+    _explored(catalog, Workspace.at(tmp_path), {"nav-room-red": [5, 6]})
+    for key, seed in (("train-0", 0), ("train-s1", 1), ("train-s2", 2)):
+        _training(catalog, key, seed=seed, chunk=8)
+    _register(catalog, 0, {("nav-room-red", "seen"): 6})
+    panel = next(p for p in load_panels() if p.id == "iterations")
+    rows = run_panel(catalog, panel, CAMPAIGN).rows
+    assert [(row["iteration"], row["model"], row["promoted"]) for row in rows] == [(0, "train-0", True)]
+
+
 def test_the_task_page_names_an_evaluation_outside_the_campaigns_cases(tmp_path):
     """`sim2act eval --set render.mesh_detail=1.0` of the deployed model on a campaign task: its own row, named by
     its suite, after the campaign's, not indistinguishable from the model's figure beside it."""
