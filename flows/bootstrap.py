@@ -42,6 +42,7 @@ from warehouse.catalog import Catalog
 from warehouse.tasks import load_embeddings, load_tasks
 
 log = logging.getLogger("sim2act.flows")
+DEPLOYMENT_LOCK_WAIT_S = 12 * 3600.0  # a scheduled run waits this long for a run the CLI started
 # Prefect sends the "sim2act" loggers to the API (PREFECT_LOGGING_EXTRA_LOGGERS); they reach the
 # console through the root handler, which passes what the logger lets through.
 logging.getLogger("sim2act").setLevel(logging.INFO)
@@ -253,7 +254,14 @@ def bootstrap(
     ws = Workspace.at(workspace).create()
     log_to_running_stack(ws)
     # one pool of rollout workers for every stage, so their processes and scenes are built once
-    with exclusive_run(ws, config.name), keep_workers():  # a second run on the workspace is refused before any work
+    # a second run on the workspace is refused before any work; one a deployment started (tonight's, behind a
+    # `sim2act run` from the CLI) waits for it instead, as the deployments' runs wait for each other
+    from prefect.runtime import deployment
+
+    wait_s = DEPLOYMENT_LOCK_WAIT_S if deployment.id else 0.0
+    with exclusive_run(ws, config.name, wait_s, lambda holder: log.warning(
+            "bootstrap: workspace %s is in use by another run (%s): waiting up to %.0f h for it to end",
+            ws.root, holder, wait_s / 3600)), keep_workers():
         return _run_campaign(config, ws, continue_campaign)
 
 

@@ -11,7 +11,7 @@ import json
 import os
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -19,21 +19,40 @@ from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
 
 
+LOCK_POLL_S = 5.0  # how often a waiting run tries the lock again
+
+
 class WorkspaceBusy(Sim2ActError, RuntimeError):
     pass
 
 
 @contextmanager
-def exclusive_run(workspace: Workspace, campaign: str) -> Iterator[None]:
+def exclusive_run(workspace: Workspace, campaign: str, wait_s: float = 0.0,
+                  on_wait: Callable[[str], None] = lambda holder: None) -> Iterator[None]:
+    """Hold the workspace for one run. `wait_s`: how long to wait for another run to let go (a scheduled
+    run behind a `sim2act run` from the CLI waits; the CLI is refused at once), `on_wait` told once
+    whom it waits for.
+
+    Raises:
+        WorkspaceBusy: another run holds the workspace (still, after `wait_s`)."""
     workspace.root.mkdir(parents=True, exist_ok=True)
     with workspace.run_lock.open("a+") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "{}"
-            raise WorkspaceBusy(f"workspace {workspace.root} is in use by another run ({holder}); wait for it to "
-                                "end or stop it, then run again (finished units are kept)") from None
+        deadline, told = time.monotonic() + wait_s, False
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                handle.seek(0)
+                holder = handle.read().strip() or "{}"
+                if time.monotonic() >= deadline:
+                    waited = f" (waited {wait_s:.0f} s)" if wait_s else ""
+                    raise WorkspaceBusy(f"workspace {workspace.root} is in use by another run ({holder}){waited}; "
+                                        "wait for it to end or stop it, then run again (finished units are kept)") from None
+                if not told:
+                    on_wait(holder)
+                    told = True
+                time.sleep(min(LOCK_POLL_S, max(0.0, deadline - time.monotonic())))
         handle.seek(0)
         handle.truncate()
         handle.write(json.dumps({"campaign": campaign, "pid": os.getpid(), "host": socket.gethostname(),

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -31,6 +32,31 @@ def test_a_second_run_on_a_busy_workspace_is_refused_and_writes_nothing(tmp_path
                 pass
     with exclusive_run(workspace, "after"):  # released on exit
         assert json.loads(workspace.run_lock.read_text())["campaign"] == "after"
+
+
+def test_a_run_told_to_wait_takes_the_workspace_when_the_holder_lets_go(tmp_path, monkeypatch):
+    """What a scheduled run does behind a `sim2act run` from the CLI (the CLI's own second run is refused)."""
+    import threading
+
+    monkeypatch.setattr("flows.run_lock.LOCK_POLL_S", 0.05)
+    workspace = Workspace.at(tmp_path / "workspace")
+    held, told = threading.Event(), []
+
+    def hold() -> None:
+        with exclusive_run(workspace, "first"):
+            held.set()
+            time.sleep(0.5)
+
+    thread = threading.Thread(target=hold)
+    thread.start()
+    held.wait(10)
+    with pytest.raises(WorkspaceBusy, match=r"\(waited 0 s\)"):  # a wait shorter than the hold
+        with exclusive_run(workspace, "impatient", wait_s=0.1):
+            pass
+    with exclusive_run(workspace, "nightly", wait_s=30, on_wait=told.append):
+        assert json.loads(workspace.run_lock.read_text())["campaign"] == "nightly"
+    thread.join()
+    assert len(told) == 1 and json.loads(told[0])["campaign"] == "first"
 
 
 def test_a_killed_holder_leaves_the_workspace_free(tmp_path):
