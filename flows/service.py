@@ -123,6 +123,26 @@ def is_alive(pid: int) -> bool:
         return True
 
 
+def started_at(pid: int) -> float | None:
+    """When process `pid` started (seconds since the epoch), None where there is none."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).create_time()
+    except psutil.Error:
+        return None
+
+
+def is_recorded_process(record: dict) -> bool:
+    """The process a state record names is alive and is the one recorded: after a reboot its PID can be
+    another program's (a record without its start time, written before it was kept, is taken at its PID)."""
+    if not is_alive(record["pid"]):
+        return False
+    started = record.get("started")
+    now = started_at(record["pid"]) if started is not None else None
+    return started is None or (now is not None and abs(now - started) < 1.0)
+
+
 def _port_free(port: int) -> bool:
     with socket.socket() as sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers bind: TIME_WAIT is no conflict
@@ -142,7 +162,7 @@ def process_status(workspace: Workspace) -> list[dict]:
     """Each recorded process: name, pid, url, log, and state up / unhealthy / exited."""
     rows = []
     for name, record in read_state(workspace).get("processes", {}).items():
-        state = "exited" if not is_alive(record["pid"]) else "up" if answers(record["health_url"]) else "unhealthy"
+        state = "exited" if not is_recorded_process(record) else "up" if answers(record["health_url"]) else "unhealthy"
         rows.append({"name": name, **record, "state": state})
     return rows
 
@@ -230,7 +250,8 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
                 process = subprocess.Popen(spec.command, env=spec.env, stdout=out, stderr=subprocess.STDOUT,
                                            stdin=subprocess.DEVNULL, start_new_session=True)
             started.append(spec.name)
-            state["processes"][spec.name] = {"pid": process.pid, "url": spec.url, "health_url": spec.health_url,
+            state["processes"][spec.name] = {"pid": process.pid, "started": started_at(process.pid),
+                                             "url": spec.url, "health_url": spec.health_url,
                                              "log": str(log), "tracking": spec.tracking,
                                              **({"serves": serves} if spec.name == "deployments" else {})}
             write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
@@ -242,7 +263,11 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
     return process_status(workspace)
 
 
-def _stop(pid: int) -> None:
+def _stop(record: dict) -> None:
+    """End a recorded process's group: never another program's that took its PID after a reboot."""
+    pid = record["pid"]
+    if not is_recorded_process(record):
+        return
     try:
         os.killpg(pid, signal.SIGTERM)
     except ProcessLookupError:
@@ -263,7 +288,7 @@ def down(workspace: Workspace, only: list[str] | None = None) -> list[str]:
     processes = state.get("processes", {})
     names = [name for name in reversed(list(processes)) if only is None or name in only]
     for name in names:
-        _stop(processes.pop(name)["pid"])
+        _stop(processes.pop(name))
     if processes:
         write_text_atomically(workspace.service_state, json.dumps(state, indent=1))
     elif workspace.service_state.exists():

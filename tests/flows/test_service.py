@@ -255,3 +255,29 @@ def test_a_worker_in_another_process_runs_the_prefect_yaml_deployment(finished_c
     output = (tmp_path / "worker.log").read_text()
     # the worker ran the finished campaign again: every stage found its units registered
     assert output.count("stages that ran: 0/7") == 2, output[-3000:]
+
+
+def test_a_recorded_pid_another_program_took_after_a_reboot_is_neither_counted_up_nor_stopped(tmp_path):
+    """The state file outlives a reboot; its PIDs may then be other programs'. A record whose process started
+    at another time reads exited, and `down` leaves that process alone (it sent SIGTERM, then SIGKILL, to its
+    group)."""
+    from flows.service import down, process_status, started_at
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
+    try:
+        record = {"pid": other.pid, "url": "http://127.0.0.1:9/", "health_url": "http://127.0.0.1:9/",
+                  "log": "x", "tracking": None}
+        for started, state in ((started_at(other.pid) - 3600, "exited"), (started_at(other.pid), "unhealthy")):
+            workspace.service.mkdir(parents=True, exist_ok=True)
+            workspace.service_state.write_text(json.dumps({"service": {}, "processes": {
+                "prefect": {**record, "started": started}}}))
+            assert [row["state"] for row in process_status(workspace)] == [state]
+            if state == "exited":
+                down(workspace)
+                assert other.poll() is None  # not ours: left running
+        down(workspace)  # ours: stopped
+        assert other.wait(timeout=30) == -signal.SIGTERM
+    finally:
+        if other.poll() is None:
+            other.kill()
