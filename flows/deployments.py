@@ -40,6 +40,39 @@ def build_deployments(config: CampaignConfig, workspace: Workspace, service: Ser
     ]
 
 
+def drop_stale_nightly_runs(config: CampaignConfig, workspace: Workspace) -> int:
+    """Delete the nightly deployment's scheduled runs made for another campaign config or workspace; -> how
+    many. Prefect keeps the runs it scheduled while the stack was down (a reboot), each with the parameters
+    of its day, and would run them one after another under the new schedule (serving anew replaces only the
+    future ones)."""
+    from prefect import get_client
+    from prefect.client.schemas.filters import (DeploymentFilter, DeploymentFilterId, FlowRunFilter, FlowRunFilterState,
+                                                FlowRunFilterStateType)
+    from prefect.client.schemas.objects import StateType
+    from prefect.exceptions import ObjectNotFound
+    from pydantic import ValidationError
+
+    def stale(parameters: dict) -> bool:
+        try:
+            return (CampaignConfig.model_validate(parameters.get("config", {})) != config
+                    or parameters.get("workspace") != str(workspace.root))
+        except ValidationError:  # an older sim2act's config
+            return True
+
+    with get_client(sync_client=True) as client:
+        try:
+            deployment = client.read_deployment_by_name(f"{bootstrap.name}/{NIGHTLY}")
+        except ObjectNotFound:
+            return 0
+        runs = client.read_flow_runs(
+            deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment.id])),
+            flow_run_filter=FlowRunFilter(state=FlowRunFilterState(type=FlowRunFilterStateType(any_=[StateType.SCHEDULED]))))
+        dropped = [run for run in runs if stale(run.parameters)]
+        for run in dropped:
+            client.delete_flow_run(run.id)
+    return len(dropped)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m flows.deployments", description=__doc__.splitlines()[0])
     parser.add_argument("--workspace", required=True)
@@ -48,6 +81,9 @@ def main(argv: list[str] | None = None) -> None:
     workspace = Workspace.at(args.workspace)
     config = CampaignConfig.model_validate_json(workspace.deployment_config.read_text())
     service = ServiceConfig.model_validate_json(args.service)
+    dropped = drop_stale_nightly_runs(config, workspace)
+    if dropped:
+        print(f"deployments: {dropped} scheduled nightly run(s) of another campaign config deleted", flush=True)
     serve(*build_deployments(config, workspace, service), limit=1, print_starting_message=True)
 
 

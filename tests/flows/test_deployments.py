@@ -1,0 +1,32 @@
+"""The deployments' process drops nightly runs Prefect scheduled for another campaign config (the stack
+down over a reboot: they would run one after another, each with its day's parameters)."""
+
+from __future__ import annotations
+
+import datetime
+
+from prefect import get_client
+from prefect.settings import PREFECT_API_URL, temporary_settings
+from prefect.states import Scheduled
+
+from flows.deployments import NIGHTLY, build_deployments, drop_stale_nightly_runs
+from schemas.config import load_config
+from schemas.service import ServiceConfig
+from schemas.workspace import Workspace
+
+
+def test_scheduled_nightly_runs_of_another_config_are_dropped_and_the_current_ones_kept(prefect_api, tmp_path):
+    workspace = Workspace.at(tmp_path / "ws")
+    old, new = load_config("smoke"), load_config("smoke", overrides={"iterations": 5})
+    with temporary_settings({PREFECT_API_URL: prefect_api}):
+        nightly = next(d for d in build_deployments(old, workspace, ServiceConfig()) if d.name == NIGHTLY)
+        deployment_id = nightly.apply()
+        past = Scheduled(scheduled_time=datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(days=1))
+        with get_client(sync_client=True) as client:
+            made = {which: client.create_flow_run_from_deployment(deployment_id, parameters={
+                "config": config.model_dump(mode="json"), "workspace": str(workspace.root), "continue_campaign": True},
+                state=past.model_copy()).id for which, config in (("old", old), ("new", new))}
+            assert drop_stale_nightly_runs(new, workspace) >= 1
+            left = {run.id for run in client.read_flow_runs()}
+        assert made["old"] not in left and made["new"] in left
+        assert drop_stale_nightly_runs(new, workspace) == 0
