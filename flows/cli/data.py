@@ -160,7 +160,8 @@ def register(commands: Commands) -> None:
     sql = commands.add_parser("sql", help="read-only SQL over the warehouse (tasks, episodes, steps, triplets, ...)")
     sql.add_argument("query")
     sql.add_argument("--format", choices=("table", "csv", "json"), default="table")
-    sql.add_argument("--as-of-iteration", type=int, metavar="K", help="see the warehouse as it was after iteration K")
+    sql.add_argument("--as-of-iteration", type=int, metavar="K", help="see the warehouse as it was after iteration K (of every campaign in it: name "
+                     "yours in the query)")
     add_workspace_option(sql).set_defaults(handler=cmd_sql)
 
     export = commands.add_parser("export", help="write a warehouse selection in another project's format")
