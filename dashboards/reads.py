@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from schemas.tables import CURRENT_FILTER_DECISIONS
+from schemas.tables import CURRENT_FILTER_DECISIONS, CURRENT_TASK_FAMILIES
 from warehouse.catalog import Catalog
 from warehouse.sql import check_read_only
 
@@ -56,7 +56,7 @@ _EPISODES = f"""
     SELECT e.episode_id, e.iteration, e.task_id, t.family, t.split, e.instruction, e.explorer,
            e.episode_return, e.success, e.num_steps, e.error, f.kept, f.reason, f.detail
     FROM episodes e
-    LEFT JOIN task_families t ON t.campaign = e.campaign AND t.task_id = e.task_id
+    LEFT JOIN {CURRENT_TASK_FAMILIES} t ON t.campaign = e.campaign AND t.task_id = e.task_id
     LEFT JOIN {CURRENT_FILTER_DECISIONS} f ON f.episode_id = e.episode_id
     WHERE e.campaign = $campaign
       AND ($iteration IS NULL OR e.iteration = $iteration)

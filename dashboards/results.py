@@ -14,6 +14,7 @@ from pathlib import Path
 
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration
+from schemas.tables import CURRENT_TASK_FAMILIES
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
@@ -249,8 +250,8 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
              "episodes of every task, fine-tuned from the champion "
              f"(`{result.source_model}`) or from scratch" + (f", {seeds} training seeds each (pooled; the lowest and highest seed "
              "in parentheses)" if seeds > 1 else "") + ", and meets the same evaluation episodes there."
-             + (" Its friction changes no contact: MuJoCo takes a contact's larger friction, and scaled below 1 an "
-                "object's is below the table's and the fingers' (docs/evaluation.md)."
+             + (" Its friction changes no contact of an object of nominal friction 1 with the table or the fingers: "
+                "MuJoCo takes a contact's larger friction, and theirs are larger (docs/evaluation.md)."
                 if result.domain.friction[1] < 1.0 else ""), ""]
     cells = {point: _pooled_cell(seeds) for point, seeds in pooled(result.points).items()}
     counts = sorted({p.episodes for p in result.points if p.start != "source"})
@@ -421,7 +422,7 @@ def dataset_rows(catalog: Catalog, campaign: str, explore_units: list[str],
     """Per family and split of the dataset `explore_units` made: (family, split, tasks in the campaign, tasks
     explored, episodes, env steps, kept episodes, kept triplets, the explore units' shard bytes). A unit's bytes
     count once, under the task it explored: `explore.relabel` files some of its episodes under other tasks."""
-    return catalog.query("""
+    return catalog.query(f"""
         WITH decided AS (
             SELECT episode_id, bool_or(kept) AS kept FROM filter_decisions WHERE list_contains(?, filter_key) GROUP BY ALL),
         explored AS (SELECT * FROM episodes WHERE campaign = ? AND list_contains(?, shard_key)),
@@ -439,7 +440,7 @@ def dataset_rows(catalog: Catalog, campaign: str, explore_units: list[str],
             GROUP BY ALL)
         SELECT t.family, t.split, count(*), count(p.task_id), coalesce(sum(p.episodes), 0), coalesce(sum(p.steps), 0),
                coalesce(sum(p.kept), 0), coalesce(sum(p.kept_steps), 0), coalesce(sum(b.num_bytes), 0)
-        FROM task_families t LEFT JOIN per_task p USING (task_id) LEFT JOIN task_bytes b USING (task_id)
+        FROM {CURRENT_TASK_FAMILIES} t LEFT JOIN per_task p USING (task_id) LEFT JOIN task_bytes b USING (task_id)
         WHERE t.campaign = ? GROUP BY ALL ORDER BY ALL""", [filter_units, campaign, explore_units, campaign])
 
 
@@ -525,7 +526,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     iterations = {row[0] for row in explored} | set(evaluations)
     for iteration, family, steps in catalog.query(
             "SELECT e.iteration, coalesce(f.family, ''), sum(e.num_steps) FROM episodes e "
-            "LEFT JOIN task_families f ON f.campaign = e.campaign AND f.task_id = e.task_id "
+            f"LEFT JOIN {CURRENT_TASK_FAMILIES} f ON f.campaign = e.campaign AND f.task_id = e.task_id "
             "WHERE e.campaign = ? AND list_contains(?, e.shard_key) GROUP BY ALL", [campaign, explore_units]):
         for through in (i for i in iterations if i >= iteration):
             steps_through[through, family] += int(steps)

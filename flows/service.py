@@ -264,9 +264,10 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
 
 
 def _stop(record: dict) -> None:
-    """End a recorded process's group: never another program's that took its PID after a reboot."""
+    """End a recorded process's group (its leader gone, children may hold its ports still), never another
+    program's that took the leader's PID after a reboot."""
     pid = record["pid"]
-    if not is_recorded_process(record):
+    if is_alive(pid) and not is_recorded_process(record):
         return
     try:
         os.killpg(pid, signal.SIGTERM)

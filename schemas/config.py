@@ -154,13 +154,12 @@ class RandomiseConfig(_Strict):
     camera_shift_m: float = Field(default=0.02, ge=0, le=0.2, description="max camera offset per axis, metres")
     camera_rotation_deg: float = Field(default=2.0, ge=0, le=15, description="max camera rotation per axis")
     tint: float = Field(default=0.15, ge=0, lt=1, description="max per-channel scale change of scene colours")
-    # the cap keeps two palette colours' jittered ranges apart: yellow and orange floors (navigation's, 0.8 of the
-    # palette) differ by 0.28 in their most different channel, so jitter of 0.14 or more would let them meet
-    colour_jitter: float = Field(default=0.05, ge=0, le=0.13, description="max RGB offset of task object colours")
+    # a campaign's cap is COLOUR_JITTER_MAX (CampaignConfig checks it); this bound is what stored records hold
+    colour_jitter: float = Field(default=0.05, ge=0, le=0.2, description="max RGB offset of task object colours")
     size: Scale = Field(default=(0.9, 1.1), description="object size scale")
     mass: Scale = Field(default=(0.75, 1.25), description="object mass scale")
     friction: Scale = Field(default=(0.75, 1.25), description="object sliding friction scale (a contact takes its two "
-                            "geoms' larger: below 1 it meets a grippier table or fingers, so changes no contact)")
+                            "geoms' larger: below 1, an object of friction 1 keeps the table's and fingers')")
 
     @model_validator(mode="after")
     def _ranges_ordered(self) -> RandomiseConfig:
@@ -528,6 +527,11 @@ class AdaptConfig(_Strict):
         "report with their spread: the results protocol asks 3")
 
 
+# A campaign's largest colour jitter: two palette colours' jittered ranges stay apart below it (yellow and orange
+# floors, navigation's 0.8 of the palette, differ by 0.28 in their most different channel: 0.14 would let them meet)
+COLOUR_JITTER_MAX = 0.13
+
+
 class CampaignConfig(_Strict):
     """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
 
@@ -544,6 +548,14 @@ class CampaignConfig(_Strict):
     redeploy: RedeployConfig = RedeployConfig()
     baselines: BaselinesConfig = BaselinesConfig()
     adapt: AdaptConfig = AdaptConfig()
+
+    @model_validator(mode="after")
+    def _colours_stay_apart(self) -> CampaignConfig:
+        for field, randomise in (("randomise", self.randomise), ("adapt.domain", self.adapt.domain)):
+            if randomise.colour_jitter > COLOUR_JITTER_MAX:
+                raise ValueError(f"{field}.colour_jitter: expected at most {COLOUR_JITTER_MAX} (two palette colours' "
+                                 f"jittered ranges would meet), got {randomise.colour_jitter}")
+        return self
 
     @model_validator(mode="after")
     def _baselines_see_enough(self) -> CampaignConfig:

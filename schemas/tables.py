@@ -297,6 +297,14 @@ CURRENT_FILTER_DECISIONS = """(
     SELECT f.* FROM filter_decisions f LEFT JOIN stage_runs r ON r.unit_key = f.filter_key
     QUALIFY row_number() OVER (PARTITION BY f.episode_id ORDER BY r.finished_at DESC NULLS LAST, f.filter_key DESC) = 1)"""
 
+# Which task does an id name: one row per (campaign, task), its latest tasks unit's (a changed tasks.* can say
+# another split or family for the same id). The task_families view; a subquery for the readers that may open a
+# catalog whose views an older sim2act made (views are made again when a run next writes the catalog).
+CURRENT_TASK_FAMILIES = """(
+    SELECT t.campaign, t.task_id, t.family, t.spec, t.split FROM tasks t LEFT JOIN stage_runs r ON r.unit_key = t.unit_key
+    QUALIFY row_number() OVER (PARTITION BY t.campaign, t.task_id ORDER BY r.finished_at DESC NULLS LAST,
+                               t.unit_key DESC) = 1)"""
+
 # Views over the tables above, ready for `sim2act sql` and the dashboards.
 VIEWS = {
     # One row per evaluation case (campaign, model, suite, task, split, wording): the one of most episodes, then
@@ -316,12 +324,7 @@ VIEWS = {
     "kept_steps": f"""
         SELECT s.* FROM steps s
         WHERE s.episode_id IN (SELECT episode_id FROM {CURRENT_FILTER_DECISIONS} WHERE kept)""",
-    # Which task does an id name: one row per (campaign, task), its latest tasks unit's (a changed tasks.* can say
-    # another split or family for the same id).
-    "task_families": """
-        SELECT t.campaign, t.task_id, t.family, t.spec, t.split FROM tasks t LEFT JOIN stage_runs r ON r.unit_key = t.unit_key
-        QUALIFY row_number() OVER (PARTITION BY t.campaign, t.task_id ORDER BY r.finished_at DESC NULLS LAST,
-                                   t.unit_key DESC) = 1""",
+    "task_families": f"SELECT * FROM {CURRENT_TASK_FAMILIES}",
     "task_success": """
         SELECT e.campaign, e.iteration, e.task_id, t.family, t.split, e.explorer,
                count(*) AS episodes, count(*) FILTER (WHERE e.success) AS successes,

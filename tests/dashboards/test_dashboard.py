@@ -88,6 +88,20 @@ def test_the_success_panels_read_what_the_report_reads(tmp_path):
     assert per_task["nav-room-red"].startswith("9/10")
 
 
+def test_the_success_panel_weighs_a_case_evaluated_again_with_more_episodes_as_the_report_does(tmp_path):
+    from dashboards.panels import run_panel
+    from dashboards.report import success_by_iteration
+    from tests.dashboards.test_results import CAMPAIGN, _catalog_with_tasks, _evaluated, _register
+
+    catalog = _catalog_with_tasks(tmp_path)
+    _register(catalog, 0, {("nav-room-red", "seen"): 0, ("nav-room-sequence-red-green", "seen"): 10})
+    _evaluated(catalog, "train-0", 1, episodes=50, unit="evaluate-0-again")  # its first episode succeeded
+    panel = next(p for p in load_panels() if p.id == "success_by_iteration")
+    pooled = {row["split"]: (row["successes"], row["episodes"]) for row in run_panel(catalog, panel, CAMPAIGN).rows}
+    report = {g.group: (g.successes, g.episodes) for g in success_by_iteration(catalog, CAMPAIGN)[0]}
+    assert pooled["seen"] == report["seen"] == (11, 20)
+
+
 def test_the_iterations_panel_has_one_row_an_iteration_with_the_model_it_deployed(tmp_path):
     """Three training seeds of an iteration gave three rows, two of them blank."""
     from dashboards.panels import run_panel
