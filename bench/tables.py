@@ -40,5 +40,6 @@ def ratio_table(ratios: list[Ratio]) -> list[str]:
 
 
 def cores() -> int:
-    """The cores this process may run on (`taskset` and container limits count; os.cpu_count() ignores them)."""
+    """The cores this process may run on (its affinity: `taskset` and cpusets count, os.cpu_count() counts every
+    core; a CPU quota, `docker --cpus`, is not seen)."""
     return len(os.sched_getaffinity(0))
