@@ -167,6 +167,11 @@ def test_promotion_compares_the_champion_on_the_new_models_own_episodes(tmp_path
     promotion = decide(new)
     assert (promotion.promote, promotion.success, promotion.champion_success) == (True, 0.4, 0.3)
     assert promotion.reason == "success 40% beats the champion's 30% on 1 cases"
+    # worse, or level, on the same episodes: the champion stays
+    worse = decide([_case("nav-ball-red", "navigation", "seen", [True] * 2 + [False] * 8)])
+    assert (worse.promote, worse.success, worse.champion_success) == (False, 0.2, 0.3)
+    assert worse.reason.startswith("success 20% does not beat")
+    assert decide([_case("nav-ball-red", "navigation", "seen", [True] * 3 + [False] * 7)]).promote is False
     other = [_case("nav-box-red", "navigation", "seen", [True] * 10)]  # a case the champion never met
     assert decide(other).reason == "the champion was never evaluated on these tasks"
     # redeploy.registered_model changed: no champion there yet, so the first model makes the alias

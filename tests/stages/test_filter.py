@@ -75,6 +75,9 @@ def test_rejection_sampling_on_success_and_return():
     assert decide(_episode(error="MujocoException: unstable"), facts, FilterConfig(), {})[0] == "env_error"
     assert decide(_episode(success=False), facts, FilterConfig(require_success=True), {}) == ("not_successful", None)
     assert decide(_episode(episode_return=0.5), facts, FilterConfig(min_return=1.0), {})[0] == "low_return"
+    # and the kept side: a success where one is asked for, a return at the bar (it is `return < min_return` that fails)
+    assert decide(_episode(success=True), facts, FilterConfig(require_success=True), {}) == ("kept", None)
+    assert decide(_episode(episode_return=1.0), facts, FilterConfig(min_return=1.0), {}) == ("kept", None)
 
 
 def test_a_changed_filter_setting_decides_the_same_episodes_again_and_dedupes_within_its_lineage(tmp_path):

@@ -61,6 +61,20 @@ def test_a_shard_with_a_mismatched_column_is_refused_naming_column_and_reason(fi
         Catalog(filled.catalog).register_unit(unit_key="explore-y", stage="explore", campaign="bench", iteration=0,
                                               summary={}, shards=[shard])
     assert not Catalog(filled.catalog).is_registered("explore-y")
+    # a whole file whose rows or bytes are not what its writer said (a torn write, another file at the path)
+    from dataclasses import replace
+
+    from warehouse.catalog import ShardUnreadable
+
+    path = filled.shard_path("steps", 0, "explore-z")
+    pq.write_table(steps, path)
+    true = ShardFile("steps", path, steps.num_rows, path.stat().st_size, sha256_of(path))
+    for wrong in (replace(true, sha256="0" * 64), replace(true, num_rows=steps.num_rows + 1)):
+        with pytest.raises(ShardUnreadable, match="differs from what its writer reported"):
+            Catalog(filled.catalog).register_unit(unit_key="explore-z", stage="explore", campaign="bench", iteration=0,
+                                                  summary={}, shards=[wrong])
+        assert not Catalog(filled.catalog).is_registered("explore-z")
+    assert not Catalog(filled.catalog).query("SELECT count(*) FROM shards WHERE unit_key = 'explore-z'")[0][0]
 
 
 def register_steps_table(seed: int) -> pa.Table:
