@@ -154,8 +154,11 @@ def _port_free(port: int) -> bool:
 
 
 def read_state(workspace: Workspace) -> dict:
+    """The stack recorded for this workspace; {} where none is, or the file came with a copy of another
+    workspace (its processes are the original's: a copy must neither use nor stop them)."""
     path = workspace.service_state
-    return json.loads(path.read_text()) if path.exists() else {}
+    state = json.loads(path.read_text()) if path.exists() else {}
+    return state if state.get("workspace", str(workspace.root)) == str(workspace.root) else {}
 
 
 def process_status(workspace: Workspace) -> list[dict]:
@@ -241,7 +244,7 @@ def up(workspace: Workspace, service: ServiceConfig, campaign: CampaignConfig, o
     workspace.service.mkdir(parents=True, exist_ok=True)
     write_text_atomically(workspace.deployment_config, campaign.model_dump_json(indent=1))
     state = read_state(workspace) or {"service": service.model_dump(), "processes": {}}  # (down may have changed it)
-    state["service"] = service.model_dump()
+    state["service"], state["workspace"] = service.model_dump(), str(workspace.root)
     started: list[str] = []
     try:
         for spec in specs:

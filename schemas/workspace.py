@@ -39,6 +39,11 @@ class Workspace:
     def checkpoint(self, model_key: str) -> Path:
         return self.models / model_key / "policy.pt"
 
+    def registry_download(self, model_key: str) -> Path:
+        """Where a registry version of model `model_key` is downloaded to (by its key: a registry made again
+        numbers its versions from 1 again)."""
+        return self.models / "registry" / model_key
+
     def train_state(self, model_key: str, member: int = 0) -> Path:
         """An unfinished training's last resumable checkpoint of an ensemble member (removed once the
         model is registered)."""

@@ -65,15 +65,25 @@ def _registered_version(client: MlflowClient, name: str, model_key: str) -> int 
 def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, version: int) -> PolicyExplorer:
     """The registry's model version as an explorer: its checkpoint fetched from the artifact store."""
     model_version = client.get_model_version(name, str(version))
-    target = workspace.models / "registry" / name / str(version)
+    target = workspace.registry_download(model_version.tags[MODEL_KEY_TAG])
     if not (target / "artifacts" / "policy.pt").exists():
+        import shutil
+        import tempfile
+
         import mlflow.artifacts
 
-        target.mkdir(parents=True, exist_ok=True)
-        # this workspace's registry, not MLflow's default of ./mlflow.db: `models:/` URIs resolve through the
-        # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
-        with _fluent_tracking(tracking_uri(workspace)):
-            mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(target))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        # downloaded aside and renamed into place: a kill mid-download leaves no half a checkpoint to be reused
+        partial = Path(tempfile.mkdtemp(dir=target.parent, prefix=f".{target.name}-"))
+        try:
+            # this workspace's registry, not MLflow's default of ./mlflow.db: `models:/` URIs resolve through the
+            # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
+            with _fluent_tracking(tracking_uri(workspace)):
+                mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(partial))
+            shutil.rmtree(target, ignore_errors=True)  # an older layout's leftovers, or a racing download's
+            partial.rename(target)
+        finally:
+            shutil.rmtree(partial, ignore_errors=True)
     checkpoint, model_key = str(target / "artifacts" / "policy.pt"), model_version.tags[MODEL_KEY_TAG]
     worker_checkpoint = None
     store = Catalog(workspace.catalog).store

@@ -84,6 +84,24 @@ def iteration_zero_snapshot(workspace: Path) -> dict:
                                 "ORDER BY 1"),
         "digest": catalog.query("SELECT dataset_digest, triplets FROM iterations WHERE iteration = 0"),
         "model": catalog.query("SELECT model_key FROM models WHERE iteration = 0"),
-        "evaluations": catalog.query("SELECT task_id, split, instruction, episodes FROM evaluations "
-                                     "WHERE iteration = 0 ORDER BY ALL"),
+        # the weights themselves (a key is a hash of settings and data: a resume that trained otherwise keeps it)
+        "weights": [weights_digest(Workspace.at(workspace).checkpoint(key))
+                    for (key,) in catalog.query("SELECT model_key FROM models WHERE iteration = 0 ORDER BY 1")],
+        "evaluations": catalog.query("SELECT task_id, split, instruction, episodes, successes, episode_successes, "
+                                     "mean_return FROM evaluations WHERE iteration = 0 ORDER BY ALL"),
     }
+
+
+def weights_digest(checkpoint: Path) -> str:
+    """sha256 over every member's tensors, by name: equal only for bit-identical weights."""
+    import hashlib
+
+    import torch
+
+    from policies.policy import checkpoint_members
+
+    digest = hashlib.sha256()
+    for member in checkpoint_members(torch.load(checkpoint, weights_only=False)):
+        for name in sorted(member):
+            digest.update(name.encode() + member[name].detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()

@@ -30,6 +30,17 @@ QUIET_ENV = {
 FAST_POLLING_ENV = {"PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_RUNNER_POLL_FREQUENCY": "2"}
 os.environ.update(QUIET_ENV)
 os.environ.update(FAST_POLLING_ENV)
+# The developer's shell may point at a lab's services (docs/scale-out.md: a tracking server, a shard store, S3
+# keys, a secrets file naming them): the suite's campaigns would register models there, move their aliases and
+# write shards into the bucket. Every test starts from this machine alone; a test that wants a service sets it.
+LAB_ENV = ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "MLFLOW_BACKEND_STORE_URI", "MLFLOW_ARTIFACTS_DESTINATION",
+           "MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD", "PREFECT_API_URL", "PREFECT_HOME",
+           "PREFECT_SERVER_DATABASE_CONNECTION_URL", "SIM2ACT_SECRETS_FILE", "SIM2ACT_SHARD_STORE",
+           "SIM2ACT_WORKSPACE", "SIM2ACT_LINEAGE", "SIM2ACT_CACHE_DIR", "AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY",
+           "AWS_SESSION_TOKEN", "AWS_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3", "AWS_PROFILE", "AWS_DEFAULT_REGION",
+           "AWS_REGION")
+for name in LAB_ENV:
+    os.environ.pop(name, None)
 # `make test` runs the suite on 2 pytest-xdist workers, each a process that may run torch beside the other's.
 # torch's OpenMP threads spin while they wait at each op's end, as if they had the cores to themselves. Measured
 # here (tests/policies/test_model.py's training, 7-10 s alone on 2 threads): two at once took 52-56 s each on 2

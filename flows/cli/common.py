@@ -157,8 +157,25 @@ def configure_environment(workspace: Workspace) -> None:
         os.environ.setdefault(key, value)
 
 
+# the tracking URIs MLflow takes (a plain path has none); "postgresql+psycopg2" is postgresql's
+TRACKING_SCHEMES = ("file", "sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+
+
 class TrackingUnreachable(Sim2ActError, RuntimeError):
     pass
+
+
+def check_tracking_uris() -> None:
+    """MLFLOW_TRACKING_URI and MLFLOW_BACKEND_STORE_URI are of a scheme MLflow takes: its own refusal prints
+    the whole URL, password too (the terminal, the flow run's state in Prefect, the MLflow server's log).
+
+    Raises:
+        TrackingUnreachable: one that is not, shown with its password replaced."""
+    for name in (TRACKING_URI_ENV, BACKEND_STORE_ENV):
+        value = os.environ.get(name)
+        scheme = urlsplit(value).scheme.split("+")[0] if value else ""
+        if value and scheme and scheme not in TRACKING_SCHEMES:
+            raise TrackingUnreachable(f"{name}: expected a URI of {', '.join(TRACKING_SCHEMES)}, got {redacted(value)}")
 
 
 def check_tracking_server(workspace: Workspace) -> None:
@@ -173,6 +190,7 @@ def check_tracking_server(workspace: Workspace) -> None:
     if os.environ.get(BACKEND_STORE_ENV) and not os.environ.get(TRACKING_URI_ENV):
         raise TrackingUnreachable(f"{BACKEND_STORE_ENV} names the stack's tracking database, but no MLflow server "
                                   f"runs for {workspace.root}: start it (`sim2act up`) or set {TRACKING_URI_ENV}")
+    check_tracking_uris()
     parts = urlsplit(uri)
     if parts.scheme not in ("http", "https"):
         return

@@ -7,7 +7,7 @@ import argparse
 
 from pydantic import ValidationError
 
-from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, campaign_config,
+from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, campaign_config, check_tracking_uris,
                               configure_environment, open_catalog, port_number)
 from schemas.config import ConfigError, describe_validation_error
 from schemas.service import HOST, ServiceConfig
@@ -41,6 +41,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     workspace, catalog = open_catalog(args)
     configure_environment(workspace)
+    check_tracking_uris()  # before the MLflow server logs a refused one whole
     catalog.initialise()  # the dashboard reads it from the first minute
     print(f"sim2act: starting the stack over {workspace.root} (campaign {config.name!r}, nightly "
           f"{service.nightly_cron} {service.timezone})", flush=True)

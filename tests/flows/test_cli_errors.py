@@ -53,3 +53,17 @@ def test_a_temporary_server_that_died_while_it_started_is_one_line(monkeypatch, 
     assert capsys.readouterr().err == (
         "sim2act: Prefect's temporary API server died while it started (exit -9); nothing ran against it. Run the "
         "same command again to resume (finished units are kept)\n")
+
+
+@pytest.mark.parametrize("name", ["MLFLOW_TRACKING_URI", "MLFLOW_BACKEND_STORE_URI"])
+def test_a_tracking_uri_of_a_scheme_mlflow_refuses_is_one_line_without_its_password(monkeypatch, tmp_path, name):
+    """`postgres://` (MLflow takes `postgresql://`): MLflow's own refusal printed the whole URL, password too,
+    into the terminal, the flow run's state in Prefect and the MLflow server's log."""
+    from flows.cli.common import TrackingUnreachable, check_tracking_server
+    from schemas.workspace import Workspace
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:1")  # a server named, where the store is
+    monkeypatch.setenv(name, "postgres://sim2act:hunter2@db.lab/mlflow")
+    with pytest.raises(TrackingUnreachable, match=rf"^{name}: expected a URI of file, sqlite, postgresql") as error:
+        check_tracking_server(Workspace.at(tmp_path))
+    assert "hunter2" not in str(error.value) and "sim2act:***@db.lab" in str(error.value)

@@ -281,3 +281,21 @@ def test_a_recorded_pid_another_program_took_after_a_reboot_is_neither_counted_u
     finally:
         if other.poll() is None:
             other.kill()
+
+
+def test_a_copied_workspace_neither_uses_nor_stops_the_originals_stack(tmp_path):
+    """service/state.json travels with a `cp -r`: its processes are the original's."""
+    from flows.service import down, process_status, started_at
+
+    copy = Workspace.at(tmp_path / "copy").create()
+    original = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True)
+    try:
+        copy.service.mkdir(parents=True, exist_ok=True)
+        copy.service_state.write_text(json.dumps({"service": {}, "workspace": str(tmp_path / "original"), "processes": {
+            "prefect": {"pid": original.pid, "started": started_at(original.pid), "url": "http://127.0.0.1:9/",
+                        "health_url": "http://127.0.0.1:9/", "log": "x", "tracking": None}}}))
+        assert process_status(copy) == []
+        down(copy)
+        assert original.poll() is None and not copy.service_state.exists()
+    finally:
+        original.kill()
