@@ -79,7 +79,11 @@ def test_layouts_follow_the_seed_and_always_hold_the_task_colours():
     env.reset(task, seed=5)
     again = env.reset(task, seed=4).proprio.copy(), dict(env.objects)
     assert np.array_equal(first[0], again[0]) and first[1].keys() == again[1].keys()
+    assert all(np.array_equal(first[1][k], again[1][k]) for k in first[1])  # the same places, not just the same objects
     assert ("ball", "orange") in again[1]
+    env.reset(task, seed=5)
+    other = dict(env.objects)  # another seed, another layout
+    assert other.keys() != first[1].keys() or not all(np.allclose(other[k], first[1][k]) for k in other)
 
 
 def test_bad_actions_are_refused():

@@ -41,7 +41,10 @@ def test_a_failing_unit_registers_nothing_and_runs_again(units):
     with pytest.raises(RuntimeError):
         units.run("filter-bbb", broken)
     assert units.pending(["filter-bbb"]) == ["filter-bbb"]
+    assert not units.catalog.query("SELECT count(*) FROM stage_runs WHERE unit_key = 'filter-bbb'")[0][0]
     assert units.run("filter-bbb", lambda: UnitOutput({})) is not None
+    assert units.catalog.is_registered("filter-bbb")
+    assert units.catalog.query("SELECT count(*) FROM stage_runs WHERE unit_key = 'filter-bbb'") == [(1,)]
 
 
 def test_pending_keeps_the_order_given_and_leaves_out_registered_keys(units):

@@ -114,7 +114,7 @@ def test_the_expert_takes_over_its_share_of_the_policys_steps_and_labels_every_o
 def test_expert_takeover_needs_the_labelling_expert():
     with pytest.raises(ValueError, match="expert_takeover: expected expert_labels true"):
         ExploreConfig(expert_takeover=0.5, expert_labels=False)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"expert_takeover\.constrained-float\s+Input should be less than or equal to 1"):
         ExploreConfig(expert_takeover=1.5)
 
 
