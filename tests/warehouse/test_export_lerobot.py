@@ -56,18 +56,20 @@ def _build(root, spec=EPISODES_SPEC, wrist: set[str] = frozenset()) -> tuple[Cat
     episodes, steps, decisions, truth = [], [], [], {}
     for e, (episode_id, (task_id, instruction, n, kept, action_dim)) in enumerate(spec.items()):
         common = dict(campaign="t", iteration=0, episode_id=episode_id, task_id=task_id)
+        # ep-b succeeded and was rejected all the same (its return): an export must select on the filter, not success
+        succeeded = kept or episode_id == "ep-b"
         frames = [np.concatenate([_frame(e, s), _frame(e, s + 1)], axis=1) if episode_id in wrist else _frame(e, s)
                   for s in range(n)]
         actions = rng.uniform(-1, 1, (n, action_dim)).astype(np.float32)
         proprio = rng.uniform(-1, 1, (n, 9)).astype(np.float32)
         truth[episode_id] = {"frames": frames, "actions": actions, "proprio": proprio}
         episodes.append(_row(EPISODES, **common, instruction=instruction, explorer="expert", seed=e,
-                             shard_key="explore-0", num_steps=n, episode_return=float(n), success=kept))
+                             shard_key="explore-0", num_steps=n, episode_return=float(n), success=succeeded))
         for s in range(n):
             steps.append(_row(
                 STEPS, **common, step=s, instruction=instruction, image=encode_frame(frames[s]),
                 proprio=proprio[s].tolist(), action=actions[s].tolist(), reward=float(s) / n, done=s == n - 1,
-                success=kept and s == n - 1, next_image=encode_frame(frames[s]) if s == n - 1 else None,
+                success=succeeded and s == n - 1, next_image=encode_frame(frames[s]) if s == n - 1 else None,
                 sim_time=s * 0.05,
             ))
         decisions.append(_row(FILTER_DECISIONS, **common, kept=kept, reason="kept" if kept else "low_return",
