@@ -258,8 +258,14 @@ def adaptation_markdown(catalog: Catalog, campaign: str) -> list[str]:
     lines += _table(["target-domain episodes", "fine-tuned from Sim2Act", "from scratch"],
                     [[0, cells[0, "source"] + " (the champion as it is)", "–"]]
                     + [[n, cells.get((n, "fine-tuned"), "–"), cells.get((n, "scratch"), "–")] for n in counts])
-    [(seconds,)] = catalog.query("SELECT coalesce(sum(wall_s), 0) FROM stage_runs WHERE campaign = ? AND stage <> ?",
-                                 [result.campaign, ADAPT_STAGE])
+    # this adaptation's trainings and evaluations (a later champion's adaptation adds its own to the campaign) and
+    # the target domain's data they share
+    models = sorted({p.model_key for p in result.points})
+    [(seconds,)] = catalog.query(
+        "SELECT coalesce(sum(wall_s), 0) FROM stage_runs WHERE campaign = ? AND stage <> ? AND (stage NOT IN ('train', "
+        "'evaluate') OR unit_key IN (SELECT unit_key FROM models WHERE list_contains(?, model_key)) "
+        "OR unit_key IN (SELECT unit_key FROM evaluations WHERE list_contains(?, model_key)))",
+        [result.campaign, ADAPT_STAGE, models, models])
     target = result.target_success
     lines += ["", f"Episodes to reach {target:.0%}: fine-tuned {_reached(result.points, 'fine-tuned', target)}, "
                   f"from scratch {_reached(result.points, 'scratch', target)} (the proposal's target: ≤ 50). "

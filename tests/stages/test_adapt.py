@@ -88,6 +88,19 @@ def test_the_report_tabulates_the_latest_adaptation(adapted):
     assert f"| 4 | {cell[4, 'fine-tuned']} = " in text and "Episodes to reach 80%: fine-tuned " in text
     assert "stand-in" in text and "light (0.35, 0.55)" in text
     assert adaptation_markdown(catalog, "another-campaign")[0].startswith("No adaptation has run")
+    # the compute line counts this adaptation's units: another champion's trainings, in the same -adapt campaign,
+    # are not its work
+    import re
+
+    def compute() -> float:
+        line = next(line for line in adaptation_markdown(catalog, "adapt-test") if "Compute: " in line)
+        return float(re.search(r"Compute: ([\d,]+) wall seconds", line)[1].replace(",", ""))
+
+    before = compute()
+    assert before > 0
+    catalog.register_unit(unit_key="train-another-champions", stage="train", campaign=result.campaign, iteration=0,
+                          summary={}, wall_s=5000.0)
+    assert compute() == before
 
 
 def test_each_family_s_scores_come_from_the_adaptation_s_own_rows(adapted):
