@@ -14,14 +14,13 @@ from pathlib import Path
 
 from dashboards.protocol import ablations, climbs, differing_settings, loop_groups, seed_groups
 from dashboards.report import evaluations_by_iteration
-from schemas.tables import CURRENT_TASK_FAMILIES
+from schemas.tables import CURRENT_ITERATIONS, CURRENT_TASK_FAMILIES
 from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
-from stages.index import CURRENT_ITERATIONS
 from warehouse.catalog import Catalog
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)

@@ -289,6 +289,13 @@ CURRENT_DEPLOYMENTS = """(
     QUALIFY row_number() OVER (PARTITION BY d.campaign, d.iteration
                                ORDER BY r.finished_at DESC NULLS LAST, d.unit_key DESC) = 1)"""
 
+# One dataset per campaign iteration: its latest registered. A campaign run again in its workspace with another
+# filter.* (or explore.*) indexes the same iteration again.
+CURRENT_ITERATIONS = """(
+    SELECT i.* FROM iterations i LEFT JOIN stage_runs r ON r.unit_key = i.unit_key
+    QUALIFY row_number() OVER (PARTITION BY i.campaign, i.iteration ORDER BY r.finished_at DESC NULLS LAST,
+                               i.unit_key DESC) = 1)"""
+
 # One filter decision per episode: its latest filter unit's. A campaign run again in its workspace with another
 # `filter.*` decides its episodes again (stages/filter.py keeps each setting's lineage apart); counted together, a
 # view would count those episodes once per setting. A subquery, as CURRENT_DEPLOYMENTS (dashboards/panels.yaml

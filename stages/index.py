@@ -43,14 +43,6 @@ class IndexResult(StageResult):
         return Selection(tuple(self.explore_units), tuple(self.filter_units))
 
 
-# One dataset per campaign iteration: its latest registered. A campaign run again in its workspace with another
-# filter.* (or explore.*) indexes the same iteration again.
-CURRENT_ITERATIONS = """(
-    SELECT i.* FROM iterations i LEFT JOIN stage_runs r ON r.unit_key = i.unit_key
-    QUALIFY row_number() OVER (PARTITION BY i.campaign, i.iteration ORDER BY r.finished_at DESC NULLS LAST,
-                               i.unit_key DESC) = 1)"""
-
-
 def latest_index(workspace: Workspace, campaign: str, iteration: int | None = None,
                  config: CampaignConfig | None = None) -> IndexResult | None:
     """A campaign's registered dataset of `iteration` (default: its latest), or None. With `config`, only a
