@@ -20,7 +20,7 @@ from envs.suite import generate_tasks
 from policies.model import ModelDims
 from schemas.config import CampaignConfig, ConfigError, read_text_file, recorded_render
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
-from schemas.settings import TRACKING_URI_ENV, tracking_uri
+from schemas.settings import REGISTRY_URI_ENV, TRACKING_URI_ENV, registry_uri, tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import EvalUnit, evaluation_cases
@@ -58,11 +58,11 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
                               "is missing (its models/ folder moved or deleted?)")
         return ModelRef(ref, str(checkpoint), found[0][1], ref)
     name, version_number, alias = parse_registry_ref(ref, config.registered_model_name)
-    if not os.environ.get(TRACKING_URI_ENV) and not workspace.tracking_db.exists():
+    if not (os.environ.get(TRACKING_URI_ENV) or os.environ.get(REGISTRY_URI_ENV)) and not workspace.tracking_db.exists():
         raise ConfigError(f"--model: {ref!r} is a registry reference, but {workspace.root} has no model registry "
                           f"({workspace.tracking_db} is missing: no campaign ran there); name a model key "
                           "(train-...) or the workspace of a campaign that ran")  # not made here: a lookup writes nothing
-    client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=tracking_uri(workspace))
+    client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=registry_uri(workspace))
     try:
         version = (client.get_model_version(name, version_number) if version_number
                    else client.get_model_version_by_alias(name, alias))

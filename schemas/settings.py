@@ -31,6 +31,9 @@ CACHE_DIR_ENV = "SIM2ACT_CACHE_DIR"
 SCENES_PER_WORKER_ENV, DEFAULT_SCENES_PER_WORKER = "SIM2ACT_SCENES_PER_WORKER", 16
 # MLflow's: where runs are logged (default: the workspace's SQLite file); an http(s) URL is an MLflow server.
 TRACKING_URI_ENV = "MLFLOW_TRACKING_URI"
+# MLflow's: where models are registered and looked up, for a lab whose registry is not its tracking store
+# (default: where runs are logged, as MLflow's own default).
+REGISTRY_URI_ENV = "MLFLOW_REGISTRY_URI"
 # MLflow's, read by `sim2act up`'s MLflow server: its database (default: the workspace's SQLite file)
 # and, with a database of its own, where it keeps the artifacts it proxies (default: the workspace's folder).
 BACKEND_STORE_ENV, ARTIFACTS_DESTINATION_ENV = "MLFLOW_BACKEND_STORE_URI", "MLFLOW_ARTIFACTS_DESTINATION"
@@ -124,6 +127,13 @@ def tracking_uri(workspace: Workspace) -> str:
         return configured
     whole_sqlite_store(workspace)
     return workspace.tracking_uri
+
+
+def registry_uri(workspace: Workspace) -> str:
+    """Where this process registers models and resolves `models:/` references: MLFLOW_REGISTRY_URI, else
+    where it logs runs (`tracking_uri`). Every registry call goes through it: registering in one store and
+    looking up in another found no model (`sim2act eval --model champion`)."""
+    return os.environ.get(REGISTRY_URI_ENV) or tracking_uri(workspace)
 
 
 def whole_sqlite_store(workspace: Workspace) -> None:

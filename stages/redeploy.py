@@ -15,7 +15,7 @@ from mlflow import MlflowClient
 
 from schemas.config import CampaignConfig
 from schemas.keys import unit_key
-from schemas.settings import TRACKING_URI_ENV, tracking_uri
+from schemas.settings import REGISTRY_URI_ENV, TRACKING_URI_ENV, registry_uri, tracking_uri
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Promotion
@@ -78,7 +78,7 @@ def champion_explorer(workspace: Workspace, client: MlflowClient, name: str, ver
         try:
             # this workspace's registry, not MLflow's default of ./mlflow.db: `models:/` URIs resolve through the
             # fluent global whatever download_artifacts is told (MLflow 3.17), so set it for the call
-            with _fluent_tracking(tracking_uri(workspace)):
+            with _fluent_tracking(workspace):
                 mlflow.artifacts.download_artifacts(f"models:/{name}/{version}", dst_path=str(partial))
             shutil.rmtree(target, ignore_errors=True)  # an older layout's leftovers, or a racing download's
             partial.rename(target)
@@ -127,7 +127,7 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
     signature = infer_signature(example, predict_frame(Policy.load(Path(checkpoint)), example))
     # optional: rows of one episode act through its earlier chunks, as evaluation acts (policies/mlflow_model.py)
     signature.inputs = Schema([*signature.inputs.inputs, ColSpec("string", "episode_id", required=False)])
-    with _fluent_tracking(tracking_uri(workspace)):
+    with _fluent_tracking(workspace):
         with mlflow.start_run(run_id=mlflow_run_id):
             info = mlflow.pyfunc.log_model(
                 name="policy", python_model=MODEL_CODE, artifacts={"checkpoint": checkpoint},
@@ -142,32 +142,37 @@ def _register(workspace: Workspace, catalog: Catalog, config: CampaignConfig, mo
 
 
 @contextmanager
-def _fluent_tracking(uri: str) -> Iterator[None]:
-    """MLflow's fluent API (log_model, register_model) tracks one URI per process and writes it into
-    MLFLOW_TRACKING_URI, which this process's later work and every child it starts would then take for
-    the user's setting (schemas.settings.tracking_uri): another workspace's store. Set for the call,
-    then put back as it was, the variable included."""
+def _fluent_tracking(workspace: Workspace) -> Iterator[None]:
+    """MLflow's fluent API (log_model, register_model) tracks one URI and registers at one URI per process,
+    and writes them into MLFLOW_TRACKING_URI and MLFLOW_REGISTRY_URI, which this process's later work and
+    every child it starts would then take for the user's settings (schemas.settings): another workspace's
+    stores. Set for the call (`tracking_uri`, `registry_uri`), then put back as they were, variables included."""
     import mlflow
 
     with kept_tracking():
-        mlflow.set_tracking_uri(uri)
+        mlflow.set_tracking_uri(tracking_uri(workspace))
+        mlflow.set_registry_uri(registry_uri(workspace))
         yield
 
 
 @contextmanager
 def kept_tracking() -> Iterator[None]:
-    """The process's MLflow tracking setting (the fluent global and MLFLOW_TRACKING_URI) as it was before."""
-    from mlflow.tracking._tracking_service import utils  # the fluent API's global
+    """The process's MLflow tracking and registry settings (the fluent globals, MLFLOW_TRACKING_URI and
+    MLFLOW_REGISTRY_URI) as they were before."""
+    from mlflow.tracking._model_registry import utils as registry  # the fluent API's globals
+    from mlflow.tracking._tracking_service import utils as tracking
 
-    before, before_env = utils._tracking_uri, os.environ.get(TRACKING_URI_ENV)
+    before = tracking._tracking_uri, registry._registry_uri
+    before_env = {name: os.environ.get(name) for name in (TRACKING_URI_ENV, REGISTRY_URI_ENV)}
     try:
         yield
     finally:
-        utils._tracking_uri = before
-        if before_env is None:
-            os.environ.pop(TRACKING_URI_ENV, None)
-        else:
-            os.environ[TRACKING_URI_ENV] = before_env
+        tracking._tracking_uri, registry._registry_uri = before
+        for name, value in before_env.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
 
 def run_redeploy(
@@ -180,7 +185,7 @@ def run_redeploy(
     catalog = Catalog(workspace.catalog)
     name, alias = config.registered_model_name, config.redeploy.alias
     key = unit_key(STAGE, VERSION, config.redeploy, [model_key])
-    client = MlflowClient(tracking_uri=tracking_uri(workspace))
+    client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=registry_uri(workspace))
     existing = catalog.query("SELECT version, champion_version FROM deployments WHERE unit_key = ?", [key])
     if existing:
         version, champion = existing[0]

@@ -308,8 +308,10 @@ class S3Store(ShardStore):
 
     def fetch(self, location: str) -> Path:
         """Downloaded once per host into the cache folder's objects/ (`cache_dir`; locations name immutable
-        objects: a model version's checkpoint), through a temporary name."""
-        cache = cache_dir() / "objects" / hashlib.sha256(location.encode()).hexdigest()[:32]
+        objects: a model version's checkpoint), through a temporary name. Cached by endpoint and location:
+        two S3 servers (a lab's and a laptop's SeaweedFS) may each hold a bucket and prefix of the same name."""
+        server = f"{self._scheme}://{self._host}" if self._host else "aws"
+        cache = cache_dir() / "objects" / hashlib.sha256(f"{server} {location}".encode()).hexdigest()[:32]
         local = cache / location.rsplit("/", 1)[-1]
         if not local.exists():
             cache.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,7 @@ from urllib.parse import unquote, urlsplit, urlunsplit
 
 from schemas.config import PRESETS, CampaignConfig, deep_merge, load_config, parse_settings
 from schemas.errors import Sim2ActError
-from schemas.settings import BACKEND_STORE_ENV, TRACKING_URI_ENV, apply_secrets_file, redacted
+from schemas.settings import BACKEND_STORE_ENV, REGISTRY_URI_ENV, TRACKING_URI_ENV, apply_secrets_file, redacted
 from schemas.workspace import Workspace, write_text_atomically
 
 Commands = "argparse._SubParsersAction[argparse.ArgumentParser]"  # what each group's register() adds to
@@ -166,12 +166,13 @@ class TrackingUnreachable(Sim2ActError, RuntimeError):
 
 
 def check_tracking_uris() -> None:
-    """MLFLOW_TRACKING_URI and MLFLOW_BACKEND_STORE_URI are of a scheme MLflow takes: its own refusal prints
-    the whole URL, password too (the terminal, the flow run's state in Prefect, the MLflow server's log).
+    """MLFLOW_TRACKING_URI, MLFLOW_REGISTRY_URI and MLFLOW_BACKEND_STORE_URI are of a scheme MLflow takes: its
+    own refusal prints the whole URL, password too (the terminal, the flow run's state in Prefect, the MLflow
+    server's log).
 
     Raises:
         TrackingUnreachable: one that is not, shown with its password replaced."""
-    for name in (TRACKING_URI_ENV, BACKEND_STORE_ENV):
+    for name in (TRACKING_URI_ENV, REGISTRY_URI_ENV, BACKEND_STORE_ENV):
         value = os.environ.get(name)
         scheme = urlsplit(value).scheme.split("+")[0] if value else ""
         if value and scheme and scheme not in TRACKING_SCHEMES:
@@ -179,9 +180,9 @@ def check_tracking_uris() -> None:
 
 
 def check_tracking_server(workspace: Workspace) -> None:
-    """Where MLFLOW_TRACKING_URI names an MLflow server, it answers before any work starts (MLflow's
-    own client would retry for minutes, mid-campaign); and a stack database named without a server to
-    log through (`sim2act down` since) is refused rather than logging to the workspace's SQLite file.
+    """Where MLFLOW_TRACKING_URI (or MLFLOW_REGISTRY_URI) names an MLflow server, it answers before any work
+    starts (MLflow's own client would retry for minutes, mid-campaign); and a stack database named without a
+    server to log through (`sim2act down` since) is refused rather than logging to the workspace's SQLite file.
 
     Raises:
         TrackingUnreachable: no answer from its /health, or no server for the named database.
@@ -191,6 +192,13 @@ def check_tracking_server(workspace: Workspace) -> None:
         raise TrackingUnreachable(f"{BACKEND_STORE_ENV} names the stack's tracking database, but no MLflow server "
                                   f"runs for {workspace.root}: start it (`sim2act up`) or set {TRACKING_URI_ENV}")
     check_tracking_uris()
+    _server_answers(TRACKING_URI_ENV, uri)
+    if (registry := os.environ.get(REGISTRY_URI_ENV)) and registry != uri:
+        _server_answers(REGISTRY_URI_ENV, registry)
+
+
+def _server_answers(name: str, uri: str) -> None:
+    """An http(s) `uri` (named by variable `name`) answers on /health; any other scheme is not a server."""
     parts = urlsplit(uri)
     if parts.scheme not in ("http", "https"):
         return
@@ -207,7 +215,7 @@ def check_tracking_server(workspace: Workspace) -> None:
             why = f"HTTP {response.status}"
     except (OSError, ValueError) as exc:  # ValueError: not a URL urllib can open
         why = str(getattr(exc, "reason", None) or exc)
-    raise TrackingUnreachable(f"{TRACKING_URI_ENV}={redacted(uri)}: no MLflow server answers at {health} ({why})")
+    raise TrackingUnreachable(f"{name}={redacted(uri)}: no MLflow server answers at {health} ({why})")
 
 
 def print_or_write(args: argparse.Namespace, as_json: str, table: str) -> int:

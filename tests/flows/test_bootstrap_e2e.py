@@ -144,7 +144,7 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
 
     from stages.redeploy import _fluent_tracking  # models:/ URIs resolve through the fluent global
 
-    with _fluent_tracking(ws.tracking_uri):
+    with _fluent_tracking(ws):
         info = get_model_info("models:/sim2act-smoke/2")
     assert info.signature.inputs.input_names() == ["image", "proprio", "instruction", "family", "episode_id"]
     assert not info.signature.inputs.inputs[-1].required  # served rows may leave it out (acted on alone)
@@ -486,3 +486,29 @@ def test_registering_a_model_leaves_its_iteration_run_running(finished_campaign,
     run_id = client.create_run(client.get_experiment_by_name("sim2act").experiment_id).info.run_id
     version = _register(ws, catalog, load_config("smoke"), model_key, str(ws.root / checkpoint), run_id)
     assert version >= 2 and client.get_run(run_id).info.status == "RUNNING"
+
+
+def test_a_registry_of_its_own_is_where_models_are_registered_and_looked_up(finished_campaign, tmp_path, monkeypatch):
+    """MLFLOW_REGISTRY_URI (a lab's registry apart from its tracking store): redeploy registered there while
+    `sim2act eval --model` looked the version up in the tracking store, and found none."""
+    from flows.model_eval import resolve_model
+    from stages.redeploy import _register
+
+    workspace = tmp_path / "workspace"
+    shutil.copytree(finished_campaign[0], workspace)
+    ws = Workspace.at(workspace)
+    catalog = Catalog(ws.catalog)
+    [(model_key, checkpoint)] = catalog.query("SELECT model_key, checkpoint_path FROM models WHERE iteration = 1")
+    tracking = MlflowClient(tracking_uri=ws.tracking_uri, registry_uri=ws.tracking_uri)
+    versions_before = len(tracking.search_model_versions("name = 'sim2act-smoke'"))
+    run_id = tracking.create_run(tracking.get_experiment_by_name("sim2act").experiment_id).info.run_id
+    registry = f"sqlite:///{tmp_path / 'lab-registry.db'}"
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", registry)
+    assert _register(ws, catalog, load_config("smoke"), model_key, str(ws.root / checkpoint), run_id) == 1
+    [version] = MlflowClient(tracking_uri=ws.tracking_uri, registry_uri=registry).search_model_versions("name = 'sim2act-smoke'")
+    assert version.tags["sim2act.model_key"] == model_key
+    assert len(tracking.search_model_versions("name = 'sim2act-smoke'")) == versions_before  # nothing in the tracking store
+    assert resolve_model(ws, load_config("smoke"), "1").model_key == model_key  # version 1 of the lab's registry
+    import os
+
+    assert os.environ["MLFLOW_REGISTRY_URI"] == registry and "MLFLOW_TRACKING_URI" not in os.environ  # put back

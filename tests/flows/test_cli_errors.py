@@ -55,7 +55,7 @@ def test_a_temporary_server_that_died_while_it_started_is_one_line(monkeypatch, 
         "same command again to resume (finished units are kept)\n")
 
 
-@pytest.mark.parametrize("name", ["MLFLOW_TRACKING_URI", "MLFLOW_BACKEND_STORE_URI"])
+@pytest.mark.parametrize("name", ["MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI", "MLFLOW_BACKEND_STORE_URI"])
 def test_a_tracking_uri_of_a_scheme_mlflow_refuses_is_one_line_without_its_password(monkeypatch, tmp_path, name):
     """`postgres://` (MLflow takes `postgresql://`): MLflow's own refusal printed the whole URL, password too,
     into the terminal, the flow run's state in Prefect and the MLflow server's log."""
@@ -67,3 +67,19 @@ def test_a_tracking_uri_of_a_scheme_mlflow_refuses_is_one_line_without_its_passw
     with pytest.raises(TrackingUnreachable, match=rf"^{name}: expected a URI of file, sqlite, postgresql") as error:
         check_tracking_server(Workspace.at(tmp_path))
     assert "hunter2" not in str(error.value) and "sim2act:***@db.lab" in str(error.value)
+
+
+def test_a_registry_server_that_does_not_answer_is_one_line_before_any_work(monkeypatch, tmp_path):
+    """MLFLOW_REGISTRY_URI apart from the tracking store: models are registered there after the first
+    training, hours in; a server that is not there is named before the campaign starts."""
+    from flows.cli.common import TrackingUnreachable, check_tracking_server
+    from schemas.workspace import Workspace
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)  # runs in the workspace's SQLite file
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", "http://lab:hunter2@127.0.0.1:1")
+    with pytest.raises(TrackingUnreachable, match=r"^MLFLOW_REGISTRY_URI=http://lab:\*\*\*@127.0.0.1:1: no MLflow server "
+                                                  r"answers at http://127.0.0.1:1/health") as error:
+        check_tracking_server(Workspace.at(tmp_path))
+    assert "hunter2" not in str(error.value)
+    monkeypatch.setenv("MLFLOW_REGISTRY_URI", f"sqlite:///{tmp_path / 'registry.db'}")  # a file: nothing to ask
+    check_tracking_server(Workspace.at(tmp_path))

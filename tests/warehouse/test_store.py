@@ -216,3 +216,21 @@ def test_a_second_warehouse_on_the_same_prefix_is_refused_before_it_writes(s3, t
     assert not second.catalog.exists() and s3.keys("shards") == objects  # nothing written, nothing cleaned
     Catalog(first.catalog).initialise()  # its owner opens it again as before
     assert Catalog(first.catalog).clean_orphans() == [] and s3.keys("shards") == objects
+
+
+def test_a_checkpoint_is_cached_per_server_not_per_name_alone(s3, tmp_path, monkeypatch):
+    """Two S3 servers may each hold a bucket and prefix of the same name (a lab's and a laptop's): a checkpoint
+    fetched from one was handed out for the other's location from the host's cache."""
+    monkeypatch.setenv("SIM2ACT_CACHE_DIR", str(tmp_path / "cache"))
+    environ = s3.environ("s3://shards/lab/cached")
+    here = open_store(tmp_path, "s3://shards/lab/cached", environ)
+    fs, key = s3.filesystem(), "shards/lab/cached/models/train-x/policy.pt"
+    with fs.open_output_stream(key) as out:
+        out.write(b"this server's weights")
+    location = here.location("models/train-x/policy.pt")
+    assert here.fetch(location).read_bytes() == b"this server's weights"
+    with fs.open_output_stream(key) as out:  # the same name on "another" server: the same one, reached by another name
+        out.write(b"another server's weights")
+    other = open_store(tmp_path, "s3://shards/lab/cached", {**environ, "AWS_ENDPOINT_URL": s3.endpoint.replace("127.0.0.1", "localhost")})
+    assert other.fetch(location).read_bytes() == b"another server's weights"
+    assert here.fetch(location).read_bytes() == b"this server's weights"  # each server's copy cached once, by server
