@@ -15,7 +15,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_PARENT_RUN_ID, MLFLOW_RUN_NAME
 
 from schemas.config import RENDER_LEGACY_VALUES, CampaignConfig
 from schemas.keys import key_fields
-from schemas.settings import tracking_uri
+from schemas.settings import registry_uri, tracking_uri
 from schemas.workspace import Workspace
 from stages.evaluate import TaskEvaluation, evaluation_metrics, evaluation_videos
 from stages.train import EXECUTION_FIELDS as TRAIN_EXECUTION_FIELDS
@@ -100,7 +100,7 @@ class StepLogger:
 class Tracking:
     def __init__(self, workspace: Workspace, config: CampaignConfig):
         uri = tracking_uri(workspace)
-        self.client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+        self.client = MlflowClient(tracking_uri=uri, registry_uri=registry_uri(workspace))
         self.config = config
         self.warehouse = workspace.warehouse
         experiment = self.client.get_experiment_by_name(EXPERIMENT)

@@ -149,6 +149,7 @@ def whole_sqlite_store(workspace: Workspace) -> None:
     """
     path = workspace.tracking_db
     if path.exists():
+        store_at_home(workspace)
         return
     path.parent.mkdir(parents=True, exist_ok=True)
     from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
@@ -159,6 +160,35 @@ def whole_sqlite_store(workspace: Workspace) -> None:
             shutil.copyfile(template, making)
         # on the copy: MLflow's check of the schema, and the Default experiment under this workspace's folder
         SqlAlchemyStore(f"sqlite:///{making}", workspace.artifact_root.as_uri()).engine.dispose()
+
+
+# The MLflow SQLite store's columns that name artifacts by absolute path, under the artifact root it was made for.
+_ARTIFACT_COLUMNS = (("experiments", "artifact_location"), ("runs", "artifact_uri"),
+                     ("logged_models", "artifact_location"), ("model_versions", "storage_location"))
+_AT_HOME: set[tuple[Path, str]] = set()  # (store, artifact root) this process found or put at home
+
+
+def store_at_home(workspace: Workspace) -> None:
+    """The workspace's own MLflow SQLite store names its artifacts under this workspace's folder.
+
+    MLflow stores artifact locations as absolute `file://` paths: a workspace folder moved elsewhere
+    could not download its registered models (the paths named a folder that was gone), and a copy's new
+    runs wrote their artifacts into the original's folder. The root the store was made for is read from
+    its Default experiment (`<root>/0`, `whole_sqlite_store`) and rewritten to this one in every such
+    column, in one transaction; a store at home is left as it is (checked once per process).
+    """
+    root = workspace.artifact_root.as_uri()
+    if (workspace.tracking_db, root) in _AT_HOME:
+        return
+    with closing(sqlite3.connect(workspace.tracking_db, timeout=60)) as con, con:
+        row = con.execute("SELECT artifact_location FROM experiments WHERE experiment_id = 0").fetchone()
+        old = row[0].removesuffix("/0") if row and row[0].startswith("file://") and row[0].endswith("/0") else root
+        if old != root:
+            for table, column in _ARTIFACT_COLUMNS:
+                con.execute(f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
+                            f"WHERE substr({column}, 1, ?) = ? AND substr({column}, ?, 1) IN ('', '/')",
+                            [root, len(old) + 1, len(old), old, len(old) + 1])
+    _AT_HOME.add((workspace.tracking_db, root))
 
 
 def _migrated_store() -> Path | None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from schemas.settings import (
@@ -144,3 +146,45 @@ def test_scenes_per_worker_is_a_whole_number_of_at_least_one(monkeypatch):
         monkeypatch.setenv(SCENES_PER_WORKER_ENV, bad)
         with pytest.raises(SettingError, match=f"SIM2ACT_SCENES_PER_WORKER: expected a whole number of scenes, at least 1, got '{bad}'"):
             scenes_per_worker()
+
+
+def test_a_moved_or_copied_workspace_keeps_its_mlflow_artifacts_in_its_own_folder(tmp_path, monkeypatch):
+    """MLflow names artifacts by absolute path: a moved workspace could not download its registered models,
+    and a copy's runs wrote their artifacts into the original's folder."""
+    import shutil
+
+    import mlflow.artifacts
+    from mlflow import MlflowClient
+
+    from stages.redeploy import _fluent_tracking
+
+    for name in ("MLFLOW_TRACKING_URI", "MLFLOW_REGISTRY_URI"):
+        monkeypatch.delenv(name, raising=False)
+    first = Workspace.at(tmp_path / "first")
+    uri = tracking_uri(first)
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    run = client.create_run(client.create_experiment("sim2act", artifact_location=first.artifact_root.as_uri()))
+    (tmp_path / "policy.pt").write_bytes(b"weights")
+    client.log_artifact(run.info.run_id, str(tmp_path / "policy.pt"), "policy")
+    client.create_registered_model("policy")
+    client.create_model_version("policy", f"{run.info.artifact_uri}/policy", run.info.run_id)
+
+    shutil.move(first.root, tmp_path / "moved")  # the original folder is gone
+    moved = Workspace.at(tmp_path / "moved")
+    with _fluent_tracking(moved):
+        download = mlflow.artifacts.download_artifacts("models:/policy/1", dst_path=str(tmp_path / "download"))
+    assert (Path(download) / "policy.pt").read_bytes() == b"weights"
+
+    shutil.copytree(moved.root, tmp_path / "copy")  # both folders in use
+    copy = Workspace.at(tmp_path / "copy")
+    (tmp_path / "notes.txt").write_text("the copy's")
+    from mlflow.tracking._tracking_service import utils
+
+    utils._artifact_repos_cache.clear()  # MLflow's per-process cache, by run id: a command on the copy starts without
+    MlflowClient(tracking_uri=tracking_uri(copy)).log_artifact(run.info.run_id, str(tmp_path / "notes.txt"))
+    MlflowClient(tracking_uri=tracking_uri(moved)).get_run(run.info.run_id)  # the moved one's store: still its own
+    run_folder = Path(run.info.run_id) / "artifacts"
+    assert (copy.artifact_root / run_folder / "notes.txt").read_text() == "the copy's"
+    assert sorted(p.name for p in (moved.artifact_root / run_folder).iterdir()) == ["policy"]
+    assert MlflowClient(tracking_uri=tracking_uri(moved)).get_experiment_by_name("sim2act").artifact_location \
+        == moved.artifact_root.as_uri()
