@@ -41,10 +41,13 @@ def build_deployments(config: CampaignConfig, workspace: Workspace, service: Ser
 
 
 def drop_stale_nightly_runs(config: CampaignConfig, workspace: Workspace) -> int:
-    """Delete the nightly deployment's scheduled runs made for another campaign config or workspace; -> how
-    many. Prefect keeps the runs it scheduled while the stack was down (a reboot), each with the parameters
-    of its day, and would run them one after another under the new schedule (serving anew replaces only the
-    future ones)."""
+    """Delete the nightly deployment's scheduled runs that are not tonight's step; -> how many. Prefect keeps
+    the runs it scheduled while the stack was down (a reboot), each with the parameters of its day, and would
+    run them one after another (serving anew replaces only the future ones): those made for another campaign
+    config or workspace go, and of the nights missed with this config only the latest is kept (three nights
+    down make one iteration, not three back to back: a night is a step, not a quota)."""
+    from datetime import datetime, timezone
+
     from prefect import get_client
     from prefect.client.schemas.filters import (DeploymentFilter, DeploymentFilterId, FlowRunFilter, FlowRunFilterState,
                                                 FlowRunFilterStateType)
@@ -68,6 +71,10 @@ def drop_stale_nightly_runs(config: CampaignConfig, workspace: Workspace) -> int
             deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment.id])),
             flow_run_filter=FlowRunFilter(state=FlowRunFilterState(type=FlowRunFilterStateType(any_=[StateType.SCHEDULED]))))
         dropped = [run for run in runs if stale(run.parameters)]
+        now, gone = datetime.now(timezone.utc), {run.id for run in dropped}
+        missed = sorted((run for run in runs if run.id not in gone and run.expected_start_time
+                         and run.expected_start_time <= now), key=lambda run: run.expected_start_time)
+        dropped += missed[:-1]
         for run in dropped:
             client.delete_flow_run(run.id)
     return len(dropped)
@@ -83,7 +90,8 @@ def main(argv: list[str] | None = None) -> None:
     service = ServiceConfig.model_validate_json(args.service)
     dropped = drop_stale_nightly_runs(config, workspace)
     if dropped:
-        print(f"deployments: {dropped} scheduled nightly run(s) of another campaign config deleted", flush=True)
+        print(f"deployments: {dropped} scheduled nightly run(s) deleted (another campaign config, or nights "
+              "missed before the latest)", flush=True)
     serve(*build_deployments(config, workspace, service), limit=1, print_starting_message=True)
 
 

@@ -1,5 +1,6 @@
-"""The deployments' process drops nightly runs Prefect scheduled for another campaign config (the stack
-down over a reboot: they would run one after another, each with its day's parameters)."""
+"""The deployments' process drops nightly runs Prefect scheduled for another campaign config, and all but the
+latest of the nights missed (the stack down over a reboot: they would run one after another, each with its
+day's parameters)."""
 
 from __future__ import annotations
 
@@ -30,3 +31,20 @@ def test_scheduled_nightly_runs_of_another_config_are_dropped_and_the_current_on
             left = {run.id for run in client.read_flow_runs()}
         assert made["old"] not in left and made["new"] in left
         assert drop_stale_nightly_runs(new, workspace) == 0
+
+
+def test_of_the_nights_missed_with_this_config_only_the_latest_runs(prefect_api, tmp_path):
+    workspace = Workspace.at(tmp_path / "ws")
+    config = load_config("smoke")
+    now = datetime.datetime.now(datetime.timezone.utc)
+    with temporary_settings({PREFECT_API_URL: prefect_api}):
+        nightly = next(d for d in build_deployments(config, workspace, ServiceConfig()) if d.name == NIGHTLY)
+        deployment_id = nightly.apply()
+        parameters = {"config": config.model_dump(mode="json"), "workspace": str(workspace.root), "continue_campaign": True}
+        with get_client(sync_client=True) as client:
+            made = {days: client.create_flow_run_from_deployment(deployment_id, parameters=parameters, state=Scheduled(
+                scheduled_time=now + datetime.timedelta(days=days))).id for days in (-3, -2, -1, 1)}
+            assert drop_stale_nightly_runs(config, workspace) >= 2  # (and another test's runs, for another workspace)
+            left = {run.id for run in client.read_flow_runs()}
+        assert {days for days, run_id in made.items() if run_id in left} == {-1, 1}  # last night's, and tomorrow's
+        assert drop_stale_nightly_runs(config, workspace) == 0
