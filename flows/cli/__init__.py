@@ -42,7 +42,14 @@ def main(argv: list[str] | None = None) -> int:
         from schemas.settings import apply_secrets_file
 
         apply_secrets_file()  # every command: the shard store's keys are read by sql, export, replay as well
-        return args.handler(args)
+        status = args.handler(args)
+        sys.stdout.flush()  # a reader gone is found here, not in the interpreter's exit (a traceback there)
+        return status
+    except BrokenPipeError:
+        # the reader stopped reading (`sim2act tasks list | head`): quiet, as a tool killed by SIGPIPE is;
+        # stdout pointed at /dev/null so that the interpreter's last flush does not fail again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except Sim2ActError as exc:
         print(f"sim2act: {exc.label}{exc}", file=sys.stderr)
         return 2

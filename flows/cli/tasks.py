@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from flows.cli.common import Commands, non_negative_float, output_file, positive_int
-from schemas.config import ConfigError
+from schemas.config import PRESETS, ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
 
@@ -60,11 +60,19 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
         raise ConfigError(f"tasks validate: expected a YAML spec file, got "
                           f"{'the folder ' if args.file.is_dir() else 'no such file '}{args.file}")
     specs = parse_spec_file(read_text_file(args.file, "tasks validate"), str(args.file))
-    count = 0
+    campaign = None
+    if args.preset:  # a campaign binds only its tasks.colours: the count it would see, beside the file's own
+        from schemas.config import load_config
+
+        campaign = load_config(args.preset).tasks
+    count = bound = 0
     for spec in specs:
         check_spec(spec, str(args.file))
         count += len(expand_spec(spec, TasksConfig(specs=[spec.name]), seed=0))
-    print(f"{args.file}: {len(specs)} spec(s), {count} task(s), valid")
+        if campaign is not None:
+            bound += len(expand_spec(spec, campaign.model_copy(update={"specs": [spec.name]}), seed=0))
+    within = "" if campaign is None else f"; {bound} in a campaign of preset {args.preset} (its tasks.colours)"
+    print(f"{args.file}: {len(specs)} spec(s), {count} task(s){within}, valid")
     return 0
 
 
@@ -128,4 +136,6 @@ def register(commands: Commands) -> None:
         sub.add_argument("--spec-file", type=Path, action="append", default=[], help="extra YAML spec file")
     validate = task_commands.add_parser("validate", help="check a YAML spec file")
     validate.add_argument("file", type=Path)
+    validate.add_argument("--preset", choices=PRESETS,
+                          help="also count the tasks a campaign of this preset binds (only its tasks.colours)")
     validate.set_defaults(handler=cmd_tasks_validate)

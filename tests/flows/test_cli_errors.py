@@ -83,3 +83,15 @@ def test_a_registry_server_that_does_not_answer_is_one_line_before_any_work(monk
     assert "hunter2" not in str(error.value)
     monkeypatch.setenv("MLFLOW_REGISTRY_URI", f"sqlite:///{tmp_path / 'registry.db'}")  # a file: nothing to ask
     check_tracking_server(Workspace.at(tmp_path))
+
+
+def test_a_reader_that_stops_reading_ends_the_command_without_a_traceback():
+    """`sim2act tasks list | head`: head exits after its lines and the next write fails (EPIPE)."""
+    import subprocess
+
+    from tests.conftest import SIM2ACT
+
+    command = subprocess.Popen([SIM2ACT, "tasks", "list"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    command.stdout.close()  # before its first line: the reader is gone while it still imports
+    _, stderr = command.communicate(timeout=300)
+    assert command.returncode == 1 and stderr == b"", stderr.decode()[-2000:]

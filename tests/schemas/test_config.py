@@ -128,6 +128,20 @@ def test_every_task_file_of_the_docs_is_valid(path, capsys):
     assert capsys.readouterr().out.strip().endswith("valid")
 
 
+def test_tasks_validate_counts_what_a_presets_campaign_would_bind(tmp_path, capsys):
+    """The README's file names red and purple; the default preset binds red, green, blue and yellow only:
+    `tasks validate` said 2 tasks where the campaign got 1."""
+    from flows.cli import main
+
+    spec = tmp_path / "my_tasks.yaml"
+    spec.write_text("defaults: {family: robosuite, expert: pick_place, horizon: 80}\nspecs:\n  - name: my-lift\n"
+                    "    env: Lift\n    objects: {target: {colours: [red, purple]}}\n"
+                    "    templates: ['lift the {target} one', 'raise the {target} cube', 'pick up the {target} block']\n")
+    assert main(["tasks", "validate", str(spec), "--preset", "default"]) == 0
+    assert capsys.readouterr().out.strip() == (f"{spec}: 1 spec(s), 2 task(s); 1 in a campaign of preset default "
+                                               "(its tasks.colours), valid")
+
+
 def test_each_split_gets_at_least_its_episodes_per_split():
     from schemas.config import EvaluateConfig
 
