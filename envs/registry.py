@@ -9,7 +9,7 @@ import numpy as np
 from envs.observation import NAVIGATION_ACTIONS, Observation
 from schemas.config import ConfigError, RenderConfig
 from schemas.task_spec import TaskSpec
-from schemas.tasks import TaskRecord
+from schemas.tasks import FAMILIES, TaskRecord
 
 EXPERT_FAMILY = {"pick_place": "robosuite", "open_door": "robosuite", "metaworld_policy": "metaworld",
                  "navigation_planner": "navigation"}
@@ -125,9 +125,11 @@ def make_env(family: str, env_name: str, render: RenderConfig | None):
         from envs.navigation_env import NavigationEnv
 
         return NavigationEnv(env_name, render)
-    from envs.metaworld_env import MetaWorldEnv
+    if family == "metaworld":
+        from envs.metaworld_env import MetaWorldEnv
 
-    return MetaWorldEnv(env_name, render)
+        return MetaWorldEnv(env_name, render)
+    raise ValueError(f"expected a family of {', '.join(FAMILIES)}, got {family!r} ({env_name})")
 
 
 def make_expert(task: TaskRecord, noise: float, rng: np.random.Generator) -> Callable[[Observation], np.ndarray]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 
 import numpy as np
+import pytest
 
 from envs import registry
 from envs.rollout import _ENVS, close_envs, worker_env
@@ -41,3 +42,12 @@ def test_beyond_its_scenes_a_worker_closes_the_least_recently_used_and_the_rest_
     gc.collect()  # room, closed for it, collected likewise (in MetaWorld's context)
     assert np.array_equal(frame(ball)[1], ball_frame) and len(_ENVS) == 2
     assert made == [t.env_name for t in (room, reach, ball, reach)]  # each scene made once while kept
+
+
+def test_a_family_without_an_adapter_is_refused_by_name():
+    """make_env fell through to MetaWorld for any family it had no branch for (a family added to the types
+    but not to the registry built MetaWorld scenes of its env names)."""
+    from envs.registry import make_env
+
+    with pytest.raises(ValueError, match=r"expected a family of robosuite, metaworld, navigation, got 'maze' \(Maze-v0\)"):
+        make_env("maze", "Maze-v0", None)
