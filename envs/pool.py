@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from typing import Any, TypeVar
 
+from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 from schemas.settings import scenes_per_worker
 
@@ -202,10 +203,10 @@ def _serve_units(connection: Connection) -> None:
 
 
 def _send_failure(connection: Connection, exc: Exception, text: str) -> None:
-    """("error", (the worker's traceback, the exception if an OSError that pickles), 0): see
-    WorkerPool.run."""
+    """("error", (the worker's traceback, the exception if an OSError or a Sim2ActError that pickles), 0):
+    see WorkerPool.run."""
     try:
-        connection.send(("error", (text, exc if isinstance(exc, OSError) else None), 0.0))
+        connection.send(("error", (text, exc if isinstance(exc, (OSError, Sim2ActError)) else None), 0.0))
     except Exception:  # it does not pickle (nothing was sent)
         connection.send(("error", (text, None), 0.0))
 
@@ -222,10 +223,11 @@ def _death(exitcode: int | None) -> str:
     return f"exit code {exitcode}"
 
 
-def _failure(label: str, text: str, error: OSError | None) -> Exception:
+def _failure(label: str, text: str, error: OSError | Sim2ActError | None) -> Exception:
     """What a unit that raised raises here: an OSError (a full disk, a permission) is the machine's,
-    not the unit's, so it stays itself (`sim2act` says a known one in one line), the worker's
-    traceback added as a note; anything else is UnitFailed carrying that traceback."""
+    not the unit's, and a Sim2ActError a known failure (an endpoint that does not answer), so each stays
+    itself (`sim2act` says it in one line), the worker's traceback added as a note; anything else is
+    UnitFailed carrying that traceback."""
     if error is None:
         return UnitFailed(f"{label} failed in its worker:\n{text}")
     error.add_note(f"{label} failed in its worker:\n{text}")

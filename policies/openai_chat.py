@@ -15,17 +15,22 @@ from typing import Any, Literal
 import httpx
 
 from schemas.config import ChatEndpointConfig
+from schemas.errors import Sim2ActError
 from schemas.retry import retrying
 
 Failure = Literal["timeout", "http_error", "unreachable", "malformed"]
 
 
-class ChatUnavailable(RuntimeError):
-    """No usable answer: the endpoint stayed unreachable, refused the request, or broke the protocol."""
+class ChatUnavailable(Sim2ActError, RuntimeError):
+    """No usable answer: the endpoint stayed unreachable, refused the request, or broke the protocol.
+    A known failure (one line from `sim2act`), raised in rollout workers too: it pickles whole."""
 
     def __init__(self, message: str, failures: list[Failure]):
         super().__init__(message)
         self.failures = failures  # one per failed request, in order; the last is why it gave up
+
+    def __reduce__(self):
+        return type(self), (str(self), self.failures)
 
 
 @dataclass

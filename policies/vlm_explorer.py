@@ -4,7 +4,8 @@ and answers a JSON action, one request per step (docs/explorers.md).
 Navigation answers {"action": <a discrete action name>}; manipulation (robosuite, MetaWorld) answers
 {"delta": [dx, dy, dz] in [-1, 1], "gripper": "open" | "close"}, mapped onto the shared 7-d action
 with zero rotation. An answer off the schema is counted and replaced by a no-op, up to the config's
-budget; an endpoint that stays unreachable raises, and the explore stage fails that episode.
+budget; an endpoint that stays unreachable raises, and the explore stage fails that episode's unit
+(redone on resume).
 """
 
 from __future__ import annotations

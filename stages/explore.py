@@ -21,6 +21,7 @@ from envs.observation import Observation
 from envs.pool import Progress, interleaved, run_in_pool
 from envs.registry import ACHIEVED_TESTS
 from envs.rollout import Act, Explorer, rollout, worker_env
+from policies.openai_chat import ChatUnavailable
 from schemas.config import (RENDER_LEGACY_VALUES, CampaignConfig, RandomiseConfig, RenderConfig, VlmExplorerConfig,
                             render_key_fields)
 from schemas.frames import encode_depth, encode_frame
@@ -306,6 +307,11 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             own = unit.policy is not None and plan.explorer == unit.policy.name  # not a chained episode
             rows, final, success = rollout(env, unit.task, plan.seed, explorer.act, randomisation, label,
                                            steps=unit.policy_steps if own else None)
+        except ChatUnavailable as exc:
+            # the endpoint's outage, not the episode's: recorded, it would stay failed under this unit's key for
+            # good; the unit fails instead (nothing written), and the same command redoes it once the endpoint answers
+            raise ChatUnavailable(f"explore: {exc}: start it (or set explore.vlm_fraction=0), then run the same "
+                                  "command again to resume", exc.failures) from None
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         done = {**common, "instruction": plan.instruction}

@@ -69,6 +69,22 @@ def test_a_unit_that_raises_is_not_retried_and_says_why(tmp_path):
     assert len(list(tmp_path.iterdir())) == 1
 
 
+def endpoint_gone(job: Job) -> None:
+    from policies.openai_chat import ChatUnavailable
+
+    raise ChatUnavailable(f"VLM explorer at http://vlm/{job.n} did not answer (timeout) after 3 tries", ["timeout"] * 3)
+
+
+def test_a_known_failure_in_a_worker_arrives_as_itself_to_be_said_in_one_line(tmp_path):
+    """A Sim2ActError raised in a worker (an endpoint that does not answer) was UnitFailed with a traceback
+    in the terminal; it arrives as itself, its failures and the worker's traceback (a note) kept."""
+    from policies.openai_chat import ChatUnavailable
+
+    with pytest.raises(ChatUnavailable, match=r"^VLM explorer at http://vlm/7 did not answer") as raised:
+        list(run_in_pool(endpoint_gone, [Job(n=7, attempts_dir=str(tmp_path))], workers=1, label=lambda job: f"job {job.n}"))
+    assert raised.value.failures == ["timeout"] * 3 and "job 7 failed in its worker" in raised.value.__notes__[0]
+
+
 def test_units_that_finished_before_a_failure_is_handed_back_still_reach_the_caller(tmp_path):
     """The caller registers each result as it comes; while it was busy, one unit failed and then another
     finished: that one is handed back before the failure is raised, not dropped with the rest."""

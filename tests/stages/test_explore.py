@@ -149,8 +149,7 @@ def test_without_labels_the_column_stays_empty(tmp_path):
 
 
 def test_a_failure_mid_episode_fails_that_episode_not_the_shard(tmp_path, monkeypatch):
-    vlm = VlmExplorerConfig(url=f"http://127.0.0.1:{closed_port()}/v1", model="gone", retries=0)
-    unit = _plan(_config(vlm=vlm, vlm_fraction=0.25), tmp_path)[0]
+    unit = _plan(_config(), tmp_path)[0]
     env = worker_env(unit.task, unit.render)
     step, calls = env.step, {"n": 0}
 
@@ -163,12 +162,25 @@ def test_a_failure_mid_episode_fails_that_episode_not_the_shard(tmp_path, monkey
     monkeypatch.setattr(env, "step", step_that_breaks_once)
     episodes, steps = _shards(unit)
     errors = [e["error"] for e in episodes]
-    assert sum(error is None for error in errors) == 2
+    assert len(errors) == 4 and sum(error is None for error in errors) == 3
     assert any(error and error.startswith("RuntimeError: mjWARNING_BADQACC") for error in errors)
-    assert any(error and error.startswith("ChatUnavailable") for error in errors)  # the VLM endpoint is gone
     failed = {e["episode_id"] for e in episodes if e["error"]}
     assert all(e["num_steps"] == 0 for e in episodes if e["error"])
     assert steps and not any(s["episode_id"] in failed for s in steps)
+
+
+def test_a_vlm_endpoint_that_does_not_answer_fails_the_unit_not_its_episodes(tmp_path):
+    """An outage is the endpoint's, not the episode's: recorded as failed episodes, they stayed failed under
+    the unit's key for good; the unit fails instead, writes nothing, and is redone when the same command runs."""
+    from policies.openai_chat import ChatUnavailable
+
+    vlm = VlmExplorerConfig(url=f"http://127.0.0.1:{closed_port()}/v1", model="gone", retries=0)
+    workspace = Workspace.at(tmp_path).create()
+    unit = _plan(_config(vlm=vlm, vlm_fraction=0.25), tmp_path)[0]
+    with pytest.raises(ChatUnavailable, match=r"^explore: VLM explorer at http://127.0.0.1:\d+/v1/chat/completions did "
+                                              r"not answer .* set explore.vlm_fraction=0\), then run the same command"):
+        run_explore_unit(unit)
+    assert not [p for p in workspace.warehouse.rglob("*.parquet")]
 
 
 def test_a_noise_schedule_cycles_over_each_tasks_episodes(tmp_path):
