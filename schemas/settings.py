@@ -180,14 +180,18 @@ def store_at_home(workspace: Workspace) -> None:
     root = workspace.artifact_root.as_uri()
     if (workspace.tracking_db, root) in _AT_HOME:
         return
-    with closing(sqlite3.connect(workspace.tracking_db, timeout=60)) as con, con:
+    with closing(sqlite3.connect(workspace.tracking_db, timeout=60)) as con:
         row = con.execute("SELECT artifact_location FROM experiments WHERE experiment_id = 0").fetchone()
         old = row[0].removesuffix("/0") if row and row[0].startswith("file://") and row[0].endswith("/0") else root
         if old != root:
-            for table, column in _ARTIFACT_COLUMNS:
-                con.execute(f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
-                            f"WHERE substr({column}, 1, ?) = ? AND substr({column}, ?, 1) IN ('', '/')",
-                            [root, len(old) + 1, len(old), old, len(old) + 1])
+            try:
+                with con:
+                    for table, column in _ARTIFACT_COLUMNS:
+                        con.execute(f"UPDATE {table} SET {column} = ? || substr({column}, ?) "
+                                    f"WHERE substr({column}, 1, ?) = ? AND substr({column}, ?, 1) IN ('', '/')",
+                                    [root, len(old) + 1, len(old), old, len(old) + 1])
+            except sqlite3.OperationalError:  # a store this process may not write (a read-only copy): read as it is
+                return
     _AT_HOME.add((workspace.tracking_db, root))
 
 
