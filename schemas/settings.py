@@ -253,9 +253,15 @@ def process_alive(pid: int) -> bool:
 
 
 def redacted(url: str) -> str:
-    """A URL as it may be shown: its password replaced by ***."""
-    parts = urlsplit(url)
+    """A URL as it may be shown: its password replaced by ***, and any query (`?token=…`) by `?***`."""
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 (a bad port or IPv6 host raises here, as it would in the caller)
+    except ValueError:  # not a URL urlsplit takes: hide whatever sits between "//user:" and "@"
+        return re.sub(r"(//[^/:@]*):[^@/]*@", r"\1:***@", url).split("?")[0] + ("?***" if "?" in url else "")
+    if parts.query:
+        parts = parts._replace(query="***")
     if parts.password is None:
-        return url
+        return urlunsplit(parts)
     host = parts.netloc.rpartition("@")[2]
     return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))

@@ -32,7 +32,7 @@ import pyarrow as pa
 
 from schemas.errors import Sim2ActError
 from schemas.retry import retrying
-from schemas.settings import cache_dir
+from schemas.settings import cache_dir, redacted
 
 SHARD_STORE_ENV = "SIM2ACT_SHARD_STORE"
 FOLDER = "folder"  # the recorded name of the default store: the warehouse folder itself
@@ -253,13 +253,19 @@ class S3Store(ShardStore):
             raise ShardStoreError(f"the warehouse's shards are in {self.url}: set {' and '.join(missing)} "
                                   "(environment or secrets file)")
         endpoint = environ.get("AWS_ENDPOINT_URL", "")
-        scheme = urlsplit(endpoint).scheme if endpoint else "https"
-        if endpoint and (scheme not in ("http", "https") or not urlsplit(endpoint).netloc):
-            raise ShardStoreError(f"AWS_ENDPOINT_URL: expected http(s)://host:port, got {endpoint!r}")
+        try:
+            parts = urlsplit(endpoint)
+            parts.port  # noqa: B018 (a bad port or IPv6 host raises here)
+        except ValueError:
+            parts = urlsplit("")
+        scheme = parts.scheme if endpoint else "https"
+        if endpoint and (scheme not in ("http", "https") or not parts.netloc or "@" in parts.netloc):
+            raise ShardStoreError(f"AWS_ENDPOINT_URL: expected http(s)://host:port (no credentials: AWS_ACCESS_KEY_ID "
+                                  f"and AWS_SECRET_ACCESS_KEY), got {redacted(endpoint)!r}")
         self._key, self._secret = environ["AWS_ACCESS_KEY_ID"], environ["AWS_SECRET_ACCESS_KEY"]
         self._token = environ.get("AWS_SESSION_TOKEN") or None  # temporary keys (STS, SSO) come with one
         self._region = environ.get("AWS_REGION") or environ.get("AWS_DEFAULT_REGION") or "us-east-1"
-        self._host, self._scheme = urlsplit(endpoint).netloc if endpoint else "", scheme
+        self._host, self._scheme = parts.netloc if endpoint else "", scheme
         self._fs = None
 
     def __getstate__(self) -> dict:  # DataLoader workers get the settings, and make their own client
@@ -474,10 +480,16 @@ def canonical_url(url: str) -> str:
     url = url.strip()
     if url in ("", "file", FOLDER):
         return FOLDER
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError:
+        parts = urlsplit("")
+    if "@" in parts.netloc:  # keys go in AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, never in a URL that is logged
+        raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix without credentials (set "
+                              f"AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY), got {redacted(url)}")
     if parts.scheme != "s3" or not parts.netloc or parts.query or parts.fragment:
         raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix (or unset: the warehouse folder), "
-                              f"got {url!r}")
+                              f"got {redacted(url)!r}")
     return f"s3://{parts.netloc}/{parts.path.strip('/')}".rstrip("/")
 
 

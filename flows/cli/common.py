@@ -157,8 +157,9 @@ def configure_environment(workspace: Workspace) -> None:
         os.environ.setdefault(key, value)
 
 
-# the tracking URIs MLflow takes (a plain path has none); "postgresql+psycopg2" is postgresql's
-TRACKING_SCHEMES = ("file", "sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+# the tracking URIs MLflow takes (a plain path is its file store); "postgresql+psycopg2" is postgresql's. MLflow 3
+# refuses its file store (./mlruns, file://) unless MLFLOW_ALLOW_FILE_STORE is set: then "file" is taken too.
+TRACKING_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
 
 
 class TrackingUnreachable(Sim2ActError, RuntimeError):
@@ -172,10 +173,18 @@ def check_tracking_uris() -> None:
 
     Raises:
         TrackingUnreachable: one that is not, shown with its password replaced."""
+    file_store = os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").lower() in ("1", "true")
+    schemes = (*TRACKING_SCHEMES, "file", "") if file_store else TRACKING_SCHEMES
     for name in (TRACKING_URI_ENV, REGISTRY_URI_ENV, BACKEND_STORE_ENV):
         value = os.environ.get(name)
-        scheme = urlsplit(value).scheme.split("+")[0] if value else ""
-        if value and scheme and scheme not in TRACKING_SCHEMES:
+        if not value:
+            continue
+        try:
+            parts = urlsplit(value)
+            parts.port  # noqa: B018 (a bad port or IPv6 host raises here)
+        except ValueError:
+            parts = None
+        if parts is None or parts.scheme.split("+")[0] not in schemes:
             raise TrackingUnreachable(f"{name}: expected a URI of {', '.join(TRACKING_SCHEMES)}, got {redacted(value)}")
 
 

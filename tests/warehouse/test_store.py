@@ -142,6 +142,13 @@ def test_store_settings_are_refused_in_one_line(tmp_path):
         open_store(tmp_path, "s3://b/p", {SHARD_STORE_ENV: "s3://b/q/", **keys})
     with pytest.raises(ShardStoreError, match="AWS_ENDPOINT_URL: expected http"):
         open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://b/p", "AWS_ENDPOINT_URL": "127.0.0.1:9000", **keys})
+    # credentials in a URL that is logged and said in errors: refused, never shown
+    with pytest.raises(ShardStoreError, match=r"without credentials .*got s3://lab:\*\*\*@b/p$") as error:
+        open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://lab:hunter2@b/p", **keys})
+    assert "hunter2" not in str(error.value)
+    with pytest.raises(ShardStoreError, match=r"AWS_ENDPOINT_URL: .*got 'http://lab:\*\*\*@127.0.0.1:9000'$") as error:
+        open_store(tmp_path, None, {SHARD_STORE_ENV: "s3://b/p", "AWS_ENDPOINT_URL": "http://lab:hunter2@127.0.0.1:9000", **keys})
+    assert "hunter2" not in str(error.value)
     assert open_store(tmp_path, "s3://b/p", keys).url == "s3://b/p"  # the recorded store, the keys from the environment
     # temporary keys (STS, SSO) come with a session token: every client signs with it
     temporary = open_store(tmp_path, "s3://b/p", {**keys, "AWS_SESSION_TOKEN": "a-session-token"})
