@@ -2,8 +2,8 @@
 (campaign, stack, tasks, bench, data; common: what they share).
 
 argparse, not Typer: the commands are plain functions of a Namespace already, nested sub-commands
-and mutually exclusive options are argparse's own, and a bad flag stays one line of usage on stderr
-(exit 2) rather than a rich panel. Configs are validated before anything is imported or written:
+and mutually exclusive options are argparse's own, and a bad flag stays one line on stderr (exit 2,
+`OneLineParser`) rather than a rich panel. Configs are validated before anything is imported or written:
 bad input costs one line.
 """
 
@@ -25,8 +25,17 @@ from schemas.errors import Sim2ActError
 GROUPS = (campaign, stack, tasks, bench, data)  # in the order `sim2act --help` lists their commands
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's parser whose refusal is one line (argparse prints the command's whole usage first: 6 to 9
+    lines for one bad flag), naming the command, what is wrong and where the usage is. Every sub-command's
+    parser is one too (argparse makes them of their parent's class)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sim2act", description=__doc__.splitlines()[0].replace("`", ""))
+    parser = OneLineParser(prog="sim2act", description=__doc__.splitlines()[0].replace("`", ""))
     commands = parser.add_subparsers(dest="command", required=True)
     for group in GROUPS:
         group.register(commands)

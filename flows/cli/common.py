@@ -77,9 +77,14 @@ def default_workspace() -> str:
 
 
 def workspace_folder(text: str) -> str:
-    """argparse's type for --workspace (and $SIM2ACT_WORKSPACE, its default): a folder, or none yet."""
-    if Path(text).exists() and not Path(text).is_dir():
-        raise argparse.ArgumentTypeError(f"expected a workspace folder (or a path for a new one), got the file {text}")
+    """argparse's type for --workspace (and $SIM2ACT_WORKSPACE, its default): a folder, or none yet, not under a
+    file either (a campaign made its catalog there and failed at its first shard folder, a traceback)."""
+    path = Path(text)
+    found = _first_existing(path)
+    if not found.is_dir():
+        from_env = "" if text != os.environ.get("SIM2ACT_WORKSPACE") else " (from $SIM2ACT_WORKSPACE)"
+        raise argparse.ArgumentTypeError(f"expected a workspace folder (or a path for a new one), got {text}{from_env}"
+                                         f"{'' if found == path else f', under {found}'}: a file")
     return text
 
 

@@ -19,8 +19,8 @@ def _refused(capsys, argv: list[str]) -> str:
     except SystemExit as exit:  # argparse refuses a flag's value as it reads the flags
         status = exit.code
     assert status == 2
-    lines = [line for line in capsys.readouterr().err.splitlines() if not line.startswith(("usage:", " "))]
-    assert len(lines) == 1, lines
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1, lines  # argparse's refusals too: no usage block before them
     return lines[0]
 
 
@@ -65,12 +65,22 @@ def test_tasks_experts_refuses_bad_counts_before_measuring_or_recording(tmp_path
     assert words in line and not list(tmp_path.iterdir())
 
 
-def test_a_workspace_that_is_a_file_is_refused_naming_it(tmp_path, capsys):
+def test_a_workspace_that_is_a_file_or_under_one_is_refused_naming_it(tmp_path, capsys, monkeypatch):
+    """Under a file: `run` made its catalog and failed at the first shard folder, `report` a traceback."""
     a_file = tmp_path / "ws"
     a_file.write_text("x")
     for command in (["run", "--preset", "smoke"], ["report"], ["sql", "SELECT 1"], ["warehouse", "verify"]):
-        assert f"expected a workspace folder (or a path for a new one), got the file {a_file}" in _refused(
+        assert f"expected a workspace folder (or a path for a new one), got {a_file}: a file" in _refused(
             capsys, [*command, "--workspace", str(a_file)])
+        assert f"got {a_file / 'sub'}, under {a_file}: a file" in _refused(
+            capsys, [*command, "--workspace", str(a_file / "sub")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ws"]
+    monkeypatch.setenv("SIM2ACT_WORKSPACE", str(a_file / "sub"))  # the default comes from it: said so
+    from flows.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["status"])
+    assert f"got {a_file / 'sub'} (from $SIM2ACT_WORKSPACE), under {a_file}: a file" in capsys.readouterr().err
 
 
 def test_config_files_and_settings_that_cannot_be_read_are_one_line(tmp_path, capsys):
