@@ -37,12 +37,18 @@ from pathlib import Path
 import psutil
 from pydantic import BaseModel
 
+from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
 from warehouse.catalog import Catalog
 
 log = logging.getLogger("sim2act.bench.soak")
 
 KINDS = ("flow", "worker", "server")
+
+
+class SoakFailed(Sim2ActError, RuntimeError):
+    """The campaign under the soak failed without a kill (its own error is in its log)."""
+
 EXIT_WAIT_S = 120.0  # how long a kill may take to end the campaign before it counts as survived in place
 GONE_WAIT_S = 30.0  # how long the killed campaign's processes may outlive it (its watchdog polls at 0.25 s)
 
@@ -185,7 +191,7 @@ def soak(run_args: Sequence[str], workspace: Path, kills: int, seed: int, wait_s
                 result.ended = "finished" if len(result.kills) >= kills else f"finished after {len(result.kills)} of {kills} kills"
                 break
             if code != 0 and not killed_this_run and not stop:
-                raise RuntimeError(f"soak: the campaign failed on its own (exit {code}); see {out.name}")
+                raise SoakFailed(f"soak: the campaign failed on its own (exit {code}); see {out}")
         result.ended = result.ended or "stopped"
         check("end", full=True)
         # every check, not the last alone: a unit a kill tore is quarantined and made again, so the end looks whole

@@ -33,7 +33,8 @@ def retrying(
         if log is not None:
             error = state.outcome.exception() if state.outcome else None
             log.warning("%s: %s; trying again (%d/%s)", what, error, state.attempt_number,
-                        attempts - 1 if attempts is not None else "until it succeeds")
+                        attempts - 1 if attempts is not None else
+                        f"for up to {within_s:.0f} s" if within_s is not None else "until it succeeds")
 
     return Retrying(retry=retry_if_exception(when), stop=stop_any(*stops) if stops else stop_never, wait=wait,
                     before_sleep=warn, reraise=True)

@@ -7,6 +7,7 @@ import logging
 import time
 
 from schemas.config import CampaignConfig
+from schemas.errors import Sim2ActError
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages import StageResult, StageUnits, UnitOutput
@@ -16,6 +17,10 @@ from warehouse.datasets import Selection
 
 STAGE, VERSION = "index", 1
 log = logging.getLogger("sim2act.stages.index")
+
+
+class NothingToTrain(Sim2ActError, RuntimeError):
+    """An iteration whose dataset is empty: said in one line (the filter's setting), nothing trained."""
 
 
 class IndexResult(StageResult):
@@ -100,7 +105,7 @@ def run_index(
         iteration, digest[:12], triplets, kept, episodes, iteration, ", already registered" if skipped else "",
     )
     if triplets == 0:
-        raise RuntimeError(
+        raise NothingToTrain(
             f"iteration {iteration}: the filter kept no episode (filter.min_return={config.filter.min_return}); "
             "nothing to train on"
         )

@@ -162,6 +162,12 @@ class ShardStore(ABC):
     def prepare(self, con: duckdb.DuckDBPyConnection) -> None:
         """Make `con` able to read this store's locations (nothing for a folder)."""
 
+    def check_reachable(self) -> None:
+        """Before a command's work: the store answers (a folder always does).
+
+        Raises:
+            ShardStoreUnreachable, ShardStoreRefused: it does not answer, or refuses the keys."""
+
     def claim(self, warehouse_id: str | None, catalog: Path) -> str:
         """Make sure no other warehouse keeps its shards here (a folder belongs to its catalog already).
         `warehouse_id`: the catalog's, None for a new one. Returns the id to record.
@@ -305,6 +311,9 @@ class S3Store(ShardStore):
             raise ShardStoreUnreachable(
                 f"the shard store {self.url} ({self._host or 'AWS'}) did not answer for {STORE_WAIT_S:.0f} s "
                 f"({detail}): start it, then run the same command again to resume") from None
+
+    def check_reachable(self) -> None:
+        self._patient(self.filesystem.get_file_info, self._path(CLAIM))
 
     def location(self, rel: str) -> str:
         return f"s3://{self._path(rel)}"

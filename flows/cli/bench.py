@@ -7,8 +7,8 @@ import json
 import os
 from pathlib import Path
 
-from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, output_file, print_or_write,
-                              scratch_folder)
+from flows.cli.common import (Commands, add_campaign_options, add_workspace_option, output_file, positive_int,
+                              print_or_write, scratch_folder)
 from schemas.config import ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import Workspace, write_text_atomically
@@ -111,8 +111,9 @@ def cmd_bench_soak(args: argparse.Namespace) -> int:
     kinds = args.kinds.split(",")
     if not kinds or set(kinds) - set(KINDS):
         raise ConfigError(f"bench soak: --kinds expects some of {','.join(KINDS)}, got {args.kinds!r}")
-    campaign_config(args)  # a bad campaign flag costs one line here, not one per restart
-    run_args = campaign_flags(args) + (["--iterations", str(args.iterations)] if args.iterations else [])
+    # a bad campaign flag (or --iterations) costs one line here, not one per restart
+    campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
+    run_args = campaign_flags(args) + (["--iterations", str(args.iterations)] if args.iterations is not None else [])
     out = args.out or Path(args.workspace) / "soak" / "soak.md"
     log_stages_to_stderr()  # each kill and check as it happens
 
@@ -202,7 +203,7 @@ def register(commands: Commands) -> None:
     panels.set_defaults(handler=cmd_bench_panels)
     soak = add_campaign_options(bench_commands.add_parser(
         "soak", help="run a campaign through random SIGKILLs (flow, worker, server), checking its finished parts"))
-    soak.add_argument("--iterations", type=int, help="as `sim2act run --iterations`")
+    soak.add_argument("--iterations", type=positive_int, help="as `sim2act run --iterations`")
     soak.add_argument("--kills", type=int, default=10, help="SIGKILLs before the campaign is let finish")
     soak.add_argument("--wait", type=float, nargs=2, default=(60.0, 600.0), metavar=("MIN", "MAX"),
                       help="seconds from a (re)start to its kill, drawn uniformly")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
-                              configure_environment, open_catalog, output_file, same_campaign_flags)
+                              configure_environment, open_catalog, output_file, positive_int, same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import Acting, ConfigError
 from schemas.experts import TARGET
@@ -27,6 +27,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from warehouse.training_reader import check_where
 
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
+    if not any(t.split == "seen" for t in tasks):  # nothing to explore: the filter would keep nothing, an hour in
+        raise ConfigError(f"tasks: expected at least one seen task to explore, got none of {len(tasks)} (every colour "
+                          "or task held out: tasks.colours, tasks.unseen_colours, tasks.specs)")
     check_render(config.render, tasks)
     check_where(config.train.where)
     if config.adapt.episodes_per_task:
@@ -42,6 +45,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     estimate = check_disk(workspace.root, to_explore, tasks, catalog)  # a campaign the disk cannot hold: one line
     configure_environment(workspace)
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
+    catalog.store.check_reachable()  # shards on S3: the store answers (and takes the keys), or one line
     workspace.create()
     watch()  # the temporary Prefect server and the workers end with this command, however it ends
     print(
@@ -343,7 +347,7 @@ def register(commands: Commands) -> None:
         return command
 
     run = campaign_command("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run)
-    run.add_argument("--iterations", type=int, help="number of bootstrap iterations")
+    run.add_argument("--iterations", type=positive_int, help="number of bootstrap iterations")
     run.add_argument("--continue", dest="continue_campaign", action="store_true",
                      help="one iteration past the campaign's latest finished one (what the nightly deployment runs)")
     campaign_command("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train

@@ -54,11 +54,11 @@ def port_number(text: str) -> int:
     return value
 
 
-def non_negative_float(text: str) -> float:
-    """argparse's type for a scale that must be 0 or more (a noise)."""
+def noise_level(text: str) -> float:
+    """argparse's type for an expert's action noise: 0 to 1, as the config's (NoiseLevel)."""
     value = float(text)
-    if not value >= 0:  # NaN too
-        raise argparse.ArgumentTypeError(f"expected 0 or more, got {text}")
+    if not 0 <= value <= 1:  # NaN and inf too
+        raise argparse.ArgumentTypeError(f"expected a noise from 0 to 1, got {text}")
     return value
 
 
@@ -139,8 +139,10 @@ def configure_environment(workspace: Workspace) -> None:
     (unless MLFLOW_TRACKING_URI says otherwise), no telemetry, no hub downloads (the env modules choose
     the renderer)."""
     from flows.service import running_urls
+    from schemas.settings import scenes_per_worker
 
     apply_secrets_file()
+    scenes_per_worker()  # a bad SIM2ACT_SCENES_PER_WORKER: one line now, not from the first worker, minutes in
     # While `sim2act up` runs on this workspace, runs report to its servers and show in its UIs.
     for key, value in running_urls(workspace).items():
         os.environ.setdefault(key, value)

@@ -44,7 +44,7 @@ def cmd_export_lerobot(args: argparse.Namespace) -> int:
 
     if args.fps is not None and args.fps < 1:
         raise ConfigError(f"export lerobot: --fps must be at least 1, got {args.fps}")
-    if args.fetch_mb is not None and args.fetch_mb <= 0:
+    if args.fetch_mb is not None and not 0 < args.fetch_mb < float("inf"):  # NaN too
         raise ConfigError(f"export lerobot: --fetch-mb must be positive, got {args.fetch_mb:g}")
     workspace, catalog = open_catalog(args)
     log_stages_to_stderr()

@@ -7,7 +7,7 @@ import itertools
 import json
 from pathlib import Path
 
-from flows.cli.common import Commands, non_negative_float, output_file, positive_int
+from flows.cli.common import Commands, noise_level, output_file, positive_int
 from schemas.config import PRESETS, ConfigError
 from schemas.tasks import FAMILIES
 from schemas.workspace import write_text_atomically
@@ -124,7 +124,7 @@ def register(commands: Commands) -> None:
     show.set_defaults(handler=cmd_tasks_show)
     experts = task_commands.add_parser("experts", help="measure each task's scripted expert, write the table")
     experts.add_argument("--episodes", type=positive_int, default=10)
-    experts.add_argument("--noise", type=non_negative_float, default=0.1, help="expert action noise, as in exploration")
+    experts.add_argument("--noise", type=noise_level, default=0.1, help="expert action noise, as in exploration")
     experts.add_argument("--no-randomise", action="store_true", help="nominal scenes, no domain randomisation")
     experts.add_argument("--family", choices=FAMILIES)
     experts.add_argument("--task", action="append", default=[], help="only these task ids")

@@ -54,7 +54,8 @@ def test_write_text_atomically_leaves_no_temporary_when_it_fails(tmp_path):
 @pytest.mark.parametrize(("flags", "words"), [
     (["--episodes", "0"], "argument --episodes: expected 1 or more, got 0"),
     (["--workers", "0"], "argument --workers: expected 1 or more, got 0"),
-    (["--noise", "-1"], "argument --noise: expected 0 or more, got -1"),
+    (["--noise", "-1"], "argument --noise: expected a noise from 0 to 1, got -1"),
+    (["--noise", "inf"], "argument --noise: expected a noise from 0 to 1, got inf"),  # measured for minutes
     (["--task", "lift-redd"], "--task: expected task ids of the suite (`sim2act tasks list`), got lift-redd"),
 ])
 def test_tasks_experts_refuses_bad_counts_before_measuring_or_recording(tmp_path, capsys, flags, words):
@@ -159,3 +160,34 @@ def test_a_nightly_cron_line_refused_shows_the_value():
 
     with pytest.raises(ValidationError, match=r"got '61 \* \* \*'"):
         ServiceConfig(nightly_cron="61 * * *")
+
+
+def test_a_campaign_that_cannot_run_is_refused_before_its_workspace_exists(tmp_path, capsys, monkeypatch):
+    """Each of these made the workspace, started Prefect and generated tasks first, then failed with tracebacks
+    (an hour in, for the empty dataset), leaving a catalog, an MLflow store, a Prefect database and the lock."""
+    workspace = tmp_path / "ws"
+    run = ["run", "--preset", "smoke", "--workspace", str(workspace)]
+    assert "tasks: expected at least one seen task to explore, got none of 3" in _refused(
+        capsys, [*run, "--set", "tasks.unseen_colours=[red, green, blue]"])
+    monkeypatch.setenv("SIM2ACT_SCENES_PER_WORKER", "abc")
+    assert "SIM2ACT_SCENES_PER_WORKER: expected a whole number of scenes, at least 1, got 'abc'" in _refused(capsys, run)
+    monkeypatch.delenv("SIM2ACT_SCENES_PER_WORKER")
+    assert "argument --iterations: expected 1 or more, got 0" in _refused(capsys, [*run, "--iterations", "0"])
+    assert "argument --iterations: expected 1 or more, got -1" in _refused(
+        capsys, ["bench", "soak", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "-1"])
+    assert not workspace.exists()
+
+
+def test_a_shard_store_that_does_not_answer_is_one_line_before_the_workspace_exists(tmp_path, capsys, monkeypatch):
+    """The campaign made its workspace and started Prefect, then waited on the store inside the flow."""
+    from tests.chat_server import closed_port
+    from warehouse import store
+
+    monkeypatch.setattr(store, "STORE_WAIT_S", 1.0)
+    for name, value in {"SIM2ACT_SHARD_STORE": "s3://shards/lab", "AWS_ENDPOINT_URL": f"http://127.0.0.1:{closed_port()}",
+                        "AWS_ACCESS_KEY_ID": "k", "AWS_SECRET_ACCESS_KEY": "s"}.items():
+        monkeypatch.setenv(name, value)
+    workspace = tmp_path / "ws"
+    line = _refused(capsys, ["run", "--preset", "smoke", "--workspace", str(workspace)])
+    assert line.startswith("sim2act: the shard store s3://shards/lab (127.0.0.1:") and "did not answer for 1 s" in line, line
+    assert not workspace.exists()
