@@ -157,7 +157,18 @@ def read_state(workspace: Workspace) -> dict:
     """The stack recorded for this workspace; {} where none is, or the file came with a copy of another
     workspace (its processes are the original's: a copy must neither use nor stop them)."""
     path = workspace.service_state
-    state = json.loads(path.read_text()) if path.exists() else {}
+    try:
+        state = json.loads(path.read_text()) if path.exists() else {}
+        processes = state.get("processes", {})
+        whole = all(isinstance(r, dict) and type(r.get("pid")) is int and isinstance(r.get("health_url", ""), str)
+                    for r in processes.values())
+    except (ValueError, AttributeError) as exc:  # not JSON (a torn or edited file), not an object, no processes map
+        whole, why = False, f"{type(exc).__name__}: {exc}"
+    else:
+        why = "a process recorded without its pid"
+    if not whole:
+        raise ServiceError(f"{path}: not a stack record sim2act wrote ({why}); if no `sim2act up` runs for "
+                           f"{workspace.root}, delete it (its processes, if any, are the ones to stop by hand)")
     return state if state.get("workspace", str(workspace.root)) == str(workspace.root) else {}
 
 

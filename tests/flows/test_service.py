@@ -299,3 +299,17 @@ def test_a_copied_workspace_neither_uses_nor_stops_the_originals_stack(tmp_path)
         assert original.poll() is None and not copy.service_state.exists()
     finally:
         original.kill()
+
+
+@pytest.mark.parametrize("text", ['{"processes": {"prefect": {"pid": 12', "[]", '{"processes": {"prefect": {"pid": "abc"}}}'])
+def test_a_state_file_sim2act_did_not_write_is_one_line(tmp_path, capsys, text):
+    """A torn, edited or foreign service/state.json: `status` (and `run`, which reads it for the stack's URLs)
+    gave a JSONDecodeError, AttributeError or TypeError traceback."""
+    from flows.cli import main
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    workspace.service.mkdir(parents=True, exist_ok=True)
+    workspace.service_state.write_text(text)
+    assert main(["status", "--workspace", str(workspace.root)]) == 2
+    [line] = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"sim2act: {workspace.service_state}: not a stack record sim2act wrote ("), line
