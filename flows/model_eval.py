@@ -130,7 +130,7 @@ def file_tasks(path: Path, config: CampaignConfig, seen_ids: set[str]) -> list[T
     from schemas.task_spec import parse_spec_file
 
     if not path.is_file():
-        raise ConfigError(f"--tasks: no such file {path}")
+        raise ConfigError(f"--tasks: expected a YAML task file, got {'the folder ' if path.is_dir() else 'no such file '}{path}")
     names = [spec.name for spec in parse_spec_file(read_text_file(path, "--tasks"), str(path))]
     tasks = generate_tasks(TasksConfig(specs=names, spec_files=[path], weak_experts="keep"), config.seed)
     return [t.model_copy(update={"split": "seen" if t.task_id in seen_ids else "unseen"}) for t in tasks]

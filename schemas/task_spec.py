@@ -123,7 +123,8 @@ def load_specs(extra_files: list[Path] = ()) -> dict[str, SuiteEntry]:
     sources = [(folder.joinpath(name).read_text(), f"task_specs/{name}") for name in BUILTIN_FILES]
     for path in extra_files:
         if not Path(path).is_file():
-            raise ConfigError(f"tasks.spec_files: no such file {path}")
+            raise ConfigError(f"tasks.spec_files: expected a YAML spec file, got "
+                              f"{'the folder ' if Path(path).is_dir() else 'no such file '}{path}")
         sources.append((read_text_file(Path(path), "tasks.spec_files"), str(path)))
     for text, origin in sources:
         for spec in parse_spec_file(text, origin):

@@ -94,8 +94,13 @@ def export_lerobot(
     about that many MB of encoded frames (one episode at least), whatever the selection's size. `fps`:
     the selection's family's control rate by default (schemas.tasks.CONTROL_HZ; a mix of rates asks for one)."""
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise ExportError(f"{out_dir} exists and is not an empty folder: export into a new one")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportError(f"{out_dir} is a file: export into a new folder")
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise ExportError(f"{out_dir} is a folder with files in it: export into a new one")
+    above = next(p for p in out_dir.absolute().parents if p.exists())
+    if not above.is_dir() or not os.access(above, os.W_OK):  # found now, not after the selection is read
+        raise ExportError(f"cannot make {out_dir}: {above} is {'a file' if not above.is_dir() else 'not writable'}")
     episodes = _select(catalog, where, include_rejected)
     action_dim = _one_dim(episodes, "action", lambda e: e.action_dims)
     state_dim = _one_dim(episodes, "proprio", lambda e: e.state_dims)
@@ -187,7 +192,8 @@ def _select(catalog: Catalog, where: str | None, include_rejected: bool) -> list
         raise ExportError(f"{what}: {str(exc).splitlines()[0]}") from None
     if not rows:
         which = "" if include_rejected else " among the episodes the filter kept (see --include-rejected)"
-        raise ExportError(f"no episode matches --where {where!r}{which}")
+        raise ExportError(f"no episode matches --where {where!r}{which}" if where else
+                          f"no episode to export{which or ' (the warehouse holds none)'}")
     return [_Episode(r[0], r[1], r[2], r[3], (r[4], r[5]), (r[6], r[7])) for r in rows]
 
 

@@ -139,6 +139,8 @@ def cmd_bench_panels(args: argparse.Namespace) -> int:
     if not catalog.path.exists():
         raise ConfigError(f"bench panels: no warehouse at {args.workspace} (run a campaign there first)")
     campaigns = warehouse_campaigns(catalog)
+    if not campaigns:
+        raise ConfigError(f"bench panels: the warehouse at {args.workspace} holds no campaign (run one there first)")
     campaign = args.campaign or (campaigns[0] if len(campaigns) == 1 else None)
     if campaign not in campaigns:
         raise ConfigError(f"bench panels: expected --campaign, one of {', '.join(campaigns) or '(none)'}; "

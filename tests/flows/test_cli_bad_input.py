@@ -191,3 +191,9 @@ def test_a_shard_store_that_does_not_answer_is_one_line_before_the_workspace_exi
     line = _refused(capsys, ["run", "--preset", "smoke", "--workspace", str(workspace)])
     assert line.startswith("sim2act: the shard store s3://shards/lab (127.0.0.1:") and "did not answer for 1 s" in line, line
     assert not workspace.exists()
+
+
+def test_a_folder_given_as_a_task_file_is_called_a_folder(tmp_path, capsys):
+    """It was called missing ("no such file"), which sends one looking for a typo."""
+    assert f"tasks.spec_files: expected a YAML spec file, got the folder {tmp_path}" in _refused(
+        capsys, ["tasks", "list", "--spec-file", str(tmp_path)])

@@ -103,6 +103,16 @@ def test_sql_is_read_only(workspace, statement):
         run_sql(Catalog(workspace.catalog), statement)
 
 
+def test_sql_runs_one_statement_and_names_a_refused_one_by_its_keyword(workspace):
+    """DuckDB answers only the last of several statements (the others' results vanished, exit 0), and an
+    INSTALL was refused as a LOAD statement."""
+    catalog = Catalog(workspace.catalog)
+    with pytest.raises(ReadOnlyViolation, match="expected one SQL statement, got 2: run each on its own"):
+        run_sql(catalog, "SELECT 1; SELECT 2")
+    with pytest.raises(ReadOnlyViolation, match="INSTALL statements are refused"):
+        run_sql(catalog, "INSTALL httpfs")
+
+
 def test_sql_reads_the_warehouses_files_and_nothing_outside_it(workspace, tmp_path_factory):
     """A query is someone's text: it may read the warehouse's shards, by view or by path, but not a
     file elsewhere on the machine, not through `..`, not by attaching a database, at any snapshot."""

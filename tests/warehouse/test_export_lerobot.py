@@ -268,9 +268,13 @@ def test_refusals_write_nothing(warehouse, tmp_path):
     used = tmp_path / "used"
     used.mkdir()
     (used / "keep.txt").write_text("mine")
-    with pytest.raises(ExportError, match="not an empty folder"):
+    with pytest.raises(ExportError, match="is a folder with files in it: export into a new one"):
         export_lerobot(catalog, used)
     assert [p.name for p in used.iterdir()] == ["keep.txt"]
+    with pytest.raises(ExportError, match=r"used/keep.txt is a file: export into a new folder"):
+        export_lerobot(catalog, used / "keep.txt")
+    with pytest.raises(ExportError, match=r"cannot make .*keep.txt/out: .*keep.txt is a file"):  # before the selection
+        export_lerobot(catalog, used / "keep.txt" / "out", where="no_such_column = 1")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["used"]
 
 
