@@ -585,11 +585,18 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
     return merged
 
 
+def yaml_error_said(exc: Exception) -> str:
+    """A YAML error as one clause: what the parser found, and where (line and column, from 1)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or exc.__class__.__name__
+    return f"{problem}, line {mark.line + 1} column {mark.column + 1}" if mark is not None else problem
+
+
 def _read_yaml(text: str, origin: str) -> dict[str, Any]:
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{origin}: not valid YAML ({exc.__class__.__name__})") from None
+        raise ConfigError(f"{origin}: not valid YAML ({yaml_error_said(exc)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{origin}: the top level must be a mapping of config fields")
     return data

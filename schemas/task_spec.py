@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.config import ConfigError, describe_validation_error, read_text_file
+from schemas.config import ConfigError, describe_validation_error, read_text_file, yaml_error_said
 from schemas.tasks import Colour, Family
 
 BUILTIN_FILES = ("robosuite.yaml", "metaworld.yaml", "navigation.yaml")
@@ -93,7 +93,7 @@ def parse_spec_file(text: str, origin: str) -> list[TaskSpec]:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{origin}: not valid YAML ({exc.__class__.__name__})") from None
+        raise ConfigError(f"{origin}: not valid YAML ({yaml_error_said(exc)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{origin}: expected a mapping with 'specs:' (and optional 'defaults:')")
     defaults: dict[str, Any] = data.pop("defaults", None) or {}
@@ -129,7 +129,8 @@ def load_specs(extra_files: list[Path] = ()) -> dict[str, SuiteEntry]:
     for text, origin in sources:
         for spec in parse_spec_file(text, origin):
             if spec.name in specs:
-                raise ConfigError(f"{origin}: spec name {spec.name!r} is already defined")
+                raise ConfigError(f"{origin}: spec name {spec.name!r} is already defined (in {specs[spec.name].origin}): "
+                                  "give yours another name")
             specs[spec.name] = SuiteEntry(spec, origin)
     for entry in specs.values():
         for sub in entry.spec.subtasks:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
-                              configure_environment, open_catalog, output_file, positive_int, same_campaign_flags)
+                              configure_environment, non_negative_int, open_catalog, output_file, positive_int,
+                              same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import Acting, ConfigError
 from schemas.experts import TARGET
@@ -351,7 +352,7 @@ def register(commands: Commands) -> None:
     run.add_argument("--continue", dest="continue_campaign", action="store_true",
                      help="one iteration past the campaign's latest finished one (what the nightly deployment runs)")
     campaign_command("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train
-                     ).add_argument("--iteration", type=int, help="whose dataset (default: the campaign's latest)")
+                     ).add_argument("--iteration", type=non_negative_int, help="whose dataset (default: the campaign's latest)")
 
     evaluate = campaign_command("eval", "evaluate any model on the campaign's tasks, one split, or a task file",
                                 cmd_eval)

@@ -38,6 +38,14 @@ def _first_existing(path: Path) -> Path:
     return next(p for p in (path, *path.parents) if p.exists())
 
 
+def non_negative_int(text: str) -> int:
+    """argparse's type for an iteration number: 0 or more."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected 0 or more, got {value}")
+    return value
+
+
 def positive_int(text: str) -> int:
     """argparse's type for a count that must be 1 or more (episodes, workers)."""
     value = int(text)

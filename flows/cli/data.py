@@ -27,9 +27,10 @@ def cmd_sql(args: argparse.Namespace) -> int:
     catalog = Catalog(Workspace.at(args.workspace).catalog)
     if args.as_of_iteration is not None and catalog.path.exists():
         held = _iterations(catalog)
-        if held and args.as_of_iteration > held[-1]:  # the warehouse as it is now: a typo, most likely
+        if not held or args.as_of_iteration > held[-1]:  # the warehouse as it is now: a typo, most likely
             raise ConfigError(f"sql: --as-of-iteration {args.as_of_iteration}: the warehouse's latest iteration is "
-                              f"{held[-1]}")
+                              f"{held[-1]}" if held else f"sql: --as-of-iteration {args.as_of_iteration}: the warehouse "
+                              "holds no iteration yet")
     try:
         print(run_sql(catalog, args.query, args.format, args.as_of_iteration))
     except duckdb.Error as exc:

@@ -10,6 +10,7 @@ import pytest
 
 from flows.cli import main
 from schemas.config import CampaignConfig, ConfigError
+from schemas.workspace import Workspace
 
 
 def _refused(capsys, argv: list[str]) -> str:
@@ -197,3 +198,28 @@ def test_a_folder_given_as_a_task_file_is_called_a_folder(tmp_path, capsys):
     """It was called missing ("no such file"), which sends one looking for a typo."""
     assert f"tasks.spec_files: expected a YAML spec file, got the folder {tmp_path}" in _refused(
         capsys, ["tasks", "list", "--spec-file", str(tmp_path)])
+
+
+def test_a_yaml_file_that_does_not_parse_says_where(tmp_path, capsys):
+    """It said "not valid YAML (ParserError)": no line, no column, nothing to look for."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train:\n  steps: [1, 2\nseed: 3\n")
+    assert f"{bad}: not valid YAML (expected ',' or ']', but got ':', line 3 column 5)" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(bad)])
+    assert "not valid YAML (expected ',' or ']', but got ':', line 3 column 5)" in _refused(
+        capsys, ["tasks", "validate", str(bad)])
+
+
+def test_train_refuses_a_negative_iteration_as_one(tmp_path, capsys):
+    """It looked the dataset up and said "no dataset for iteration -1"."""
+    assert "argument --iteration: expected 0 or more, got -1" in _refused(
+        capsys, ["train", "--preset", "smoke", "--workspace", str(tmp_path / "ws"), "--iteration", "-1"])
+
+
+def test_sql_as_of_an_iteration_a_fresh_warehouse_has_not_reached_is_refused(tmp_path, capsys):
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    Catalog(workspace.catalog).initialise()
+    assert "sql: --as-of-iteration 5: the warehouse holds no iteration yet" in _refused(
+        capsys, ["sql", "SELECT 1", "--workspace", str(workspace.root), "--as-of-iteration", "5"])

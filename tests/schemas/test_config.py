@@ -192,3 +192,16 @@ def test_run_refuses_adapt_tasks_that_are_not_the_campaign_s_seen_tasks_in_one_l
     assert err == ["sim2act: config error: adapt.tasks: expected task ids of the campaign's seen tasks (`sim2act tasks` "
                    "lists them), got lift-teal"]
     assert not (tmp_path / "ws").exists()  # refused before anything was written
+
+
+def test_tasks_validate_refuses_a_name_the_built_in_suite_has(tmp_path, capsys):
+    """It said "valid", and every campaign and `tasks list --spec-file` then refused the file."""
+    from flows.cli import main
+
+    spec = tmp_path / "mine.yaml"
+    spec.write_text("defaults: {family: robosuite, expert: pick_place, horizon: 80}\nspecs:\n  - name: lift\n"
+                    "    env: Lift\n    objects: {target: {colours: [red]}}\n"
+                    "    templates: ['lift the {target} one', 'raise the {target} cube', 'pick up the {target} block']\n")
+    assert main(["tasks", "validate", str(spec)]) == 2
+    assert capsys.readouterr().err.strip() == (f"sim2act: config error: {spec}: spec name 'lift' is already defined "
+                                               "(in task_specs/robosuite.yaml): give yours another name")
