@@ -217,8 +217,40 @@ def check_tracking_server(workspace: Workspace) -> None:
                                   f"runs for {workspace.root}: start it (`sim2act up`) or set {TRACKING_URI_ENV}")
     check_tracking_uris()
     _server_answers(TRACKING_URI_ENV, uri)
+    _database_answers(TRACKING_URI_ENV, uri)
     if (registry := os.environ.get(REGISTRY_URI_ENV)) and registry != uri:
         _server_answers(REGISTRY_URI_ENV, registry)
+        _database_answers(REGISTRY_URI_ENV, registry)
+
+
+# a database's driver option that bounds how long a connection may take to open, by scheme
+_CONNECT_TIMEOUT = {"postgresql": {"connect_timeout": 10}, "mysql": {"connect_timeout": 10}}
+
+
+def _database_answers(name: str, uri: str) -> None:
+    """A database URI (postgresql, mysql, mssql) MLflow would log to directly answers, with its driver
+    installed; MLflow's own client retried for minutes and ended in a 200-line traceback. Other schemes:
+    nothing to ask."""
+    scheme = urlsplit(uri).scheme.split("+")[0]
+    if scheme not in ("postgresql", "mysql", "mssql"):
+        return
+    import sqlalchemy
+
+    password = urlsplit(uri).password
+    try:
+        engine = sqlalchemy.create_engine(uri, connect_args=_CONNECT_TIMEOUT.get(scheme, {}))
+    except ModuleNotFoundError as exc:  # the dialect's driver (MySQLdb, pyodbc, ...)
+        raise TrackingUnreachable(f"{name}={redacted(uri)}: its database driver is not installed (no module "
+                                  f"{exc.name!r}): install it beside sim2act") from None
+    try:
+        with engine.connect():
+            pass
+    except Exception as exc:  # the driver's own error: refused, unknown host, bad password, no database
+        why = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0]
+        raise TrackingUnreachable(f"{name}={redacted(uri)}: the database does not answer "
+                                  f"({why.replace(password, '***') if password else why})") from None
+    finally:
+        engine.dispose()
 
 
 def _server_answers(name: str, uri: str) -> None:

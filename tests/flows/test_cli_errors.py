@@ -102,3 +102,21 @@ def test_a_reader_that_stops_reading_ends_the_command_without_a_traceback():
     command.stdout.close()  # before its first line: the reader is gone while it still imports
     _, stderr = command.communicate(timeout=300)
     assert command.returncode == 1 and stderr == b"", stderr.decode()[-2000:]
+
+
+def test_a_tracking_database_that_does_not_answer_is_one_line_before_any_work(monkeypatch, tmp_path):
+    """MLFLOW_TRACKING_URI naming a database directly: MLflow's client retried for minutes, then 212 lines
+    ending in SQLAlchemy's traceback; a dialect without its driver, a ModuleNotFoundError traceback."""
+    from flows.cli.common import TrackingUnreachable, check_tracking_server
+    from schemas.workspace import Workspace
+    from tests.chat_server import closed_port
+
+    port = closed_port()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"postgresql://sim2act:hunter2@127.0.0.1:{port}/mlflow")
+    with pytest.raises(TrackingUnreachable, match=rf"^MLFLOW_TRACKING_URI=postgresql://sim2act:\*\*\*@127.0.0.1:{port}/mlflow: "
+                                                  r"the database does not answer \(.*Connection refused"):
+        check_tracking_server(Workspace.at(tmp_path))
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "mysql://sim2act:hunter2@127.0.0.1/mlflow")
+    with pytest.raises(TrackingUnreachable, match=r"its database driver is not installed \(no module 'MySQLdb'\)") as error:
+        check_tracking_server(Workspace.at(tmp_path))
+    assert "hunter2" not in str(error.value)
