@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from schemas.config import ConfigError, describe_validation_error, read_text_file, yaml_error_said
+from schemas.config import ConfigError, describe_validation_error, load_yaml, read_text_file, yaml_error_said
 from schemas.tasks import Colour, Family
 
 BUILTIN_FILES = ("robosuite.yaml", "metaworld.yaml", "navigation.yaml")
@@ -91,7 +91,7 @@ class TaskSpecFile(_Strict):
 def parse_spec_file(text: str, origin: str) -> list[TaskSpec]:
     """Parse and validate one file; a broken one raises ConfigError naming the field and reason."""
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{origin}: not valid YAML ({yaml_error_said(exc)})") from None
     if not isinstance(data, dict):

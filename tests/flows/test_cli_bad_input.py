@@ -223,3 +223,11 @@ def test_sql_as_of_an_iteration_a_fresh_warehouse_has_not_reached_is_refused(tmp
     Catalog(workspace.catalog).initialise()
     assert "sql: --as-of-iteration 5: the warehouse holds no iteration yet" in _refused(
         capsys, ["sql", "SELECT 1", "--workspace", str(workspace.root), "--as-of-iteration", "5"])
+
+
+def test_a_key_given_twice_in_a_config_file_is_refused(tmp_path, capsys):
+    """PyYAML keeps the last: a config with two `train:` blocks ran with the second alone, silently."""
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("train:\n  steps: 5\nseed: 1\ntrain:\n  epochs: 2\n")
+    assert f"{twice}: not valid YAML (the key 'train' is given twice, line 4 column 1)" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(twice)])
