@@ -76,6 +76,13 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
     return ModelRef(model_key, explorer.checkpoint, found[0][0], f"{name}/{version.version}")
 
 
+def check_model_ref(ref: str, config: CampaignConfig) -> None:
+    """`ref` is a model key or reads as a registry reference (ConfigError otherwise); whether it names a
+    model is `resolve_model`'s to say."""
+    if not ref.startswith("train-"):
+        parse_registry_ref(ref, config.registered_model_name)
+
+
 def parse_registry_ref(ref: str, default_name: str) -> tuple[str, str | None, str | None]:
     """(name, version, alias), one of the last two None, from champion, @alias, 3, v3, name/3,
     name@alias (each with or without models:/)."""

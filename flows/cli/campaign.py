@@ -139,10 +139,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     check_tracking_server(workspace)  # an MLflow server named by MLFLOW_TRACKING_URI answers, or one line
     log_stages_to_stderr()
     from envs.registry import check_render
-    from flows.model_eval import check_model_fits, eval_cases, instruction_embeddings, resolve_model
+    from flows.model_eval import check_model_fits, check_model_ref, eval_cases, instruction_embeddings, resolve_model
     from flows.tracking import Tracking
     from stages.evaluate import Agent, evaluate_model, evaluated_key, episodes_per_split
 
+    for ref in args.model:  # a reference that cannot be one: said first, not after the tasks' checks
+        check_model_ref(ref, config)
     suite, cases = eval_cases(workspace, config, args.tasks, args.split, args.family)  # bad input refused here, first
     per_split = episodes_per_split(config, cases)  # the split's whole size, a family's cases or not: the same units
     if args.family:
@@ -196,11 +198,12 @@ def cmd_shadow(args: argparse.Namespace) -> int:
     from envs.pool import Progress, run_in_pool
     from envs.registry import check_render
     from envs.shadow import markdown, placement_markdown
-    from flows.model_eval import (check_model_fits, eval_cases, instruction_embeddings, resolve_model,
+    from flows.model_eval import (check_model_fits, check_model_ref, eval_cases, instruction_embeddings, resolve_model,
                                   started_as_trained, trained_seeds)
     from policies.policy import weights_of
     from stages.evaluate import Agent, evaluation_units, shadow_unit
 
+    check_model_ref(args.model, config)  # a reference that cannot be one: said first, not after the tasks' checks
     suite, cases = eval_cases(workspace, config, None, args.split)  # bad input refused here, before any work
     known = {task.task_id for task, _, _ in cases}
     unknown = sorted(set(args.task or ()) - known)

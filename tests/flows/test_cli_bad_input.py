@@ -231,3 +231,10 @@ def test_a_key_given_twice_in_a_config_file_is_refused(tmp_path, capsys):
     twice.write_text("train:\n  steps: 5\nseed: 1\ntrain:\n  epochs: 2\n")
     assert f"{twice}: not valid YAML (the key 'train' is given twice, line 4 column 1)" in _refused(
         capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(twice)])
+
+
+def test_a_model_reference_that_cannot_be_one_is_said_first(tmp_path, capsys):
+    """`shadow --model 'nope!'` on a fresh workspace said the tasks were never generated, not what was wrong."""
+    for command in ("shadow", "eval"):
+        assert "--model: 'nope!' is neither a model key (train-...) nor a registry reference" in _refused(
+            capsys, [command, "--preset", "smoke", "--workspace", str(tmp_path / "ws"), "--model", "nope!"])
