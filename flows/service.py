@@ -160,8 +160,9 @@ def read_state(workspace: Workspace) -> dict:
     try:
         state = json.loads(path.read_text()) if path.exists() else {}
         processes = state.get("processes", {})
-        whole = all(isinstance(r, dict) and type(r.get("pid")) is int and isinstance(r.get("health_url", ""), str)
-                    for r in processes.values())
+        # a pid of 0 or below would make `down` signal its own process group
+        whole = all(isinstance(r, dict) and type(r.get("pid")) is int and r["pid"] > 0
+                    and isinstance(r.get("health_url", ""), str) for r in processes.values())
     except (ValueError, AttributeError) as exc:  # not JSON (a torn or edited file), not an object, no processes map
         whole, why = False, f"{type(exc).__name__}: {exc}"
     else:

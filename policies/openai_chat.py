@@ -25,12 +25,13 @@ class ChatUnavailable(Sim2ActError, RuntimeError):
     """No usable answer: the endpoint stayed unreachable, refused the request, or broke the protocol.
     A known failure (one line from `sim2act`), raised in rollout workers too: it pickles whole."""
 
-    def __init__(self, message: str, failures: list[Failure]):
+    def __init__(self, message: str, failures: list[Failure], refused: bool = False):
         super().__init__(message)
         self.failures = failures  # one per failed request, in order; the last is why it gave up
+        self.refused = refused  # the server answered a 4xx that is not worth another try: the request is wrong
 
     def __reduce__(self):
-        return type(self), (str(self), self.failures)
+        return type(self), (str(self), self.failures, self.refused)
 
 
 @dataclass
@@ -83,8 +84,9 @@ def complete(
         try:
             response = retrying(_transient, attempts=config.retries + 1, wait_s=1.0, backoff_max_s=10.0)(post, client)
         except (httpx.HTTPStatusError, httpx.TransportError) as exc:
+            refused = isinstance(exc, httpx.HTTPStatusError) and not _transient(exc)
             raise ChatUnavailable(f"{who} at {url} did not answer ({_classify(exc)[1]}) after {len(failures)} tries",
-                                  failures) from None
+                                  failures, refused) from None
     try:
         content = response.json()["choices"][0]["message"]["content"]
     except (KeyError, IndexError, TypeError, ValueError):  # JSONDecodeError, UnicodeDecodeError

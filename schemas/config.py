@@ -592,11 +592,17 @@ class _UniqueKeyLoader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # `<<: *defaults`: merged keys may be overridden here
+                continue
             key = self.construct_object(key_node, deep=deep)
-            if key in seen:
-                raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} is given twice",
-                                                        key_node.start_mark)
-            seen.add(key)
+            try:
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} is given twice",
+                                                            key_node.start_mark)
+                seen.add(key)
+            except TypeError:  # a list or mapping as a key: YAML's own refusal, one line
+                raise yaml.constructor.ConstructorError(None, None, "a key that is a list or a mapping",
+                                                        key_node.start_mark) from None
         return super().construct_mapping(node, deep=deep)
 
 
@@ -605,18 +611,22 @@ def load_yaml(text: str):
     return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
 
 
-def yaml_error_said(exc: Exception) -> str:
-    """A YAML error as one clause: what the parser found, and where (line and column, from 1)."""
+def yaml_error_said(exc: Exception, prefix: int = 0) -> str:
+    """A YAML error as one clause: what the parser found, and where (line and column, from 1), less `prefix`
+    characters put before the first line (`--set`'s "value: ")."""
     mark = getattr(exc, "problem_mark", None)
     problem = getattr(exc, "problem", None) or exc.__class__.__name__
-    return f"{problem}, line {mark.line + 1} column {mark.column + 1}" if mark is not None else problem
+    if mark is None:
+        return problem
+    column = mark.column + 1 - (prefix if mark.line == 0 else 0)
+    return f"{problem}, line {mark.line + 1} column {max(column, 1)}"
 
 
-def _read_yaml(text: str, origin: str) -> dict[str, Any]:
+def _read_yaml(text: str, origin: str, prefix: int = 0) -> dict[str, Any]:
     try:
         data = load_yaml(text) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{origin}: not valid YAML ({yaml_error_said(exc)})") from None
+        raise ConfigError(f"{origin}: not valid YAML ({yaml_error_said(exc, prefix)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{origin}: the top level must be a mapping of config fields")
     return data
@@ -658,7 +668,7 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
             if not isinstance(target, dict):  # `--set train=1 --set train.lr=2`: train is a value, not a section
                 raise ConfigError(f"--set {path}: {'.'.join(parents[:depth])} was set to {target!r} by an earlier "
                                   "--set; expected a section to set a field of")
-        target[leaf] = _read_yaml(f"value: {text}", f"--set {path}")["value"]
+        target[leaf] = _read_yaml(f"value: {text}", f"--set {path}", prefix=len("value: "))["value"]
     return overrides
 
 

@@ -252,16 +252,13 @@ def process_alive(pid: int) -> bool:
     return pid > 0
 
 
+# scheme://user:password@host...: the password runs to the last "@" (SQLAlchemy, hence MLflow, takes a raw "/",
+# "?" or "#" in it, where urlsplit would end the host at the first "/" and show the rest as a path)
+_CREDENTIALS = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*://[^:@/?#]*):.*@")
+
+
 def redacted(url: str) -> str:
     """A URL as it may be shown: its password replaced by ***, and any query (`?token=…`) by `?***`."""
-    try:
-        parts = urlsplit(url)
-        parts.port  # noqa: B018 (a bad port or IPv6 host raises here, as it would in the caller)
-    except ValueError:  # not a URL urlsplit takes: hide whatever sits between "//user:" and "@"
-        return re.sub(r"(//[^/:@]*):[^@/]*@", r"\1:***@", url).split("?")[0] + ("?***" if "?" in url else "")
-    if parts.query:
-        parts = parts._replace(query="***")
-    if parts.password is None:
-        return urlunsplit(parts)
-    host = parts.netloc.rpartition("@")[2]
-    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
+    shown = _CREDENTIALS.sub(r"\1:***@", url, count=1)
+    head, query, _ = shown.partition("?")
+    return head + ("?***" if query else "")

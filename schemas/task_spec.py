@@ -116,6 +116,12 @@ class SuiteEntry:
     origin: str  # the file it came from, for error messages
 
 
+def builtin_spec_file(path: Path) -> bool:
+    """`path` is one of the built-in suite's own spec files."""
+    folder = resources.files("schemas").joinpath("task_specs")
+    return any(Path(str(folder.joinpath(name))).resolve() == Path(path).resolve() for name in BUILTIN_FILES)
+
+
 def load_specs(extra_files: list[Path] = ()) -> dict[str, SuiteEntry]:
     """The built-in suite plus the user's files, by spec name."""
     specs: dict[str, SuiteEntry] = {}

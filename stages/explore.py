@@ -308,10 +308,12 @@ def run_explore_unit(unit: ExploreUnit) -> list[ShardFile]:
             rows, final, success = rollout(env, unit.task, plan.seed, explorer.act, randomisation, label,
                                            steps=unit.policy_steps if own else None)
         except ChatUnavailable as exc:
-            # the endpoint's outage, not the episode's: recorded, it would stay failed under this unit's key for
+            # the endpoint's failure, not the episode's: recorded, it would stay failed under this unit's key for
             # good; the unit fails instead (nothing written), and the same command redoes it once the endpoint answers
-            raise ChatUnavailable(f"explore: {exc}: start it (or set explore.vlm_fraction=0), then run the same "
-                                  "command again to resume", exc.failures) from None
+            fix = ("it refused the request: check explore.vlm (url, model, api_key_env)" if exc.refused else
+                   "start it")
+            raise ChatUnavailable(f"explore: {exc}: {fix} (or set explore.vlm_fraction=0), then run the same "
+                                  "command again to resume", exc.failures, exc.refused) from None
         except Exception as exc:  # a simulator (or explorer) failure marks the episode, not the shard
             rows, final, success, error = [], None, False, f"{type(exc).__name__}: {exc}"
         done = {**common, "instruction": plan.instruction}

@@ -33,7 +33,8 @@ def check_read_only(sql: str) -> None:
         raise ReadOnlyViolation("no SQL statement given")
     for statement in statements:
         if statement.type not in _READ_STATEMENTS:
-            said = statement.query.split(None, 1)[0].upper() if statement.query.split() else statement.type.name
+            words = statement.query.split()  # (a leading comment is no keyword: then DuckDB's name for the type)
+            said = words[0].upper() if words and words[0].isalpha() else statement.type.name
             raise ReadOnlyViolation(f"the warehouse is read-only here: {said} statements are refused (use SELECT)")
     if len(statements) > 1:  # DuckDB answers the last one only: the others' results would vanish unsaid
         raise ReadOnlyViolation(f"expected one SQL statement, got {len(statements)}: run each on its own")

@@ -265,7 +265,7 @@ class S3Store(ShardStore):
         except ValueError:
             parts = urlsplit("")
         scheme = parts.scheme if endpoint else "https"
-        if endpoint and (scheme not in ("http", "https") or not parts.netloc or "@" in parts.netloc):
+        if endpoint and (scheme not in ("http", "https") or not parts.netloc or "@" in endpoint):
             raise ShardStoreError(f"AWS_ENDPOINT_URL: expected http(s)://host:port (no credentials: AWS_ACCESS_KEY_ID "
                                   f"and AWS_SECRET_ACCESS_KEY), got {redacted(endpoint)!r}")
         self._key, self._secret = environ["AWS_ACCESS_KEY_ID"], environ["AWS_SECRET_ACCESS_KEY"]
@@ -493,9 +493,11 @@ def canonical_url(url: str) -> str:
         parts = urlsplit(url)
     except ValueError:
         parts = urlsplit("")
-    if "@" in parts.netloc:  # keys go in AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, never in a URL that is logged
-        raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix without credentials (set "
-                              f"AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY), got {redacted(url)}")
+    if "@" in parts.netloc or ":" in parts.netloc:  # keys go in AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, never in a URL that
+        # is logged; a bucket name holds no ":" (a raw "/" in a password ends urlsplit's host at "user:…")
+        said = "without credentials (set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY)" if "@" in url else \
+            "(a bucket name holds no ':': the server's host and port go in AWS_ENDPOINT_URL)"
+        raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix {said}, got {redacted(url)}")
     if parts.scheme != "s3" or not parts.netloc or parts.query or parts.fragment:
         raise ShardStoreError(f"{SHARD_STORE_ENV}: expected s3://bucket/prefix (or unset: the warehouse folder), "
                               f"got {redacted(url)!r}")

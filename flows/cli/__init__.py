@@ -33,12 +33,31 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (usage: {self.prog} --help)\n")
 
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, with flags no command takes refused by the command they were given to: argparse
+        refuses them from the top parser, whose usage does not list the command's flags."""
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(parsed, "command_prog", self.prog)
+            self.exit(2, f"{command}: error: unrecognized arguments: {' '.join(extras)} (usage: {command} --help)\n")
+        return parsed
+
+
+def _name_commands(parser: argparse.ArgumentParser) -> None:
+    """Each command's parser records its name (`command_prog`) in what it parses."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                sub.set_defaults(command_prog=sub.prog)
+                _name_commands(sub)
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="sim2act", description=__doc__.splitlines()[0].replace("`", ""))
     commands = parser.add_subparsers(dest="command", required=True)
     for group in GROUPS:
         group.register(commands)
+    _name_commands(parser)
     return parser
 
 
@@ -55,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()  # a reader gone is found here, not in the interpreter's exit (a traceback there)
         return status
     except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # another pipe than stdout (a worker's, a server's): not the reader going away
         # the reader stopped reading (`sim2act tasks list | head`): quiet, as a tool killed by SIGPIPE is;
         # stdout pointed at /dev/null so that the interpreter's last flush does not fail again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -71,6 +92,18 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"sim2act: {said}", file=sys.stderr)
         return 2
+
+
+def _stdout_gone() -> bool:
+    """stdout is a pipe whose reader closed it (poll says POLLERR on its write end)."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(event & select.POLLERR for _, event in poller.poll(0))
+    except (OSError, ValueError, AttributeError):  # no file descriptor (a test's capture), or no poll
+        return False
 
 
 def _server_failure(exc: BaseException) -> str | None:

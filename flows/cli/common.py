@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import base64
 import os
+import re
 import urllib.request
 from pathlib import Path
 from urllib.parse import unquote, urlsplit, urlunsplit
@@ -175,6 +176,9 @@ def configure_environment(workspace: Workspace) -> None:
 # the tracking URIs MLflow takes (a plain path is its file store); "postgresql+psycopg2" is postgresql's. MLflow 3
 # refuses its file store (./mlruns, file://) unless MLFLOW_ALLOW_FILE_STORE is set: then "file" is taken too.
 TRACKING_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+# and the registry's own (Unity Catalog): MLFLOW_REGISTRY_URI may name one
+REGISTRY_SCHEMES = ("databricks-uc", "uc")
+BARE_URIS = ("databricks", "databricks-uc")  # a profile's default, with no "://"
 
 
 class TrackingUnreachable(Sim2ActError, RuntimeError):
@@ -189,17 +193,15 @@ def check_tracking_uris() -> None:
     Raises:
         TrackingUnreachable: one that is not, shown with its password replaced."""
     file_store = os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").lower() in ("1", "true")
-    schemes = (*TRACKING_SCHEMES, "file", "") if file_store else TRACKING_SCHEMES
     for name in (TRACKING_URI_ENV, REGISTRY_URI_ENV, BACKEND_STORE_ENV):
         value = os.environ.get(name)
-        if not value:
+        if not value or value in BARE_URIS:
             continue
-        try:
-            parts = urlsplit(value)
-            parts.port  # noqa: B018 (a bad port or IPv6 host raises here)
-        except ValueError:
-            parts = None
-        if parts is None or parts.scheme.split("+")[0] not in schemes:
+        # the scheme as MLflow reads it (a database URL's password may hold "/" or "?": urlsplit would misread it)
+        scheme = value.partition(":")[0].split("+")[0].lower() if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", value) else ""
+        schemes = (*TRACKING_SCHEMES, *(REGISTRY_SCHEMES if name == REGISTRY_URI_ENV else ()),
+                   *(("file", "") if file_store else ()))
+        if scheme not in schemes:
             raise TrackingUnreachable(f"{name}: expected a URI of {', '.join(TRACKING_SCHEMES)}, got {redacted(value)}")
 
 
@@ -223,25 +225,30 @@ def check_tracking_server(workspace: Workspace) -> None:
         _database_answers(REGISTRY_URI_ENV, registry)
 
 
-# a database's driver option that bounds how long a connection may take to open, by scheme
-_CONNECT_TIMEOUT = {"postgresql": {"connect_timeout": 10}, "mysql": {"connect_timeout": 10}}
+# the option that bounds how long a connection may take to open, by SQLAlchemy driver (another driver: none)
+_CONNECT_TIMEOUT = {"psycopg2": {"connect_timeout": 10}, "psycopg": {"connect_timeout": 10},
+                    "pg8000": {"timeout": 10}, "mysqldb": {"connect_timeout": 10}, "pymysql": {"connect_timeout": 10}}
 
 
 def _database_answers(name: str, uri: str) -> None:
     """A database URI (postgresql, mysql, mssql) MLflow would log to directly answers, with its driver
     installed; MLflow's own client retried for minutes and ended in a 200-line traceback. Other schemes:
     nothing to ask."""
-    scheme = urlsplit(uri).scheme.split("+")[0]
-    if scheme not in ("postgresql", "mysql", "mssql"):
+    if uri.partition(":")[0].split("+")[0].lower() not in ("postgresql", "mysql", "mssql"):
         return
     import sqlalchemy
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
 
-    password = urlsplit(uri).password
     try:
-        engine = sqlalchemy.create_engine(uri, connect_args=_CONNECT_TIMEOUT.get(scheme, {}))
+        url = sqlalchemy.engine.make_url(uri)  # as MLflow reads it: a raw "/" or "?" in the password is the password's
+        engine = sqlalchemy.create_engine(url, connect_args=_CONNECT_TIMEOUT.get(url.get_driver_name(), {}))
     except ModuleNotFoundError as exc:  # the dialect's driver (MySQLdb, pyodbc, ...)
         raise TrackingUnreachable(f"{name}={redacted(uri)}: its database driver is not installed (no module "
                                   f"{exc.name!r}): install it beside sim2act") from None
+    except (ArgumentError, NoSuchModuleError, ValueError) as exc:  # not a URL SQLAlchemy reads, an unknown driver
+        raise TrackingUnreachable(f"{name}={redacted(uri)}: not a database URL SQLAlchemy reads "
+                                  f"({str(exc).splitlines()[0]})") from None
+    password = url.password
     try:
         with engine.connect():
             pass
@@ -255,11 +262,20 @@ def _database_answers(name: str, uri: str) -> None:
 
 def _server_answers(name: str, uri: str) -> None:
     """An http(s) `uri` (named by variable `name`) answers on /health; any other scheme is not a server."""
-    parts = urlsplit(uri)
-    if parts.scheme not in ("http", "https"):
+    if not re.match(r"^https?://", uri, re.IGNORECASE):
         return
-    # urllib takes no user:password@ in a URL: MLflow's own client sends them as basic auth
-    health = urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2], path=f"{parts.path.rstrip('/')}/health"))
+    try:
+        parts = urlsplit(uri)
+        if "@" in uri.partition("?")[0] and "@" not in parts.netloc:  # a raw "/" in the password ended the host
+            raise ValueError("its password holds a character a URL must escape: %2F for /, %3F for ?, %23 for #")
+        parts.port  # noqa: B018 (a bad port or IPv6 host raises here)
+    except ValueError as exc:  # (urllib's own words may quote a piece of the password: not shown)
+        why = str(exc) if str(exc).startswith("its password") else "urllib cannot read its host and port"
+        raise TrackingUnreachable(f"{name}={redacted(uri)}: not a URL ({why})") from None
+    # urllib takes no user:password@ in a URL: MLflow's own client sends them as basic auth; the query (a token)
+    # is not the health check's
+    health = urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2], path=f"{parts.path.rstrip('/')}/health",
+                                       query="", fragment=""))
     request = urllib.request.Request(health)
     if parts.username is not None:
         token = base64.b64encode(f"{unquote(parts.username)}:{unquote(parts.password or '')}".encode()).decode()

@@ -54,13 +54,14 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
     from envs.suite import expand_spec
     from schemas.config import TasksConfig
     from schemas.config import read_text_file
-    from schemas.task_spec import load_specs, parse_spec_file
+    from schemas.task_spec import builtin_spec_file, load_specs, parse_spec_file
 
     if not args.file.is_file():
         raise ConfigError(f"tasks validate: expected a YAML spec file, got "
                           f"{'the folder ' if args.file.is_dir() else 'no such file '}{args.file}")
     specs = parse_spec_file(read_text_file(args.file, "tasks validate"), str(args.file))
-    load_specs([args.file])  # a name the built-in suite has already is refused here, as every campaign would
+    if not builtin_spec_file(args.file):  # (a built-in file itself is the suite's)
+        load_specs([args.file])  # a name the built-in suite has already is refused here, as every campaign would
     campaign = None
     if args.preset:  # a campaign binds only its tasks.colours: the count it would see, beside the file's own
         from schemas.config import load_config

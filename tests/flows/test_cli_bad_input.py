@@ -231,6 +231,14 @@ def test_a_key_given_twice_in_a_config_file_is_refused(tmp_path, capsys):
     twice.write_text("train:\n  steps: 5\nseed: 1\ntrain:\n  epochs: 2\n")
     assert f"{twice}: not valid YAML (the key 'train' is given twice, line 4 column 1)" in _refused(
         capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(twice)])
+    from schemas.config import load_yaml
+
+    # a merge (`<<: *defaults`) is YAML's way to override: its keys are not given twice
+    assert load_yaml("x: &d\n  steps: 5\n  epochs: 1\ntrain:\n  <<: *d\n  steps: 7\n")["train"] == {"steps": 7, "epochs": 1}
+    listed = tmp_path / "listed.yaml"
+    listed.write_text("? [a, b]\n: 1\n")  # was a TypeError traceback
+    assert f"{listed}: not valid YAML (a key that is a list or a mapping, line 1 column 3)" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--config", str(listed)])
 
 
 def test_a_model_reference_that_cannot_be_one_is_said_first(tmp_path, capsys):
@@ -238,3 +246,11 @@ def test_a_model_reference_that_cannot_be_one_is_said_first(tmp_path, capsys):
     for command in ("shadow", "eval"):
         assert "--model: 'nope!' is neither a model key (train-...) nor a registry reference" in _refused(
             capsys, [command, "--preset", "smoke", "--workspace", str(tmp_path / "ws"), "--model", "nope!"])
+
+
+def test_a_flag_no_command_takes_is_refused_by_the_command_it_was_given_to(tmp_path, capsys):
+    """argparse refused it from the top parser: `sim2act: error: ... (usage: sim2act --help)`, whose usage does
+    not list the command's flags."""
+    assert _refused(capsys, ["run", "--workspace", str(tmp_path / "ws"), "--bogus"]) == (
+        "sim2act run: error: unrecognized arguments: --bogus (usage: sim2act run --help)")
+    assert _refused(capsys, ["tasks", "validate", "x.yaml", "--bogus"]).startswith("sim2act tasks validate: error:")

@@ -301,7 +301,8 @@ def test_a_copied_workspace_neither_uses_nor_stops_the_originals_stack(tmp_path)
         original.kill()
 
 
-@pytest.mark.parametrize("text", ['{"processes": {"prefect": {"pid": 12', "[]", '{"processes": {"prefect": {"pid": "abc"}}}'])
+@pytest.mark.parametrize("text", ['{"processes": {"prefect": {"pid": 12', "[]", '{"processes": {"prefect": {"pid": "abc"}}}',
+                                  '{"processes": {"prefect": {"pid": 0}}}'])  # down would signal its own group
 def test_a_state_file_sim2act_did_not_write_is_one_line(tmp_path, capsys, text):
     """A torn, edited or foreign service/state.json: `status` (and `run`, which reads it for the stack's URLs)
     gave a JSONDecodeError, AttributeError or TypeError traceback."""

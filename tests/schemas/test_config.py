@@ -205,3 +205,5 @@ def test_tasks_validate_refuses_a_name_the_built_in_suite_has(tmp_path, capsys):
     assert main(["tasks", "validate", str(spec)]) == 2
     assert capsys.readouterr().err.strip() == (f"sim2act: config error: {spec}: spec name 'lift' is already defined "
                                                "(in task_specs/robosuite.yaml): give yours another name")
+    builtin = Path(__file__).resolve().parents[2] / "schemas" / "task_specs" / "robosuite.yaml"
+    assert main(["tasks", "validate", str(builtin)]) == 0  # the suite's own file is not a clash with itself

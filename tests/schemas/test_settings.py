@@ -80,6 +80,8 @@ def test_a_url_is_shown_without_its_password():
     assert redacted("http://127.0.0.1:5000") == "http://127.0.0.1:5000"
     assert redacted("https://mlflow.lab/?token=hunter2") == "https://mlflow.lab/?***"  # a token in the query
     assert redacted("https://sim2act:hunter2@[::1") == "https://sim2act:***@[::1"  # not a URL urlsplit takes
+    # SQLAlchemy (so MLflow) takes a raw "/" or "?" in a password, where urlsplit ends the host early
+    assert redacted("postgresql://sim2act:ab/cd+e?f@db.lab:5432/mlflow") == "postgresql://sim2act:***@db.lab:5432/mlflow"
 
 
 def test_a_process_killed_while_making_the_mlflow_store_leaves_nothing_that_stops_the_next(tmp_path, monkeypatch):

@@ -183,6 +183,18 @@ def test_a_vlm_endpoint_that_does_not_answer_fails_the_unit_not_its_episodes(tmp
     assert not [p for p in workspace.warehouse.rglob("*.parquet")]
 
 
+def test_a_vlm_endpoint_that_refuses_the_request_fails_the_unit_saying_what_to_check(tmp_path, serve_chat):
+    """A 401 (a wrong key) or 404 (a wrong model) is not an outage: starting the endpoint fixes nothing."""
+    from policies.openai_chat import ChatUnavailable
+
+    server = serve_chat(("{}", 401, 0.0))
+    unit = _plan(_config(vlm=VlmExplorerConfig(url=server.url, model="tiny-vlm"), vlm_fraction=0.25), tmp_path)[0]
+    with pytest.raises(ChatUnavailable, match=r"did not answer \(HTTP 401\) after 1 tries: it refused the request: "
+                                              r"check explore.vlm \(url, model, api_key_env\)") as raised:
+        run_explore_unit(unit)
+    assert raised.value.refused and len(server.requests) == 1  # not tried again either
+
+
 def test_a_noise_schedule_cycles_over_each_tasks_episodes(tmp_path):
     units = _plan(_config(expert_noise=[0.0, 0.3]), tmp_path)
     assert [e.expert_noise for e in units[0].episodes] == [0.0, 0.3, 0.0, 0.3]
