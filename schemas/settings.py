@@ -18,7 +18,6 @@ import stat
 from collections.abc import Iterator, MutableMapping
 from contextlib import closing, contextmanager
 from pathlib import Path
-from urllib.parse import urlsplit, urlunsplit
 
 from schemas.errors import Sim2ActError
 from schemas.workspace import Workspace
