@@ -310,7 +310,7 @@ def test_the_cli_queries_snapshots_verifies_and_exports(filled, tmp_path, capsys
         "SELECT count(*) FROM filter_decisions WHERE kept AND task_id LIKE 'lift%'")
     assert info["codebase_version"] == "v3.0" and info["total_episodes"] == kept_lift > 0
     assert main(["export", "lerobot", str(out), "--workspace", root]) == 2  # not empty: refused
-    assert "is not an empty folder" in capsys.readouterr().err
+    assert "is a folder with files in it: export into a new one" in capsys.readouterr().err
 
 
 def test_a_chunked_stream_carries_each_steps_next_actions_of_its_episode(filled):
