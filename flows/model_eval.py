@@ -62,6 +62,10 @@ def resolve_model(workspace: Workspace, config: CampaignConfig, ref: str) -> Mod
         raise ConfigError(f"--model: {ref!r} is a registry reference, but {workspace.root} has no model registry "
                           f"({workspace.tracking_db} is missing: no campaign ran there); name a model key "
                           "(train-...) or the workspace of a campaign that ran")  # not made here: a lookup writes nothing
+    for uri in {os.environ.get(TRACKING_URI_ENV), os.environ.get(REGISTRY_URI_ENV)} - {None, ""}:
+        if uri.startswith("sqlite:///") and not Path(uri.removeprefix("sqlite:///")).is_file():  # MLflow would make it
+            raise ConfigError(f"--model: {ref!r} is a registry reference, but {uri} does not exist (no registry "
+                              "there); name a model key (train-...) or the store a campaign registered in")
     client = MlflowClient(tracking_uri=tracking_uri(workspace), registry_uri=registry_uri(workspace))
     try:
         version = (client.get_model_version(name, version_number) if version_number

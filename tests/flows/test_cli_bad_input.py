@@ -254,3 +254,16 @@ def test_a_flag_no_command_takes_is_refused_by_the_command_it_was_given_to(tmp_p
     assert _refused(capsys, ["run", "--workspace", str(tmp_path / "ws"), "--bogus"]) == (
         "sim2act run: error: unrecognized arguments: --bogus (usage: sim2act run --help)")
     assert _refused(capsys, ["tasks", "validate", "x.yaml", "--bogus"]).startswith("sim2act tasks validate: error:")
+
+
+def test_a_registry_lookup_in_a_sqlite_store_that_does_not_exist_makes_none(tmp_path, monkeypatch):
+    """MLflow made the named SQLite file (two INFO lines of migrations), then found no model in it."""
+    from flows.model_eval import resolve_model
+    from warehouse.catalog import Catalog
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    Catalog(workspace.catalog).initialise()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'typo.db'}")
+    with pytest.raises(ConfigError, match=r"--model: 'champion' is a registry reference, but sqlite:///.*typo.db does not exist"):
+        resolve_model(workspace, CampaignConfig(), "champion")
+    assert not (tmp_path / "typo.db").exists()
