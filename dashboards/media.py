@@ -29,8 +29,11 @@ def media_file(workspace: Workspace, name: str) -> Path | None:
     if "\0" in name:  # no file has one: resolve() would raise
         return None
     folder = workspace.media.resolve()
-    path = (folder / name).resolve()
-    if path.suffix.lower() != ".mp4" or not path.is_relative_to(folder) or not path.is_file():
+    try:
+        path = (folder / name).resolve()
+        if path.suffix.lower() != ".mp4" or not path.is_relative_to(folder) or not path.is_file():
+            return None
+    except OSError:  # a name too long for the file system (ENAMETOOLONG): no such file either
         return None
     return path
 
@@ -56,18 +59,27 @@ class EpisodeVideos:
     def __init__(self, catalog: Catalog, folder: Path):
         self.catalog = catalog
         self.folder = folder
-        self._lock = threading.Lock()  # two requests for one episode encode it once
+        # two requests for one episode encode it once; another episode's (or a made one's) do not wait on it
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_lock = threading.Lock()
+        self._made: dict[str, Path] = {}  # episode -> its video, once made
 
     def path(self, episode_id: str) -> Path | None:
         """The episode's MP4, or None when it has no stored frames (unknown, failed, camera-less)."""
         from warehouse.video import CONTROL_FPS, video_writer
 
+        made = self._made.get(episode_id)
+        if made is not None and made.exists():  # a Range request for a video made before: no catalog read, no lock
+            return made
         family = self.catalog.query("SELECT t.family FROM episodes e JOIN task_families t USING (campaign, task_id) "
                                     "WHERE e.episode_id = ? LIMIT 1", [episode_id])
         fps = CONTROL_HZ.get(family[0][0], CONTROL_FPS) if family else CONTROL_FPS  # played at the family's rate
         path = self.folder / f"{hashlib.sha256(f'{episode_id}@{fps}'.encode()).hexdigest()[:24]}.mp4"
-        with self._lock:
+        with self._locks_lock:
+            lock = self._locks.setdefault(episode_id, threading.Lock())
+        with lock:
             if path.exists():
+                self._made[episode_id] = path
                 return path
             frames = episode_frames(self.catalog, episode_id)
             if not frames:
@@ -80,4 +92,5 @@ class EpisodeVideos:
             finally:
                 writer.close()
             partial.replace(path)
+            self._made[episode_id] = path
             return path

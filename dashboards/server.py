@@ -54,15 +54,33 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=allowed_hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
-    @app.exception_handler(duckdb.IOException)
-    def unreadable_file(request: Request, exc: duckdb.IOException) -> JSONResponse:
-        """A shard missing or damaged (moved by hand, a disk error): said, with what to do, not a bare 500."""
-        if "lock" in str(exc).lower():  # a writer held the catalog past the wait: busy, not damaged
+    def a_file_failed(exc: duckdb.Error) -> bool:
+        """A shard could not be read: missing (IOException), or a registered one DuckDB names (torn, damaged)."""
+        if isinstance(exc, duckdb.IOException):
+            return True
+        try:
+            return catalog.registered_shard_in(str(exc)) is not None
+        except Exception:  # the catalog itself unreadable: not a shard's failure
+            return False
+
+    @app.exception_handler(duckdb.Error)
+    def unreadable_file(request: Request, exc: duckdb.Error) -> JSONResponse:
+        """A shard missing or damaged (moved by hand, a disk error, a torn file: DuckDB's IOException or
+        InvalidInputException), the catalog busy, or any other read failing: said in one line, not a bare 500."""
+        first = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+        if isinstance(exc, duckdb.IOException) and "lock" in first.lower():  # a writer held it past the wait
             return JSONResponse(status_code=503, content={"detail": "the warehouse catalog is busy (a campaign is "
                                                                     "registering work): try again in a moment"})
-        return JSONResponse(status_code=503, content={"detail": (
-            f"a warehouse file could not be read ({str(exc).splitlines()[0][:300]}): run `sim2act warehouse verify "
-            f"--workspace {workspace.root}` to quarantine it; the next `sim2act run` redoes its unit")})
+        if a_file_failed(exc):
+            return JSONResponse(status_code=503, content={"detail": (
+                f"a warehouse file could not be read ({first}): run `sim2act warehouse verify --workspace "
+                f"{workspace.root}` to quarantine it; the next `sim2act run` redoes its unit")})
+        return JSONResponse(status_code=500, content={"detail": f"the warehouse could not be read: {first}"})
+
+    @app.exception_handler(Sim2ActError)
+    def known_failure(request: Request, exc: Sim2ActError) -> JSONResponse:
+        """A catalog that is not DuckDB's, or another known failure: its own line, which says what to do."""
+        return JSONResponse(status_code=503, content={"detail": str(exc)})
 
     def known_campaigns() -> tuple[list[str], str | None]:
         """(campaigns, why there is nothing to show when there are none)."""
@@ -105,9 +123,11 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
         chosen = campaign_of(campaign)
         try:
             rows = run_panel(catalog, panel, chosen)
-        except duckdb.IOException:
-            raise  # a file, not the panel: `unreadable_file` says what to do
-        except (PanelError, duckdb.Error) as exc:
+        except duckdb.Error as exc:
+            if a_file_failed(exc):
+                raise  # a file, not the panel: `unreadable_file` says what to do
+            raise HTTPException(500, f"panel {panel_id}: {str(exc).splitlines()[0]}") from None
+        except PanelError as exc:
             raise HTTPException(500, f"panel {panel_id}: {str(exc).splitlines()[0]}") from None
         return {"id": panel.id, "campaign": chosen, "columns": rows.columns, "rows": rows.rows}
 
@@ -122,7 +142,10 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
 
     @app.get("/api/episodes/{episode_id}/video")
     def episode_video(episode_id: str) -> FileResponse:
-        path = videos.path(episode_id)
+        try:
+            path = videos.path(episode_id)
+        except (CatalogMissing, duckdb.CatalogException):  # no warehouse yet, or its tables not yet
+            path = None
         if path is None:
             raise HTTPException(404, f"episode {episode_id!r} has no stored frames")
         return FileResponse(path, media_type="video/mp4")

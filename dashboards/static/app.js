@@ -330,9 +330,14 @@ function shortExplorer(explorer) {
   return explorer.replace(/^policy:[^/\s]+\/(\d+)/, "policy v$1");
 }
 
+let episodeRequests = 0;  // which page request is the latest: an earlier one answering after it is dropped
+
 async function loadEpisodes() {
   document.getElementById("browser").dataset.state = "loading";
-  const data = await getJSON(`/api/episodes?${query({ campaign: state.campaign, offset: state.offset, limit: PAGE, ...state.filters })}`);
+  const asked = ++episodeRequests;
+  const offset = state.offset;
+  const data = await getJSON(`/api/episodes?${query({ campaign: state.campaign, offset, limit: PAGE, ...state.filters })}`);
+  if (asked !== episodeRequests) return;  // "next" twice, or a filter changed meanwhile: its rows would be mislabelled
   state.total = data.total;
   for (const select of document.querySelectorAll("[data-filter]")) {
     const name = select.dataset.filter;
@@ -355,9 +360,9 @@ async function loadEpisodes() {
     tr.addEventListener("click", () => showEpisode(row, tr));
     if (row.episode_id === state.selected) tr.classList.add("selected");
   }
-  const last = Math.min(state.offset + data.rows.length, state.total);
-  document.getElementById("page-info").textContent = state.total ? `${state.offset + 1}–${last} of ${state.total}` : "no episodes";
-  document.getElementById("prev").disabled = state.offset === 0;
+  const last = Math.min(offset + data.rows.length, state.total);
+  document.getElementById("page-info").textContent = state.total ? `${offset + 1}–${last} of ${state.total}` : "no episodes";
+  document.getElementById("prev").disabled = offset === 0;
   document.getElementById("next").disabled = last >= state.total;
   if (!state.selected && data.rows.length) await showEpisode(data.rows[0], tbody.firstElementChild);
   document.getElementById("browser").dataset.state = "ready";

@@ -174,6 +174,10 @@ def test_media_serves_the_media_folder_only(tmp_path):
                      "/media/../warehouse/catalog.duckdb", "/media/missing.mp4", "/media/a%00.mp4"):
             status, body = get(port, path)
             assert status == 404 and b"not for the page" not in body, path
+        status, _ = get(port, f"/media/{'a' * 300}.mp4")  # a name the file system refuses (ENAMETOOLONG): was a 500
+        assert status == 404
+        status, _ = get(port, "/api/episodes/ep-1/video")  # no warehouse yet: no frames, not a 500
+        assert status == 404
 
 
 def test_an_empty_workspace_says_so(tmp_path):
@@ -207,6 +211,17 @@ def test_a_missing_shard_says_what_to_do_and_a_bad_offset_is_refused(tmp_path):
         for request in ("/api/episodes", "/api/panels/per_task"):
             status, body = get(port, request)
             assert status == 503 and b"run `sim2act warehouse verify --workspace" in body, (request, body)
+        (tmp_path / "moved.parquet").rename(workspace.warehouse / path)
+        # torn (DuckDB's InvalidInputException, not an IOException): was a bare 500 on every endpoint
+        data = (workspace.warehouse / path).read_bytes()
+        (workspace.warehouse / path).write_bytes(data[: len(data) // 2])
+        for request in ("/api/episodes", "/api/panels/per_task", "/api/panels/episodes_by_iteration", "/api/panels"):
+            status, body = get(port, request)
+            assert status == 503 and b"run `sim2act warehouse verify --workspace" in body, (request, body)
+    workspace.catalog.write_bytes(b"not a DuckDB file")  # a catalog that is not one: its own line, not a bare 500
+    with serving(workspace) as port:
+        status, body = get(port, "/api/episodes")
+        assert status == 503 and b"catalog" in body and b"Traceback" not in body, body
 
 
 # -- the page in Chromium -----------------------------------------------------------------

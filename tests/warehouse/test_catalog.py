@@ -50,6 +50,22 @@ def test_threads_registering_one_unit_at_once_register_it_once(workspace):
     assert catalogs[0].query("SELECT count(*) FROM shards") == [(1,)]
 
 
+def test_a_reader_counts_by_this_codes_views_in_a_catalog_an_older_sim2act_wrote(workspace):
+    """The views' definitions live in the catalog: one last written by older code kept them (counting a
+    re-filtered campaign twice) until a writer opened it; the dashboard's panels and `sim2act sql` read them."""
+    import duckdb
+
+    from warehouse.sql import run_sql
+
+    _register(workspace, "filter-a", 4)
+    with duckdb.connect(str(workspace.catalog)) as con:  # as an older sim2act left it
+        con.execute("CREATE OR REPLACE VIEW filter_pass_rates AS SELECT 'old' AS campaign, 0 AS iteration")
+    catalog = Catalog(workspace.catalog)
+    assert catalog.query("SELECT campaign FROM filter_pass_rates") == [("old",)]  # a plain (writer's) read: as stored
+    assert "old" not in run_sql(catalog, "SELECT DISTINCT campaign FROM filter_pass_rates", "csv")
+    assert "old" not in run_sql(catalog, "SELECT DISTINCT campaign FROM filter_pass_rates", "csv", as_of_iteration=0)
+
+
 def test_views_show_registered_shards_only_and_registering_twice_is_a_no_op(workspace):
     catalog = Catalog(workspace.catalog)
     assert catalog.query("SELECT count(*) FROM filter_decisions") == [(0,)]
