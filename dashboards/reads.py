@@ -14,6 +14,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import duckdb
+
 from schemas.tables import CURRENT_FILTER_DECISIONS, CURRENT_TASK_FAMILIES
 from warehouse.catalog import Catalog
 from warehouse.sql import check_read_only
@@ -38,11 +40,16 @@ def _json_value(value: Any) -> Any:
 def read_rows(catalog: Catalog, sql: str, params: Mapping[str, Any] | Sequence[Any] = ()) -> Rows:
     """A read-only query's rows as JSON-ready dicts (anything but SELECT/EXPLAIN is refused), on a
     connection confined to the warehouse's files like `sim2act sql`'s (Catalog.connect)."""
-    check_read_only(sql)
     with catalog.connect(read_only=True, confined=True) as con:
-        cursor = con.execute(sql, params if isinstance(params, Mapping) else list(params))
-        columns = [d[0] for d in cursor.description]
-        return Rows(columns, [dict(zip(columns, map(_json_value, row))) for row in cursor.fetchall()])
+        return _rows(con, sql, params)
+
+
+def _rows(con: duckdb.DuckDBPyConnection, sql: str, params: Mapping[str, Any] | Sequence[Any] = ()) -> Rows:
+    """`read_rows` on a connection already open (several queries of one request share it)."""
+    check_read_only(sql)
+    cursor = con.execute(sql, params if isinstance(params, Mapping) else list(params))
+    columns = [d[0] for d in cursor.description]
+    return Rows(columns, [dict(zip(columns, map(_json_value, row))) for row in cursor.fetchall()])
 
 
 def campaigns(catalog: Catalog) -> list[str]:
@@ -79,25 +86,23 @@ class EpisodeQuery:
                 "explorer": self.explorer, "reason": self.reason}
 
 
-def episodes(catalog: Catalog, query: EpisodeQuery, offset: int, limit: int) -> tuple[int, Rows]:
-    """(how many episodes match, one page of them in exploration order)."""
-    total = read_rows(catalog, f"SELECT count(*) AS n FROM ({_EPISODES})", query.params()).rows[0]["n"]
-    page = read_rows(
-        catalog, f"{_EPISODES} ORDER BY e.iteration, e.task_id, e.episode_id LIMIT {int(limit)} OFFSET {int(offset)}",
-        query.params(),
-    )
-    return total, page
+_CHOICES = f"""
+    SELECT list_sort(list_distinct(list(iteration))) AS iterations, list_sort(list_distinct(list(task_id))) AS tasks,
+           list_sort(list_distinct(list(explorer))) AS explorers,
+           list_sort(list_distinct(list(coalesce(reason, 'not filtered yet')))) AS reasons
+    FROM ({_EPISODES})"""
 
 
-def episode_choices(catalog: Catalog, campaign: str) -> dict[str, list]:
-    """What the browser's filters offer: the values present in the campaign's episodes."""
-    sql = f"SELECT DISTINCT {{column}} AS value FROM ({_EPISODES}) ORDER BY 1"
-    params = EpisodeQuery(campaign).params()
-    return {
-        name: [row["value"] for row in read_rows(catalog, sql.format(column=column), params).rows]
-        for name, column in (("iterations", "iteration"), ("tasks", "task_id"), ("explorers", "explorer"),
-                             ("reasons", "coalesce(reason, 'not filtered yet')"))
-    }
+def episodes(catalog: Catalog, query: EpisodeQuery, offset: int, limit: int) -> tuple[int, Rows, dict[str, list]]:
+    """(how many episodes match, one page of them in exploration order, what the browser's filters offer: the
+    values present in the campaign's episodes). One connection, one read of the shards' footers for all three
+    (six connections made a page of an 800-shard warehouse take 2.7 s), and a count that agrees with the page."""
+    with catalog.connect(read_only=True, confined=True) as con:
+        total = _rows(con, f"SELECT count(*) AS n FROM ({_EPISODES})", query.params()).rows[0]["n"]
+        page = _rows(con, f"{_EPISODES} ORDER BY e.iteration, e.task_id, e.episode_id "
+                          f"LIMIT {int(limit)} OFFSET {int(offset)}", query.params())
+        [choices] = _rows(con, _CHOICES, EpisodeQuery(query.campaign).params()).rows
+    return total, page, {name: values or [] for name, values in choices.items()}
 
 
 def task_evaluations(catalog: Catalog, campaign: str, task_id: str) -> Rows:

@@ -136,9 +136,8 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
                      explorer: str | None = None, reason: str | None = None,
                      offset: int = Query(0, ge=0, le=1 << 62), limit: int = PAGE_SIZE) -> dict[str, Any]:
         query = reads.EpisodeQuery(campaign_of(campaign), iteration, task or None, explorer or None, reason or None)
-        total, rows = reads.episodes(catalog, query, offset, min(max(1, limit), 500))
-        return {"campaign": query.campaign, "total": total, "offset": offset, "rows": rows.rows,
-                "choices": reads.episode_choices(catalog, query.campaign)}
+        total, rows, choices = reads.episodes(catalog, query, offset, min(max(1, limit), 500))
+        return {"campaign": query.campaign, "total": total, "offset": offset, "rows": rows.rows, "choices": choices}
 
     @app.get("/api/episodes/{episode_id}/video")
     def episode_video(episode_id: str) -> FileResponse:

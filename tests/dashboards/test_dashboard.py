@@ -224,6 +224,31 @@ def test_a_missing_shard_says_what_to_do_and_a_bad_offset_is_refused(tmp_path):
         assert status == 503 and b"catalog" in body and b"Traceback" not in body, body
 
 
+def test_the_episode_browser_answers_a_page_its_count_and_its_filters_choices_in_one_read(tmp_path):
+    """Six connections a page (count, rows, four choice lists), each building the views over every shard."""
+    import json
+
+    from tests.warehouse.filled import fill
+
+    workspace = Workspace.at(tmp_path / "ws").create()
+    fill(workspace, iterations=2, units=2, episodes=2, steps=5)
+    catalog = Catalog(workspace.catalog)
+    [(campaign,)] = catalog.query("SELECT DISTINCT campaign FROM episodes")
+    expected = {"iterations": [0, 1], "tasks": sorted({t for (t,) in catalog.query("SELECT task_id FROM episodes")}),
+                "explorers": sorted({e for (e,) in catalog.query("SELECT explorer FROM episodes")})}
+    with serving(workspace) as port:
+        status, body = get(port, "/api/episodes?limit=3&offset=1")
+        assert status == 200
+        page = json.loads(body)
+        assert page["total"] == catalog.query("SELECT count(*) FROM episodes")[0][0] and len(page["rows"]) == 3
+        assert {name: page["choices"][name] for name in expected} == expected and page["choices"]["reasons"]
+        [(task,)] = catalog.query("SELECT min(task_id) FROM episodes WHERE iteration = 1")
+        status, body = get(port, f"/api/episodes?iteration=1&task={task}")
+        narrowed = json.loads(body)  # the choices are the campaign's, whatever the filters
+        assert narrowed["choices"] == page["choices"] and narrowed["total"] < page["total"]
+        assert {row["iteration"] for row in narrowed["rows"]} == {1}
+
+
 # -- the page in Chromium -----------------------------------------------------------------
 
 
