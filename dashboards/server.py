@@ -139,7 +139,7 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
         total, rows, choices = reads.episodes(catalog, query, offset, min(max(1, limit), 500))
         return {"campaign": query.campaign, "total": total, "offset": offset, "rows": rows.rows, "choices": choices}
 
-    @app.get("/api/episodes/{episode_id}/video")
+    @app.api_route("/api/episodes/{episode_id}/video", methods=["GET", "HEAD"])  # HEAD: a player's or a checker's
     def episode_video(episode_id: str) -> FileResponse:
         try:
             path = videos.path(episode_id)
@@ -156,7 +156,7 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
                           "success_url": media_url(workspace, row["success_video"]),
                           "failure_url": media_url(workspace, row["failure_video"])} for row in rows]}
 
-    @app.get("/media/{name:path}")
+    @app.api_route("/media/{name:path}", methods=["GET", "HEAD"])
     def media(name: str) -> FileResponse:
         path = media_file(workspace, name)
         if path is None:

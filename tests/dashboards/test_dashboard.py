@@ -169,6 +169,9 @@ def test_media_serves_the_media_folder_only(tmp_path):
         connection.request("GET", "/media/evaluate-x-success.mp4", headers={"Range": "bytes=4-7"})
         response = connection.getresponse()
         assert response.status == 206 and response.read() == b"ftyp"  # what <video> asks for
+        connection.request("HEAD", "/media/evaluate-x-success.mp4")  # was 405
+        response = connection.getresponse()
+        assert response.status == 200 and response.getheader("content-type") == "video/mp4" and response.read() == b""
         for path in ("/media/../secret.mp4", "/media/..%2Fsecret.mp4", "/media/%2e%2e/secret.mp4",
                      f"/media/{workspace.root}/secret.mp4", "/media/link.mp4", "/media/notes.txt",
                      "/media/../warehouse/catalog.duckdb", "/media/missing.mp4", "/media/a%00.mp4"):
