@@ -645,8 +645,10 @@ def describe_validation_error(exc: ValidationError) -> str:
     first = errors[0]
     field = ".".join(str(part) for part in first["loc"])
     message = "unknown key" if first["type"] == "extra_forbidden" else first["msg"].removeprefix("Value error, ")
-    if first["type"] not in ("extra_forbidden", "missing", "value_error") and not isinstance(first.get("input"), dict):
-        message += f" (got {first.get('input')!r})"
+    given = first.get("input")
+    shown = not isinstance(given, dict) or len(repr(given)) <= 80  # a short mapping where a value goes, not a section
+    if first["type"] not in ("extra_forbidden", "missing", "value_error") and shown:
+        message += f" (got {given!r})"
     more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
     return f"{field}: {message}{more}" if field else f"{message}{more}"  # the whole config's checks name their fields
 

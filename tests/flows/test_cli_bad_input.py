@@ -267,3 +267,9 @@ def test_a_registry_lookup_in_a_sqlite_store_that_does_not_exist_makes_none(tmp_
     with pytest.raises(ConfigError, match=r"--model: 'champion' is a registry reference, but sqlite:///.*typo.db does not exist"):
         resolve_model(workspace, CampaignConfig(), "champion")
     assert not (tmp_path / "typo.db").exists()
+
+
+def test_a_mapping_given_where_a_value_goes_is_shown(tmp_path, capsys):
+    """It said "seed: Input should be a valid integer" and nothing of what was given."""
+    assert "seed: Input should be a valid integer (got {'a': 1})" in _refused(
+        capsys, ["report", "--workspace", str(tmp_path / "ws"), "--set", "seed={a: 1}"])
