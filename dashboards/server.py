@@ -7,6 +7,7 @@ that is still running; the server writes nothing into the workspace.
 from __future__ import annotations
 
 import ipaddress
+import os
 import socket
 import tempfile
 from contextlib import asynccontextmanager
@@ -29,6 +30,20 @@ from warehouse.catalog import Catalog, CatalogMissing
 
 STATIC = Path(__file__).with_name("static")
 PAGE_SIZE = 50
+VIDEO_FOLDER_PREFIX = "sim2act-dashboard-"  # + the server's pid: a killed server's folder is found by it
+
+
+def _sweep_dead_dashboards_folders() -> None:
+    """Remove the video folders of dashboards that were killed (SIGKILL: no shutdown to remove them), found by
+    the pid in their name; a folder of a server still running, or of an older sim2act (no pid), is left."""
+    import shutil
+
+    import psutil
+
+    for folder in Path(tempfile.gettempdir()).glob(f"{VIDEO_FOLDER_PREFIX}*-*"):
+        pid = folder.name.removeprefix(VIDEO_FOLDER_PREFIX).split("-", 1)[0]
+        if pid.isdecimal() and not psutil.pid_exists(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> FastAPI:
@@ -38,7 +53,8 @@ def create_app(workspace: Workspace, allowed_hosts: list[str] | None = None) -> 
     catalog = Catalog(workspace.catalog)
     panels = load_panels()
     by_id = {panel.id: panel for panel in panels}
-    video_folder = tempfile.TemporaryDirectory(prefix="sim2act-dashboard-")
+    _sweep_dead_dashboards_folders()
+    video_folder = tempfile.TemporaryDirectory(prefix=f"{VIDEO_FOLDER_PREFIX}{os.getpid()}-")
     videos = EpisodeVideos(catalog, Path(video_folder.name))
 
     @asynccontextmanager

@@ -340,10 +340,16 @@ def test_the_page_without_data_says_so(browser, tmp_path):
 def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
     """The entry point `sim2act up` runs: a process that answers /health."""
     import os
+    import sys
 
     port = _free_port()
     scratch = tmp_path / "tmp"
     scratch.mkdir()
+    # video folders left by a SIGKILLed dashboard (no shutdown to remove them), a running one's, an older sim2act's
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = {f"sim2act-dashboard-{gone.stdout.strip()}-x1y2", f"sim2act-dashboard-{os.getpid()}-a1b2", "sim2act-dashboard-q9w8"}
+    for name in left:
+        (scratch / name).mkdir()
     process = subprocess.Popen([SIM2ACT, "dashboard", "--workspace", str(tmp_path / "ws"), "--port", str(port)],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                env={**os.environ, "TMPDIR": str(scratch)})
@@ -357,7 +363,8 @@ def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
                 assert process.poll() is None and time.monotonic() < deadline, process.stdout.read()
                 time.sleep(0.2)
         assert status == 200 and b'"status":"ok"' in body
-        assert [p.name for p in scratch.iterdir() if p.name.startswith("sim2act-dashboard-")]  # its video folder
+        [own] = [p.name for p in scratch.iterdir() if p.name.startswith(f"sim2act-dashboard-{process.pid}-")]  # its videos
+        assert {p.name for p in scratch.iterdir()} == {own} | left - {f"sim2act-dashboard-{gone.stdout.strip()}-x1y2"}
         # on loopback it answers loopback names only: a page elsewhere cannot read it through DNS rebinding
         connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
         connection.request("GET", "/health", headers={"Host": f"attacker.example:{port}"})
@@ -365,7 +372,7 @@ def test_sim2act_dashboard_serves_and_answers_health(tmp_path):
     finally:
         process.terminate()  # what `sim2act down` sends
         process.wait(timeout=30)
-    assert not [p for p in scratch.iterdir() if p.name.startswith("sim2act-dashboard-")]  # its videos gone with it
+    assert own not in {p.name for p in scratch.iterdir()}  # its videos gone with it
 
 
 def test_bench_panels_times_every_panel_on_a_finished_campaign(finished_campaign, tmp_path):
