@@ -185,6 +185,12 @@ class TrackingUnreachable(Sim2ActError, RuntimeError):
     pass
 
 
+def _scheme(uri: str) -> str:
+    """A tracking URI's scheme as MLflow reads it, less a SQLAlchemy driver ("postgresql+psycopg2" -> "postgresql"),
+    "" for a plain path. Not urlsplit's: a database URL's password may hold a raw "/" or "?", which it misreads."""
+    return uri.partition(":")[0].split("+")[0].lower() if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", uri) else ""
+
+
 def check_tracking_uris() -> None:
     """MLFLOW_TRACKING_URI, MLFLOW_REGISTRY_URI and MLFLOW_BACKEND_STORE_URI are of a scheme MLflow takes: its
     own refusal prints the whole URL, password too (the terminal, the flow run's state in Prefect, the MLflow
@@ -197,8 +203,7 @@ def check_tracking_uris() -> None:
         value = os.environ.get(name)
         if not value or value in BARE_URIS:
             continue
-        # the scheme as MLflow reads it (a database URL's password may hold "/" or "?": urlsplit would misread it)
-        scheme = value.partition(":")[0].split("+")[0].lower() if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", value) else ""
+        scheme = _scheme(value)
         schemes = (*TRACKING_SCHEMES, *(REGISTRY_SCHEMES if name == REGISTRY_URI_ENV else ()),
                    *(("file", "") if file_store else ()))
         if scheme not in schemes:
@@ -234,7 +239,7 @@ def _database_answers(name: str, uri: str) -> None:
     """A database URI (postgresql, mysql, mssql) MLflow would log to directly answers, with its driver
     installed; MLflow's own client retried for minutes and ended in a 200-line traceback. Other schemes:
     nothing to ask."""
-    if uri.partition(":")[0].split("+")[0].lower() not in ("postgresql", "mysql", "mssql"):
+    if _scheme(uri) not in ("postgresql", "mysql", "mssql"):
         return
     import sqlalchemy
     from sqlalchemy.exc import ArgumentError, NoSuchModuleError
