@@ -108,11 +108,11 @@ def rl_cases(config: CampaignConfig, tasks: list[TaskRecord], steps: int, budget
     """One case per RL agent the campaign's baselines stage would train (an algorithm on a family it
     acts in); SAC's once per `sac_encoders` (baselines.sac_encoder's values; default: the config's),
     side by side."""
-    from stages.baselines import planned_agents
+    from stages.baselines import planned_agents, rl_budget
 
     cases = []
     for algorithm, family, seen in planned_agents(config, tasks):
-        budget = config.baselines.env_steps or budgets.get(family)
+        budget = rl_budget(config.baselines.env_steps, family, budgets) or None
         for encoder in (sac_encoders or [config.baselines.sac_encoder]) if algorithm == "sac" else [None]:
             variant = config if encoder is None else config.model_copy(
                 update={"baselines": config.baselines.model_copy(update={"sac_encoder": encoder})})

@@ -10,11 +10,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from schemas.errors import Sim2ActError
 from schemas.keys import key_fields
-from schemas.tasks import Colour
+from schemas.tasks import FAMILIES, Colour, Family
 
 CameraName = Literal["agentview", "frontview", "birdview", "sideview"]
 PRESETS = ("smoke", "default", "headline", "curriculum", "hard-mix", "generalist")
@@ -477,9 +477,10 @@ class BaselinesConfig(_Strict):
     agents: list[Literal["expert", "ppo", "sac"]] = Field(
         default=[], description="expert: the noiseless scripted experts (the ceiling); ppo, sac: RL from scratch "
                                 "(stable-baselines3) on the seen tasks, one agent per family")
-    env_steps: int | None = Field(
-        default=None, ge=64, description="each RL agent's training budget; default: the environment steps the "
-                                         "campaign's exploration took on its family")
+    env_steps: Annotated[int, Field(ge=64)] | dict[Family, Annotated[int, Field(ge=64)]] | None = Field(
+        default=None, description="each RL agent's training budget: one for every family, or per family ({metaworld: "
+        "382023}: another run's exploration steps, so that a workspace without its million trains the same agents); "
+        "default, and for a family the mapping leaves out: the environment steps the campaign's exploration took on it")
     workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
     replay_size: PositiveInt = Field(
         default=50_000, description="SAC's replay buffer at most, in transitions (each keeps two frames: ~42 KB at "
@@ -500,6 +501,20 @@ class BaselinesConfig(_Strict):
         default="acting", description="SAC's entropy target: minus the action components the family acts on "
         "(MetaWorld's 4 of the 7: the 3 it ignores would take the entropy and leave the 4 little noise); all: SB3's "
         "default, minus all 7 (the baselines before 2026-12-05)")
+
+    @field_validator("env_steps", mode="before")
+    @classmethod
+    def _budgets_said_plainly(cls, value: Any) -> Any:
+        # the union's own error names its branches ("constrained-int"), not what was expected
+        def steps(given: Any) -> bool:
+            return isinstance(given, int) and not isinstance(given, bool) and given >= 64
+
+        if value is None or steps(value):
+            return value
+        if isinstance(value, dict) and all(family in FAMILIES and steps(n) for family, n in value.items()):
+            return value
+        raise ValueError(f"expected a number of environment steps >= 64, or a mapping of families "
+                         f"({', '.join(FAMILIES)}) to such numbers, got {value!r}")
 
 
 SHIFTED_DOMAIN = RandomiseConfig(

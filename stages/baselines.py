@@ -194,6 +194,14 @@ def planned_agents(config: CampaignConfig, tasks: list[TaskRecord]) -> list[tupl
     return planned
 
 
+def rl_budget(env_steps: int | dict[str, int] | None, family: str, explored: dict[str, int]) -> int:
+    """A family's RL training budget: `baselines.env_steps` where it names one (a number for every family,
+    or the family's entry), else the steps the campaign's exploration took on the family (0: none)."""
+    if isinstance(env_steps, dict):
+        return env_steps.get(family) or explored.get(family, 0)
+    return env_steps or explored.get(family, 0)
+
+
 def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],
              embeddings: dict[str, np.ndarray], budgets: dict[str, int]) -> list[RLUnit]:
     """One unit per (RL algorithm, family with seen tasks) that the algorithm can act in."""
@@ -201,7 +209,7 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
 
     units = []
     for algorithm, family, seen in planned_agents(config, tasks):
-        steps = config.baselines.env_steps or budgets.get(family, 0)
+        steps = rl_budget(config.baselines.env_steps, family, budgets)
         if steps:
             said = {text: embeddings[text].tolist() for task in seen for text in task.instructions}
             replay = replay_buffer_size(steps, config.baselines.replay_size)

@@ -79,3 +79,32 @@ def test_agents_trained_to_the_horizon_and_at_the_acting_entropy_are_new_units_a
     before = unit_key(STAGE, VERSION, {"render": render_key_fields(config.render), "randomise": config.randomise,
                                        "seed": config.seed}, ["tasks-k", "sac", "metaworld", "1000"])
     assert old["sac", "metaworld"].unit_key == before
+
+
+def test_budgets_per_family_override_the_exploration_steps_of_the_families_they_name():
+    """baselines.env_steps as a mapping: another run's exploration steps train the same agents (the same keys) in a
+    workspace whose own exploration is small; a family it leaves out keeps its exploration's steps."""
+    def units(env_steps, explored) -> dict[tuple[str, str], RLUnit]:
+        config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
+                                             "baselines": {"agents": ["sac"], "env_steps": env_steps}})
+        tasks = generate_tasks(config.tasks, config.seed)
+        said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
+        return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
+                                                             explored)}
+
+    given = units({"metaworld": 382_023}, {"robosuite": 900, "metaworld": 800})
+    assert (given["sac", "metaworld"].env_steps, given["sac", "robosuite"].env_steps) == (382_023, 900)
+    explored = units(None, {"robosuite": 900, "metaworld": 382_023})
+    assert given["sac", "metaworld"].unit_key == explored["sac", "metaworld"].unit_key
+    assert units(5_000, {"robosuite": 900})["sac", "robosuite"].env_steps == 5_000
+    assert ("sac", "metaworld") not in units({"robosuite": 700}, {})  # no budget given or explored: no agent
+
+
+def test_a_budget_for_a_family_that_does_not_exist_or_below_64_steps_is_refused():
+    import pytest
+
+    from schemas.config import ConfigError
+
+    for bad in ({"manipulation": 1000}, {"metaworld": 10}, 10):
+        with pytest.raises(ConfigError, match="baselines.env_steps"):
+            load_config("smoke", None, {"baselines": {"env_steps": bad}})

@@ -1,0 +1,37 @@
+#!/bin/bash
+# Issue 11 item 4's SAC rows on a fresh machine, without the generalist's million: SAC from scratch per continuous
+# family at the environment steps the generalist's exploration took there (docs/results-generalist.md, item 1:
+# MetaWorld 382,023, robosuite 455,956; navigation's actions are discrete, SAC does not act there), on the same
+# seen tasks, render and randomisation, then evaluated on the same cases x 10 episodes as the policy and PPO.
+#
+#   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores
+#
+# Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
+# the PPOs first (~7.5 h on this AMD EPYC), whose rows are in the docs already; six times a workspace went with its
+# machine before its SACs finished, and those hours came first each time. Here iteration 0 is a token one (2
+# episodes a seen task, 10 training steps: minutes) that the campaign needs before its baselines; its evaluation
+# still runs the preset's 228 cases x 10 episodes (~0.7 h: the SACs' evaluation reads the same settings). Its
+# policy's rows in this workspace's report are that token model's, not the generalist's: read the SAC rows alone.
+# 1. the campaign `generalist-sac`: the token iteration 0, then the two SACs at once, one a worker, each
+#    checkpointed every 5,000 environment steps (~8 minutes lost to a kill or a session's end), then their
+#    evaluations on their families' cases;
+# 2. `sim2act report` into WORKSPACE-logs/report.md.
+# Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.
+set -euo pipefail
+# this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+# each worker keeps every scene it opens, as the generalist's baselines ran (docs/quality/generalist-baselines.sh)
+export SIM2ACT_SCENES_PER_WORKER=${SIM2ACT_SCENES_PER_WORKER:-64}
+W=${1:?usage: generalist-sac.sh WORKSPACE [SIM2ACT]}
+W=${W%/}
+S=${2:-sim2act}
+C=(--preset generalist --set name=generalist-sac --set render.mesh_detail=0.1 --set train.steps=10
+   --set explore.episodes_per_task=2 --workspace "$W")
+LOGS=$W-logs
+mkdir -p "$LOGS"
+trap 'echo "generalist-sac.sh: a step failed; its log is $LOGS/baselines.log" >&2' ERR
+
+$S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set 'baselines.agents=[sac]' \
+  --set 'baselines.env_steps={metaworld: 382023, robosuite: 455956}' --set baselines.checkpoint_every=5000 \
+  >> "$LOGS/baselines.log" 2>&1
+$S report "${C[@]}" | tee "$LOGS/report.md"
