@@ -178,9 +178,10 @@ def register(commands: Commands) -> None:
                  "a few short episodes (seconds, for a smoke check)", cmd_bench_rollout
                  ).add_argument("--mix", action="store_true",
                                 help="instead: the stage over a sample of the generalist's tasks as it was (meshes 1.0, "
-                                     "robosuite's controller), decimated, and decimated with the fused substeps; the "
-                                     "same episodes, per family, each side cold (units build their environments) "
-                                     "and warm (the same worker again, as a campaign explores)")
+                                     "robosuite's controller), decimated, decimated with the fused substeps, and with "
+                                     "the colliding meshes drawn decimated too; the same episodes, per family, each "
+                                     "side cold (units build their environments) and warm (the same worker again, as "
+                                     "a campaign explores)")
     bench_parser("train", "train stage samples/s vs in-memory batches; policy latency",
                  "a few steps, default case only (seconds, a smoke check)", cmd_bench_train
                  ).add_argument("--cases", metavar="A,B", help="run only these cases (stage always runs): "
