@@ -479,7 +479,7 @@ class BaselinesConfig(_Strict):
                                 "(stable-baselines3) on the seen tasks, one agent per family")
     env_steps: Annotated[int, Field(ge=64)] | dict[Family, Annotated[int, Field(ge=64)]] | None = Field(
         default=None, description="each RL agent's training budget: one for every family, or per family ({metaworld: "
-        "382023}: another run's exploration steps, so that a workspace without its million trains the same agents); "
+        "382023}: another run's exploration steps, so that a workspace without its million trains agents at them); "
         "default, and for a family the mapping leaves out: the environment steps the campaign's exploration took on it")
     workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
     replay_size: PositiveInt = Field(

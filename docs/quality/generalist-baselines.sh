@@ -4,6 +4,7 @@
 # took, all in one workspace, so that one `sim2act report` puts them side by side (docs/results-generalist.md).
 #
 #   docs/quality/generalist-baselines.sh WORKSPACE [SIM2ACT]   # from the repository root; ~17 h on 2 cores (AMX)
+# (the SAC rows alone, without the million, the policy and the PPOs: docs/quality/generalist-sac.sh)
 #
 # Why not docs/quality/generalist.sh: that script also trains the results protocol's other two seeds and runs the
 # adaptation before the baselines (~8 h), whose figures are in the docs already; a workspace that went with its
@@ -16,7 +17,7 @@
 #    two SACs train at once, one a worker (~10-14 h), each checkpointed every 5,000 environment steps (~7.5 minutes
 #    lost to a kill or a session's end), then their evaluations;
 # 3. `sim2act report` into WORKSPACE-logs/report.md.
-# Why PPO first rather than the stage's longest-first order of all five (~1 h sooner to the end): five times a
+# Why PPO first rather than the stage's longest-first order of all five (~1 h sooner to the end): six times a
 # workspace went with its machine before its SACs finished (docs/results-generalist.md), and the PPO rows in
 # report-ppo.md are out of it ~10 h earlier.
 # Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.

@@ -1,0 +1,52 @@
+"""The generalist preset (issue 11) through the real CLI at the size of a test: every spec of its three families
+(the long-horizon ones included), the first task of each spec, one expert episode a seen task, two training steps and one
+evaluation episode a case. The million is the same command at the preset's size (docs/results-generalist.md)."""
+
+from __future__ import annotations
+
+import collections
+import subprocess
+
+import pytest
+
+from envs.suite import generate_tasks
+from schemas.config import load_config
+from schemas.workspace import Workspace
+from tests.conftest import SIM2ACT, sim2act_env
+from warehouse.catalog import Catalog
+
+pytestmark = pytest.mark.timeout(900)
+
+SMALL = {"tasks.max_tasks_per_spec": "1", "explore.episodes_per_task": "1", "train.steps": "2",
+         "evaluate.episodes_per_task": "1", "evaluate.videos": "false", "baselines.agents": "[]",
+         "adapt.episodes_per_task": "[]"}
+
+
+def test_the_generalist_preset_runs_every_spec_of_its_three_families_at_small_size(tmp_path, prefect_api):
+    workspace = tmp_path / "generalist"
+    settings = [flag for field, value in SMALL.items() for flag in ("--set", f"{field}={value}")]
+    run = subprocess.run([SIM2ACT, "run", "--preset", "generalist", "--workspace", str(workspace), *settings],
+                         env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=840)
+    assert run.returncode == 0, run.stderr[-3000:]
+
+    config = load_config("generalist", None, {"tasks": {"max_tasks_per_spec": 1}})
+    expected = generate_tasks(config.tasks, config.seed)
+    full = load_config("generalist")
+    assert {t.spec for t in expected} == {t.spec for t in generate_tasks(full.tasks, full.seed)}  # every spec's first
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    assert sorted(catalog.query("SELECT task_id, family, split FROM tasks")) == sorted(
+        (t.task_id, t.family, t.split) for t in expected)
+    # one episode of each seen task explored, in every family, the long-horizon specs' among them
+    explored = catalog.query("SELECT task_id FROM episodes WHERE campaign = 'generalist' AND iteration = 0")
+    assert sorted(task for (task,) in explored) == sorted(t.task_id for t in expected if t.split == "seen")
+    assert {"nav-room-sequence", "nut-square", "mw-assembly"} <= {t.spec for t in expected
+                                                                  if t.task_id in {task for (task,) in explored}}
+    [(kept,)] = catalog.query("SELECT count(*) FROM filter_decisions WHERE kept")
+    assert kept >= 0.8 * len(explored)  # experts >= 90% each: most single episodes pass the success filter
+    # the model trained on them met every case of every family and split
+    evaluated = catalog.query("SELECT task_id, split, episodes FROM evaluations WHERE campaign = 'generalist'")
+    by_split = collections.Counter(split for _, split, _ in evaluated)
+    seen, unseen = ([t for t in expected if t.split == split] for split in ("seen", "unseen"))
+    assert by_split["seen"] == len(seen) and by_split["unseen"] == len(unseen), by_split
+    assert all(episodes == 1 for _, _, episodes in evaluated)
+    assert {task for task, split, _ in evaluated if split == "unseen"} == {t.task_id for t in unseen}
