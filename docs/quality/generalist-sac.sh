@@ -7,10 +7,11 @@
 #   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
-# the PPOs first (~7.5 h on this AMD EPYC), whose rows are in the docs already; six times a workspace went with its
+# the PPOs first (~7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
 # machine before its SACs finished, and those hours came first each time. Here iteration 0 is a token one (2
-# episodes a seen task, 10 training steps: minutes) that the campaign needs before its baselines; its evaluation
-# still runs the preset's 228 cases x 10 episodes (~0.7 h: the SACs' evaluation reads the same settings). Its
+# episodes a seen task, one epoch of training, 77 steps: minutes) that the campaign needs before its baselines; its
+# evaluation still runs the preset's 228 cases x 10 episodes (~1 h, every episode to its horizon: the SACs'
+# evaluation reads the same settings). Its
 # policy's rows in this workspace's report are that token model's, not the generalist's: read the SAC rows alone.
 # 1. the campaign `generalist-sac`: the token iteration 0, then the two SACs at once, one a worker, each
 #    checkpointed every 5,000 environment steps (~8 minutes lost to a kill or a session's end), then their

@@ -1,6 +1,7 @@
 """The generalist preset (issue 11) through the real CLI at the size of a test: every spec of its three families
-(the long-horizon ones included), the first task of each spec, one expert episode a seen task, two training steps and one
-evaluation episode a case. The million is the same command at the preset's size (docs/results-generalist.md)."""
+(the long-horizon ones included), the first task of each spec, one expert episode a seen task, a few training steps
+and one evaluation episode a case. The million is the same command at the preset's size
+(docs/results-generalist.md)."""
 
 from __future__ import annotations
 
