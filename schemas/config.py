@@ -511,7 +511,7 @@ class BaselinesConfig(_Strict):
 
         if value is None or steps(value):
             return value
-        if isinstance(value, dict) and all(family in FAMILIES and steps(n) for family, n in value.items()):
+        if value and isinstance(value, dict) and all(family in FAMILIES and steps(n) for family, n in value.items()):
             return value
         raise ValueError(f"expected a number of environment steps >= 64, or a mapping of families "
                          f"({', '.join(FAMILIES)}) to such numbers, got {value!r}")

@@ -2,12 +2,13 @@
 # Issue 11 item 4's SAC rows on a fresh machine, without the generalist's million: SAC from scratch per continuous
 # family at the environment steps the generalist's exploration took there (docs/results-generalist.md, item 1:
 # MetaWorld 382,023, robosuite 455,956; navigation's actions are discrete, SAC does not act there), on the same
-# seen tasks, render and randomisation, then evaluated on the same cases x 10 episodes as the policy and PPO.
+# seen tasks, render and randomisation, then evaluated on the same cases x 10 episodes as the policy and PPO (the
+# episodes drawn under this campaign's name: an evaluation's seeds derive from it, so not the same draws).
 #
 #   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
-# the PPOs first (~7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
+# the PPOs first (~5.5-7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
 # machine before its SACs finished, and those hours came first each time. Here iteration 0 is a token one (2
 # episodes a seen task, one epoch of training, 77 steps: minutes) that the campaign needs before its baselines; its
 # evaluation still runs the preset's 228 cases x 10 episodes (~1 h, every episode to its horizon: the SACs'

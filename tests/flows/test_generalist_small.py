@@ -1,6 +1,6 @@
 """The generalist preset (issue 11) through the real CLI at the size of a test: every spec of its three families
-(the long-horizon ones included), the first task of each spec, one expert episode a seen task, a few training steps
-and one evaluation episode a case. The million is the same command at the preset's size
+(the long-horizon ones included; the specs whose every task the preset leaves out for a weak expert have none), the
+first task of each spec, one expert episode a seen task, a few training steps and one evaluation episode a case. The million is the same command at the preset's size
 (docs/results-generalist.md)."""
 
 from __future__ import annotations
@@ -49,5 +49,6 @@ def test_the_generalist_preset_runs_every_spec_of_its_three_families_at_small_si
     by_split = collections.Counter(split for _, split, _ in evaluated)
     seen, unseen = ([t for t in expected if t.split == split] for split in ("seen", "unseen"))
     assert by_split["seen"] == len(seen) and by_split["unseen"] == len(unseen), by_split
+    assert by_split["unseen_paraphrase"] == sum(1 for t in seen if t.unseen_instructions) > 0, by_split
     assert all(episodes == 1 for _, _, episodes in evaluated)
     assert {task for task, split, _ in evaluated if split == "unseen"} == {t.task_id for t in unseen}

@@ -105,6 +105,6 @@ def test_a_budget_for_a_family_that_does_not_exist_or_below_64_steps_is_refused(
 
     from schemas.config import ConfigError
 
-    for bad in ({"manipulation": 1000}, {"metaworld": 10}, 10):
-        with pytest.raises(ConfigError, match="baselines.env_steps"):
+    for bad in ({"manipulation": 1000}, {"metaworld": 10}, 10, {}):
+        with pytest.raises(ConfigError, match=r"^baselines\.env_steps: expected a number of environment steps >= 64"):
             load_config("smoke", None, {"baselines": {"env_steps": bad}})
