@@ -477,7 +477,7 @@ class BaselinesConfig(_Strict):
     agents: list[Literal["expert", "ppo", "sac"]] = Field(
         default=[], description="expert: the noiseless scripted experts (the ceiling); ppo, sac: RL from scratch "
                                 "(stable-baselines3) on the seen tasks, one agent per family")
-    env_steps: Annotated[int, Field(ge=64)] | dict[Family, Annotated[int, Field(ge=64)]] | None = Field(
+    env_steps: int | dict[Family, int] | None = Field(  # each >= 64: _budgets_said_plainly
         default=None, description="each RL agent's training budget: one for every family, or per family ({metaworld: "
         "382023}: another run's exploration steps, so that a workspace without its million trains agents at them); "
         "default, and for a family the mapping leaves out: the environment steps the campaign's exploration took on it")

@@ -197,9 +197,8 @@ def planned_agents(config: CampaignConfig, tasks: list[TaskRecord]) -> list[tupl
 def rl_budget(env_steps: int | dict[str, int] | None, family: str, explored: dict[str, int]) -> int:
     """A family's RL training budget: `baselines.env_steps` where it names one (a number for every family,
     or the family's entry), else the steps the campaign's exploration took on the family (0: none)."""
-    if isinstance(env_steps, dict):
-        return env_steps.get(family) or explored.get(family, 0)
-    return env_steps or explored.get(family, 0)
+    given = env_steps.get(family) if isinstance(env_steps, dict) else env_steps
+    return given or explored.get(family, 0)
 
 
 def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks: list[TaskRecord],

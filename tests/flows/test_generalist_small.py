@@ -1,7 +1,7 @@
 """The generalist preset (issue 11) through the real CLI at the size of a test: every spec of its three families
 (the long-horizon ones included; the specs whose every task the preset leaves out for a weak expert have none), the
-first task of each spec, one expert episode a seen task, a few training steps and one evaluation episode a case. The million is the same command at the preset's size
-(docs/results-generalist.md)."""
+first task of each spec, one expert episode a seen task, a few training steps and one evaluation episode a case.
+The million is the same command at the preset's size (docs/results-generalist.md)."""
 
 from __future__ import annotations
 
@@ -38,10 +38,10 @@ def test_the_generalist_preset_runs_every_spec_of_its_three_families_at_small_si
     assert sorted(catalog.query("SELECT task_id, family, split FROM tasks")) == sorted(
         (t.task_id, t.family, t.split) for t in expected)
     # one episode of each seen task explored, in every family, the long-horizon specs' among them
-    explored = catalog.query("SELECT task_id FROM episodes WHERE campaign = 'generalist' AND iteration = 0")
-    assert sorted(task for (task,) in explored) == sorted(t.task_id for t in expected if t.split == "seen")
-    assert {"nav-room-sequence", "nut-square", "mw-assembly"} <= {t.spec for t in expected
-                                                                  if t.task_id in {task for (task,) in explored}}
+    explored = [task for (task,) in catalog.query(
+        "SELECT task_id FROM episodes WHERE campaign = 'generalist' AND iteration = 0")]
+    assert sorted(explored) == sorted(t.task_id for t in expected if t.split == "seen")
+    assert {"nav-room-sequence", "nut-square", "mw-assembly"} <= {t.spec for t in expected if t.task_id in explored}
     [(kept,)] = catalog.query("SELECT count(*) FROM filter_decisions WHERE kept")
     assert kept >= 0.8 * len(explored)  # experts >= 90% each: most single episodes pass the success filter
     # the model trained on them met every case of every family and split
