@@ -28,7 +28,7 @@ from schemas.workspace import Workspace
 from tests.campaign import snapshot
 from tests.conftest import _free_port
 from tests.dask_hosts import dask_hosts
-from tests.flows.test_service import PREFECT, get_json, post_json, sim2act
+from tests.flows.test_service import PREFECT, cron_hours_from_now, get_json, post_json, sim2act
 from tests.postgres import postgres_server
 from tests.s3 import s3_server
 from warehouse.catalog import Catalog
@@ -133,7 +133,8 @@ def test_a_smoke_campaign_on_postgresql_and_s3_keeps_everything_there_and_the_se
         ports = {"prefect": _free_port(), "mlflow": _free_port(), "dashboard": _free_port()}
         urls = {name: f"http://127.0.0.1:{port}" for name, port in ports.items()}
         outputs = [refused.stdout + refused.stderr]
-        up = sim2act("up", "--preset", "smoke", "--workspace", ws, *(f"--{name}-port={port}" for name, port in ports.items()),
+        up = sim2act("up", "--preset", "smoke", "--workspace", ws, "--nightly-cron", cron_hours_from_now(12, 0),
+                     *(f"--{name}-port={port}" for name, port in ports.items()),
                      env={**env, "SIM2ACT_SECRETS_FILE": str(secrets_file)})
         outputs.append(up.stdout + up.stderr)
         shell = {**env, "SIM2ACT_SECRETS_FILE": str(worker_secrets)}

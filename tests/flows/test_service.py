@@ -15,7 +15,7 @@ import subprocess
 import sys
 import time
 import urllib.request
-from datetime import datetime
+from datetime import datetime, timedelta
 from pathlib import Path
 from zoneinfo import ZoneInfo
 
@@ -29,6 +29,15 @@ from warehouse.catalog import Catalog
 
 pytestmark = pytest.mark.timeout(900)
 PREFECT = str(Path(sys.executable).with_name("prefect"))
+
+
+def cron_hours_from_now(hours: int, minute: int, timezone: str = "UTC") -> str:
+    """A daily cron line `hours` from now in `timezone`, so a stack a test starts never meets its nightly run
+    (the default, 02:00 UTC, once fired inside CI's PostgreSQL stack test and added an iteration to its campaign)."""
+    return f"{minute} {(datetime.now(ZoneInfo(timezone)) + timedelta(hours=hours)).hour} * * *"
+
+
+NIGHTLY, NIGHTLY_AGAIN = cron_hours_from_now(12, 30, "Europe/Berlin"), cron_hours_from_now(13, 45, "Europe/Berlin")
 
 
 def sim2act(*args: str, env: dict[str, str] | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -57,7 +66,7 @@ def stack(finished_campaign, tmp_path_factory):
     compacted = sim2act("warehouse", "compact", "--workspace", str(workspace))
     assert compacted.returncode == 0 and "compacted into" in compacted.stdout, compacted.stderr[-3000:]
     ports = {"prefect": _free_port(), "mlflow": _free_port(), "dashboard": _free_port()}
-    started = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "30 3 * * *",
+    started = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", NIGHTLY,
                       "--timezone", "Europe/Berlin", *(f"--{name}-port={port}" for name, port in ports.items()))
     try:
         assert started.returncode == 0, started.stdout[-3000:] + started.stderr[-3000:]
@@ -80,7 +89,7 @@ def test_up_starts_every_service_and_status_reports_them(stack):
     assert {run["info"]["run_name"] for run in runs["runs"]} >= {"smoke", "smoke-iteration-0", "smoke-iteration-1"}
     nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
     [schedule] = nightly["schedules"]
-    assert schedule["schedule"]["cron"] == "30 3 * * *" and schedule["schedule"]["timezone"] == "Europe/Berlin"
+    assert schedule["schedule"]["cron"] == NIGHTLY and schedule["schedule"]["timezone"] == "Europe/Berlin"
     assert nightly["parameters"]["continue_campaign"] is True
     assert nightly["parameters"]["workspace"] == str(Workspace.at(workspace).root)
     # the typed form: the config's fields, nested, with their types and bounds
@@ -176,7 +185,7 @@ def test_the_nightly_deployment_continues_the_campaign(stack):
 
 def test_the_scheduler_queues_the_nightly_run_at_its_local_time(stack):
     """Prefect's scheduler (a loop of the server, every 60 s) puts the next nightly runs in the
-    queue the serve process polls: at 03:30 in Berlin, whatever the server's timezone."""
+    queue the serve process polls: at its time in Berlin (NIGHTLY), whatever the server's timezone."""
     workspace, urls = stack
     nightly = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")
     query = {"deployments": {"id": {"any_": [nightly["id"]]}}, "flow_runs": {"state": {"type": {"any_": ["SCHEDULED"]}}}}
@@ -185,7 +194,7 @@ def test_the_scheduler_queues_the_nightly_run_at_its_local_time(stack):
         assert time.monotonic() < deadline, "no nightly run was scheduled"
         time.sleep(2)
     starts = [datetime.fromisoformat(run["expected_start_time"]).astimezone(ZoneInfo("Europe/Berlin")) for run in queued]
-    assert all((start.hour, start.minute) == (3, 30) for start in starts), starts
+    assert all(f"{start.minute} {start.hour} * * *" == NIGHTLY for start in starts), (starts, NIGHTLY)
     assert all(run["parameters"]["continue_campaign"] is True for run in queued)
 
 
@@ -194,7 +203,7 @@ def test_up_again_with_another_schedule_restarts_only_the_deployments(stack):
     schedule (no port flags: the stack keeps its own) restarts it alone; the servers keep their processes."""
     workspace, urls = stack
     before = json.loads(Workspace.at(workspace).service_state.read_text())["processes"]
-    again = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "45 4 * * *",
+    again = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", NIGHTLY_AGAIN,
                     "--timezone", "Europe/Berlin")
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert "deployments  stopped: it served another campaign or schedule" in again.stdout
@@ -203,8 +212,8 @@ def test_up_again_with_another_schedule_restarts_only_the_deployments(stack):
         name: p["pid"] for name, p in before.items() if name != "deployments"}
     assert after["deployments"]["pid"] != before["deployments"]["pid"] and not is_alive(before["deployments"]["pid"])
     [schedule] = get_json(f"{urls['prefect']}/api/deployments/name/bootstrap/nightly")["schedules"]
-    assert schedule["schedule"]["cron"] == "45 4 * * *"
-    same = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", "45 4 * * *",
+    assert schedule["schedule"]["cron"] == NIGHTLY_AGAIN
+    same = sim2act("up", "--preset", "smoke", "--workspace", str(workspace), "--nightly-cron", NIGHTLY_AGAIN,
                    "--timezone", "Europe/Berlin")
     assert same.returncode == 0 and "stopped" not in same.stdout, same.stdout[-3000:] + same.stderr[-3000:]
     assert json.loads(Workspace.at(workspace).service_state.read_text())["processes"] == after
