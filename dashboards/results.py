@@ -143,6 +143,50 @@ def family_baselines_markdown(by_iteration: dict[int, list[GroupSuccess]],
     return ["", "### Per family, against the baselines", "", *_table(header, rows)]
 
 
+UNSEEN_KINDS = ("unseen colours", "unseen whole tasks")
+
+
+def unseen_kinds(catalog: Catalog, campaign: str) -> dict[str, str]:
+    """The campaign's unseen tasks -> their kind: a held-out colouring of a spec it trains on (a seen task of the
+    same spec exists: "unseen colours"), or a spec it never trains on ("unseen whole tasks")."""
+    tasks = catalog.query(f"SELECT task_id, spec, split FROM {CURRENT_TASK_FAMILIES} WHERE campaign = ?", [campaign])
+    seen_specs = {spec for _, spec, split in tasks if split == "seen"}
+    return {task_id: UNSEEN_KINDS[spec not in seen_specs] for task_id, spec, split in tasks if split == "unseen"}
+
+
+def unseen_by_kind_markdown(evaluations: dict[int, list[TaskEvaluation]], baselines: Baselines,
+                            kinds: dict[str, str], cases: Counter) -> list[str]:
+    """The unseen split of each family cut in two, Sim2Act per iteration beside every baseline: a held-out
+    colour of a trained spec asks the policy to read a word it knows in a new pairing; a whole task never
+    trained on asks for a skill. Pooled together (the split tables), a family holding both hides which one
+    its figure is. Only where some unseen task is a whole one (`kinds`: unseen_kinds); `cases` as
+    family_baselines_markdown's."""
+    if UNSEEN_KINDS[1] not in kinds.values():
+        return []
+    evaluated = {(e.family, e.task_id) for found in evaluations.values() for e in found if e.task_id in kinds}
+    families = sorted({family for family, _ in evaluated})
+    tasks = Counter((family, kinds[task_id]) for family, task_id in evaluated)
+
+    def cells(met: list[TaskEvaluation]) -> list[str]:
+        unseen = [e.model_copy(update={"split": kinds[e.task_id]}) for e in met if e.split == "unseen"]
+        return _cells(group_success(unseen), UNSEEN_KINDS)
+
+    rows = []
+    for family in families:
+        said = f"{family} ({tasks[family, UNSEEN_KINDS[0]]} + {tasks[family, UNSEEN_KINDS[1]]})"
+        rows += [[said, f"Sim2Act iteration {iteration}", *cells([e for e in found if e.family == family])]
+                 for iteration, found in sorted(evaluations.items())]
+        for (agent, agent_family, _, model_key), found in baselines.items():
+            met = [e for e in found if e.family == family]
+            if met:
+                rows.append([said, _agent_name(agent, agent_family, model_key, baselines)
+                             + _evaluating(met, cases[family]), *cells(met)])
+    return ["", "### Unseen, by kind, per family", "",
+            "The unseen split cut in two: a seen spec's held-out colours, and whole tasks whose spec the campaign "
+            "never trains on (the family column counts the unseen tasks of each kind).", "",
+            *_table(["family (colours + whole)", "agent", *UNSEEN_KINDS], rows)]
+
+
 def _utc(seconds: float | None) -> str:
     return "–" if seconds is None else datetime.datetime.fromtimestamp(
         seconds, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -466,24 +510,25 @@ def dataset_by_family(catalog: Catalog, campaign: str, explore_units: list[str],
                      "kept triplets", "MB"], table)]
 
 
-def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, list[GroupSuccess]],
+def _success_sections(catalog: Catalog, campaign: str, evaluations: dict[int, list[TaskEvaluation]],
                       steps_through: dict[tuple[int, str], int], cases: Counter, models: Path | None,
                       holder: dict | None) -> list[str]:
-    """Success per iteration beside the baselines, per family and spec, the seeds, the adaptation.
+    """Success per iteration beside the baselines, per family, unseen kind and spec, the seeds, the adaptation.
     `cases`: family -> the cases the last iteration's model met, which every baseline meets (an RL
     agent: its family's); `steps_through`: (iteration, family) -> the environment steps explored
     through that iteration on the family."""
     lines: list[str] = []
+    by_iteration = {iteration: group_success(found) for iteration, found in evaluations.items()}
     splits = split_columns(by_iteration)
     rows = [[f"Sim2Act iteration {iteration}" + (" (BC on iteration-0 data)" if iteration == 0 else ""),
              f"{sum(steps for (through, _), steps in steps_through.items() if through == iteration):,}",
              *_cells(groups, splits)]
             for iteration, groups in sorted(by_iteration.items())]
     baselines = baseline_evaluations(catalog, campaign)
-    for (agent, family, steps, model_key), evaluations in baselines.items():
+    for (agent, family, steps, model_key), met in baselines.items():
         name = (_agent_name(agent, family, model_key, baselines) + (f" ({family})" if family else "")
-                + _evaluating(evaluations, cases[family] if family else sum(cases.values())))
-        rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(evaluations), splits)])
+                + _evaluating(met, cases[family] if family else sum(cases.values())))
+        rows.append([name, f"{steps:,}" if steps else "–", *_cells(group_success(met), splits)])
     lines += _table(["agent", "env steps (training data)", *[split.replace("_", " ") for split in splits]], rows)
     if models is not None:
         lines += pending_baselines_markdown(catalog, campaign, models, holder)
@@ -492,6 +537,7 @@ def _success_sections(catalog: Catalog, campaign: str, by_iteration: dict[int, l
     if len(families) > 1:
         lines += _split_table("Per family (Sim2Act)", by_iteration, families)
         lines += family_baselines_markdown(by_iteration, baselines, families, cases, steps_through)
+    lines += unseen_by_kind_markdown(evaluations, baselines, unseen_kinds(catalog, campaign), cases)
 
     lines += spec_markdown(catalog, campaign)
 
@@ -548,7 +594,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
         # the cases a baseline meets: the last iteration's model's, less held-out wordings (stages/baselines.py
         # evaluates the canonical and paraphrase cases; a wording no template uses is a test of the policy's reading)
         cases = Counter(e.family for e in evaluations[max(evaluations)] if e.split != HELD_OUT_WORDING)
-        lines += _success_sections(catalog, campaign, by_iteration, steps_through, cases, models, holder)
+        lines += _success_sections(catalog, campaign, evaluations, steps_through, cases, models, holder)
 
     lines += ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(

@@ -563,3 +563,37 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
     seen = {_cells(line)[1]: _cells(line)[3].split(" ")[0] for line in lines if line.startswith("| metaworld | SAC")}
     assert seen == {"SAC from scratch [baselines-sac-critic], evaluating: 1/2 cases": "4/10",
                     "SAC from scratch [baselines-sac], evaluating: 1/2 cases": "0/10"}, seen
+
+
+def test_the_unseen_split_is_cut_into_held_out_colours_and_whole_tasks_per_family(tmp_path):
+    """An unseen task whose spec the campaign trains on is a held-out colouring; one whose spec it never trains on
+    is a whole task. Navigation holds one of each here (nav-ball has no seen task), MetaWorld a whole task alone:
+    each family's unseen cases are cut in two, Sim2Act's and the baselines' alike; a paraphrase is no unseen case."""
+    catalog = _catalog_with_tasks(tmp_path, with_metaworld=True)
+    catalog.register_unit(unit_key="tasks-ball", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
+                          rows={"tasks": [{
+                              "campaign": CAMPAIGN, "task_id": "nav-ball-blue", "spec": "nav-ball", "family": "navigation",
+                              "env_name": "FindBall", "instruction": "find the blue ball", "instructions": ["a", "b", "c"],
+                              "unseen_instructions": [], "object_colours": json.dumps({"ball": "blue"}),
+                              "split": "unseen", "horizon": 50, "unit_key": "tasks-ball"}]})
+    assert results.unseen_kinds(catalog, CAMPAIGN) == {
+        "nav-room-sequence-purple-red": "unseen colours", "nav-ball-blue": "unseen whole tasks",
+        "mw-push": "unseen whole tasks"}
+    _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-purple-red", "unseen"): 3,
+                           ("nav-ball-blue", "unseen"): 0, ("mw-reach", "seen"): 5, ("mw-push", "unseen"): 1,
+                           ("nav-room-sequence-red-green", "unseen_paraphrase"): 4})
+    for task_id, won in (("nav-room-sequence-purple-red", 10), ("nav-ball-blue", 8)):
+        _evaluated(catalog, "expert", won, task=(task_id, "navigation"), split="unseen")
+    lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
+    at = lines.index("### Unseen, by kind, per family")
+    assert lines[at + 4] == "| family (colours + whole) | agent | unseen colours | unseen whole tasks |"
+    rows = [_cells(line) for line in lines[at + 6:at + 9]]
+    assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
+        ["metaworld (0 + 1)", "Sim2Act iteration 0", "–", "1/10"],
+        ["navigation (1 + 1)", "Sim2Act iteration 0", "3/10", "0/10"],
+        ["navigation (1 + 1)", "scripted expert, noiseless (ceiling), evaluating: 2/4 cases", "10/10", "8/10"]], rows
+    assert lines[at + 9] == ""  # the expert met no MetaWorld case: no row of it there
+
+    colours_only = _catalog_with_tasks(tmp_path / "colours")  # navigation alone: its one unseen task a colouring
+    _register(colours_only, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-purple-red", "unseen"): 3})
+    assert "### Unseen, by kind" not in results_markdown(colours_only, CAMPAIGN, "sim2act report")
