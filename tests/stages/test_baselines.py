@@ -108,3 +108,14 @@ def test_a_budget_for_a_family_that_does_not_exist_or_below_64_steps_is_refused(
     for bad in ({"manipulation": 1000}, {"metaworld": 10}, 10, {}):
         with pytest.raises(ConfigError, match=r"^baselines\.env_steps: expected a number of environment steps >= 64"):
             load_config("smoke", None, {"baselines": {"env_steps": bad}})
+
+
+def test_a_budget_mapping_given_by_set_merges_into_the_files_and_a_number_replaces_it(tmp_path):
+    """As the README says of --set over --config: a mapping merges key by key, a plain value replaces."""
+    from schemas.config import parse_settings
+
+    given = tmp_path / "budgets.yaml"
+    given.write_text("baselines:\n  env_steps: {robosuite: 2000}\n")
+    merged = load_config("smoke", given, parse_settings(["baselines.env_steps={metaworld: 1000}"]))
+    assert merged.baselines.env_steps == {"robosuite": 2000, "metaworld": 1000}
+    assert load_config("smoke", given, parse_settings(["baselines.env_steps=500"])).baselines.env_steps == 500
