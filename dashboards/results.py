@@ -163,13 +163,17 @@ def unseen_by_kind_markdown(evaluations: dict[int, list[TaskEvaluation]], baseli
     family_baselines_markdown's."""
     if UNSEEN_KINDS[1] not in kinds.values():
         return []
-    evaluated = {(e.family, e.task_id) for found in evaluations.values() for e in found if e.task_id in kinds}
+    def unseen(met: list[TaskEvaluation]) -> list[TaskEvaluation]:
+        # a case evaluated unseen whose task the campaign's tasks now hold as seen (a changed tasks.*) has no kind
+        return [e for e in met if e.split == "unseen" and e.task_id in kinds]
+
+    evaluated = {(e.family, e.task_id) for found in evaluations.values() for e in unseen(found)}
     families = sorted({family for family, _ in evaluated})
     tasks = Counter((family, kinds[task_id]) for family, task_id in evaluated)
 
     def cells(met: list[TaskEvaluation]) -> list[str]:
-        unseen = [e.model_copy(update={"split": kinds[e.task_id]}) for e in met if e.split == "unseen"]
-        return _cells(group_success(unseen), UNSEEN_KINDS)
+        return _cells(group_success([e.model_copy(update={"split": kinds[e.task_id]}) for e in unseen(met)]),
+                      UNSEEN_KINDS)
 
     rows = []
     for family in families:
@@ -558,11 +562,10 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     Raises:
         ValueError: the campaign has neither an evaluated iteration nor an indexed dataset here."""
     evaluations = evaluations_by_iteration(catalog, campaign)
-    by_iteration = {iteration: group_success(found) for iteration, found in evaluations.items()}
     latest = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
         f"SELECT explore_units, filter_units FROM {CURRENT_ITERATIONS} WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
         [campaign])
-    if not by_iteration and not latest:
+    if not evaluations and not latest:
         held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
         raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse ("
                          + (f"it holds {', '.join(map(repr, held))}: name it with --preset, --config or --set name=...)"
@@ -588,7 +591,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
              "baseline meets the same episodes: seeds derive from campaign, task and episode), pooled "
              "per split, the Wilson 95% interval in parentheses.", "",
              "## Success per iteration and against the baselines", ""]
-    if not by_iteration:
+    if not evaluations:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
         # the cases a baseline meets: the last iteration's model's, less held-out wordings (stages/baselines.py

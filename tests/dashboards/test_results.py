@@ -568,7 +568,10 @@ def test_each_family_reads_sim2act_beside_its_own_baselines(tmp_path):
 def test_the_unseen_split_is_cut_into_held_out_colours_and_whole_tasks_per_family(tmp_path):
     """An unseen task whose spec the campaign trains on is a held-out colouring; one whose spec it never trains on
     is a whole task. Navigation holds one of each here (nav-ball has no seen task), MetaWorld a whole task alone:
-    each family's unseen cases are cut in two, Sim2Act's and the baselines' alike; a paraphrase is no unseen case."""
+    each family's unseen cases are cut in two, a row per iteration and per baseline (an RL agent on its family
+    alone); a paraphrase is no unseen case, nor one evaluated unseen whose task the campaign now holds as seen."""
+    from stages.baselines import RLTrained
+
     catalog = _catalog_with_tasks(tmp_path, with_metaworld=True)
     catalog.register_unit(unit_key="tasks-ball", stage="generate_tasks", campaign=CAMPAIGN, iteration=0, summary={},
                           rows={"tasks": [{
@@ -581,18 +584,28 @@ def test_the_unseen_split_is_cut_into_held_out_colours_and_whole_tasks_per_famil
         "mw-push": "unseen whole tasks"}
     _register(catalog, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-purple-red", "unseen"): 3,
                            ("nav-ball-blue", "unseen"): 0, ("mw-reach", "seen"): 5, ("mw-push", "unseen"): 1,
-                           ("nav-room-sequence-red-green", "unseen_paraphrase"): 4})
+                           ("nav-room-sequence-red-green", "unseen_paraphrase"): 4,
+                           ("nav-room-red", "unseen"): 7})  # evaluated unseen once; its task is seen now
+    _register(catalog, 1, {("nav-room-sequence-purple-red", "unseen"): 5, ("nav-ball-blue", "unseen"): 2,
+                           ("mw-push", "unseen"): 4})
     for task_id, won in (("nav-room-sequence-purple-red", 10), ("nav-ball-blue", 8)):
         _evaluated(catalog, "expert", won, task=(task_id, "navigation"), split="unseen")
+    catalog.register_unit(unit_key="baselines-sac", stage="baselines", campaign=CAMPAIGN, iteration=0, summary=RLTrained(
+        algorithm="sac", family="metaworld", env_steps=1_000, steps_taken=1_024, episodes=20, successes=0,
+        resumed_at=0, path="x").model_dump())
+    _evaluated(catalog, "baselines-sac", 6, task=("mw-push", "metaworld"), split="unseen")
     lines = results_markdown(catalog, CAMPAIGN, "sim2act report").splitlines()
     at = lines.index("### Unseen, by kind, per family")
     assert lines[at + 4] == "| family (colours + whole) | agent | unseen colours | unseen whole tasks |"
-    rows = [_cells(line) for line in lines[at + 6:at + 9]]
+    rows = [_cells(line) for line in lines[at + 6:at + 12]]
     assert [row[:2] + [cell.split(" ")[0] for cell in row[2:]] for row in rows] == [
         ["metaworld (0 + 1)", "Sim2Act iteration 0", "–", "1/10"],
+        ["metaworld (0 + 1)", "Sim2Act iteration 1", "–", "4/10"],
+        ["metaworld (0 + 1)", "SAC from scratch", "–", "6/10"],
         ["navigation (1 + 1)", "Sim2Act iteration 0", "3/10", "0/10"],
-        ["navigation (1 + 1)", "scripted expert, noiseless (ceiling), evaluating: 2/4 cases", "10/10", "8/10"]], rows
-    assert lines[at + 9] == ""  # the expert met no MetaWorld case: no row of it there
+        ["navigation (1 + 1)", "Sim2Act iteration 1", "5/10", "2/10"],
+        ["navigation (1 + 1)", "scripted expert, noiseless (ceiling)", "10/10", "8/10"]], rows
+    assert lines[at + 12] == ""  # the expert met no MetaWorld case, the SAC no navigation one: no rows of them there
 
     colours_only = _catalog_with_tasks(tmp_path / "colours")  # navigation alone: its one unseen task a colouring
     _register(colours_only, 0, {("nav-room-red", "seen"): 9, ("nav-room-sequence-purple-red", "unseen"): 3})

@@ -32,9 +32,12 @@ PREFECT = str(Path(sys.executable).with_name("prefect"))
 
 
 def cron_hours_from_now(hours: int, minute: int, timezone: str = "UTC") -> str:
-    """A daily cron line `hours` from now in `timezone`, so a stack a test starts never meets its nightly run
-    (the default, 02:00 UTC, once fired inside CI's PostgreSQL stack test and added an iteration to its campaign)."""
-    return f"{minute} {(datetime.now(ZoneInfo(timezone)) + timedelta(hours=hours)).hour} * * *"
+    """A daily cron line at `minute` past the hour `hours` from now in `timezone`, so a stack a test starts never
+    meets its nightly run (the default, 02:00 UTC, once fired inside CI's PostgreSQL stack test and added an
+    iteration to its campaign). Never 2 o'clock: the night a zone's clocks go forward that hour does not exist,
+    and Prefect moves that night's run an hour back."""
+    hour = (datetime.now(ZoneInfo(timezone)) + timedelta(hours=hours)).hour
+    return f"{minute} {3 if hour == 2 else hour} * * *"
 
 
 NIGHTLY, NIGHTLY_AGAIN = cron_hours_from_now(12, 30, "Europe/Berlin"), cron_hours_from_now(13, 45, "Europe/Berlin")
