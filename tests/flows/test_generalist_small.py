@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from envs.suite import generate_tasks
+from envs.suite import generate_tasks, weak_tasks_left_out
 from schemas.config import load_config
 from schemas.workspace import Workspace
 from tests.conftest import SIM2ACT, sim2act_env
@@ -31,6 +31,10 @@ def test_the_generalist_preset_runs_every_spec_of_its_three_families_at_small_si
     assert run.returncode == 0, run.stderr[-3000:]
 
     config = load_config("generalist", None, {"tasks": {"max_tasks_per_spec": 1}})
+    # the tasks whose expert is below 90% (docs/experts.md) are left out in one line, named, before the campaign starts
+    weak = weak_tasks_left_out(config.tasks)
+    assert f"sim2act: {len(weak)} task(s) left out, their scripted expert below 90%" in run.stdout, run.stdout[:3000]
+    assert ", ".join(weak) in run.stdout and "mw-push-back" in weak
     expected = generate_tasks(config.tasks, config.seed)
     full = load_config("generalist")
     assert {t.spec for t in expected} == {t.spec for t in generate_tasks(full.tasks, full.seed)}  # every spec's first
