@@ -31,5 +31,8 @@ $S run "${C[@]}" --set 'baselines.agents=[expert]' --set 'adapt.episodes_per_tas
 $S run "${C[@]}" --set 'baselines.agents=[expert]' >> "$LOGS/adapt.log" 2>&1
 # a SAC step costs ~120 ms of a core (docs/bench-rl.md): a checkpoint every 5,000 steps (10 minutes, its ~2 GB replay
 # written in seconds) rather than 25,000 (50 minutes lost to a kill or a session's end); not part of the agents' keys
-$S run "${C[@]}" --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
+# an RL agent's worker keeps every scene it opens (44 tasks a family; a scene made again draws the same frames, only
+# slower), as generalist-baselines.sh and generalist-sac.sh do
+SIM2ACT_SCENES_PER_WORKER=${SIM2ACT_SCENES_PER_WORKER:-64} \
+  $S run "${C[@]}" --set baselines.checkpoint_every=5000 >> "$LOGS/baselines.log" 2>&1
 $S report "${C[@]}" | tee "$LOGS/report.md"
