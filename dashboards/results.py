@@ -163,6 +163,7 @@ def unseen_by_kind_markdown(evaluations: dict[int, list[TaskEvaluation]], baseli
     family_baselines_markdown's."""
     if UNSEEN_KINDS[1] not in kinds.values():
         return []
+
     def unseen(met: list[TaskEvaluation]) -> list[TaskEvaluation]:
         # a case evaluated unseen whose task the campaign's tasks now hold as seen (a changed tasks.*) has no kind
         return [e for e in met if e.split == "unseen" and e.task_id in kinds]

@@ -16,12 +16,15 @@ from schemas.service import ServiceConfig
 from schemas.workspace import Workspace
 from tests.flows.test_service import cron_hours_from_now
 
+# the nightly schedule 12 h away: runs Prefect schedules by itself stay out of the counts below
+SERVICE = ServiceConfig(nightly_cron=cron_hours_from_now(12, 0))
+
 
 def test_scheduled_nightly_runs_of_another_config_are_dropped_and_the_current_ones_kept(prefect_api, tmp_path):
-    workspace = Workspace.at(tmp_path / "ws")  # (its schedule 12 h away: Prefect's own runs stay out of the counts)
+    workspace = Workspace.at(tmp_path / "ws")
     old, new = load_config("smoke"), load_config("smoke", overrides={"iterations": 5})
     with temporary_settings({PREFECT_API_URL: prefect_api}):
-        nightly = next(d for d in build_deployments(old, workspace, ServiceConfig(nightly_cron=cron_hours_from_now(12, 0))) if d.name == NIGHTLY)
+        nightly = next(d for d in build_deployments(old, workspace, SERVICE) if d.name == NIGHTLY)
         deployment_id = nightly.apply()
         past = Scheduled(scheduled_time=datetime.datetime.now(datetime.timezone.utc) - datetime.timedelta(days=1))
         with get_client(sync_client=True) as client:
@@ -39,7 +42,7 @@ def test_of_the_nights_missed_with_this_config_only_the_latest_runs(prefect_api,
     config = load_config("smoke")
     now = datetime.datetime.now(datetime.timezone.utc)
     with temporary_settings({PREFECT_API_URL: prefect_api}):
-        nightly = next(d for d in build_deployments(config, workspace, ServiceConfig(nightly_cron=cron_hours_from_now(12, 0))) if d.name == NIGHTLY)
+        nightly = next(d for d in build_deployments(config, workspace, SERVICE) if d.name == NIGHTLY)
         deployment_id = nightly.apply()
         parameters = {"config": config.model_dump(mode="json"), "workspace": str(workspace.root), "continue_campaign": True}
         with get_client(sync_client=True) as client:
