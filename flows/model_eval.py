@@ -18,13 +18,13 @@ from mlflow.exceptions import MlflowException
 
 from envs.suite import generate_tasks
 from policies.model import ModelDims
-from schemas.config import CampaignConfig, ConfigError, read_text_file, recorded_render
+from schemas.config import CampaignConfig, ConfigError, RandomiseConfig, read_text_file, recorded_render
 from schemas.tasks import CAMPAIGN_SUITE, TaskRecord
 from schemas.settings import REGISTRY_URI_ENV, TRACKING_URI_ENV, registry_uri, tracking_uri
 from schemas.wordings import HELD_OUT_WORDING
 from schemas.workspace import Workspace
 from stages.evaluate import EvalUnit, evaluation_cases
-from stages.generate_tasks import tasks_unit_key
+from stages.generate_tasks import campaign_tasks, tasks_unit_key
 from stages.redeploy import MODEL_KEY_TAG, champion_explorer
 from stages.train import model_dims
 from warehouse.catalog import Catalog
@@ -126,12 +126,36 @@ def check_model_fits(config: CampaignConfig, model: ModelRef) -> None:
                           f"set render.wrist_camera={str(wrist).lower()}")
 
 
-def campaign_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskRecord]:
-    key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
-    if not Catalog(workspace.catalog).is_registered(key):
+def registered_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskRecord]:
+    """The campaign's tasks as its flow registered them: those its experts did not fail under the randomisation it
+    explored with (an evaluation under another randomisation evaluates the same tasks); the config's own where the
+    campaign explored nothing yet."""
+    catalog = Catalog(workspace.catalog)
+    explored = explored_randomise(latest_explore_summary(catalog, config.name))
+    as_explored = config if explored is None else config.model_copy(update={"randomise": explored})
+    key = tasks_unit_key(config, campaign_tasks(workspace, as_explored)[0])
+    if not catalog.is_registered(key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} "
                           "(run `sim2act run` with it first, or give --tasks FILE)")
     return load_tasks(workspace, key)
+
+
+def latest_explore_summary(catalog: Catalog, campaign: str) -> tuple[str, dict] | None:
+    """(unit key, stage_runs summary) of the campaign's latest explore unit; None: it explored nothing here."""
+    if not catalog.path.exists():
+        return None
+    latest = catalog.query("SELECT unit_key, summary FROM stage_runs WHERE stage = 'explore' AND campaign = ? "
+                           "ORDER BY finished_at DESC NULLS LAST, unit_key DESC LIMIT 1", [campaign])
+    return (latest[0][0], json.loads(latest[0][1] or "{}")) if latest else None
+
+
+def explored_randomise(latest: tuple[str, dict] | None) -> RandomiseConfig | None:
+    """The randomisation a latest explore unit drew from (None: none, or one explored before its summary
+    recorded it); a field a later version dropped is ignored."""
+    recorded = latest[1].get("randomise") if latest else None
+    if recorded is None:
+        return None
+    return RandomiseConfig.model_validate({k: v for k, v in recorded.items() if k in RandomiseConfig.model_fields})
 
 
 def file_tasks(path: Path, config: CampaignConfig, seen_ids: set[str]) -> list[TaskRecord]:
@@ -158,11 +182,10 @@ def explored_conditions(catalog: Catalog, campaign: str) -> dict[str, str]:
     unit's summary (absent there: at their legacy values), and the randomisation ranges its summary records
     (a unit explored before they were recorded: whether randomisation was on, from its episodes' draws).
     {}: the campaign explored nothing here."""
-    latest = catalog.query("SELECT unit_key, summary FROM stage_runs WHERE stage = 'explore' AND campaign = ? "
-                           "ORDER BY finished_at DESC NULLS LAST, unit_key DESC LIMIT 1", [campaign])
-    if not latest:
+    latest = latest_explore_summary(catalog, campaign)
+    if latest is None:
         return {}
-    unit_key, summary = latest[0][0], json.loads(latest[0][1] or "{}")
+    unit_key, summary = latest
     try:
         episode = catalog.read_unit_shard("episodes", unit_key, ["render", "randomisation"]).slice(0, 1).to_pylist()
     except (KeyError, ShardUnreadable, ShardStoreUnreachable):  # no record to read: the summary's alone
@@ -210,7 +233,7 @@ def eval_cases(workspace: Workspace, config: CampaignConfig, tasks_file: Path | 
         cases = evaluation_cases(file_tasks(tasks_file, config, explored))
         return _suite(f"file:{tasks_file.name}", apart, config, _of(cases, family)), cases
     # --split held_out_wording asks for that split whether or not the campaign evaluates it
-    cases = evaluation_cases(campaign_tasks(workspace, config),
+    cases = evaluation_cases(registered_tasks(workspace, config),
                              config.evaluate.held_out_wordings or split == HELD_OUT_WORDING)
     if split:
         cases = [case for case in cases if case[1] == split]

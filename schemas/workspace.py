@@ -55,6 +55,10 @@ class Workspace:
         training and the next iteration's compute as the first did."""
         return self.models / "precision.json"
 
+    def expert_check(self, key: str) -> Path:
+        """One task's scripted-expert row measured under a campaign's own randomisation (envs/expert_check.py)."""
+        return self.root / "experts" / f"{key}.json"
+
     @property
     def media(self) -> Path:
         return self.root / "media"

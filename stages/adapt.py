@@ -28,7 +28,7 @@ from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import Agent, TaskEvaluation, evaluate_model, evaluation_cases
 from stages.explore import run_explore
 from stages.filter import run_filter
-from stages.generate_tasks import run_generate_tasks
+from stages.generate_tasks import campaign_tasks, run_generate_tasks
 from warehouse.catalog import Catalog
 from warehouse.tasks import load_embeddings, load_tasks
 
@@ -167,7 +167,9 @@ def run_adapt(workspace: Workspace, config: CampaignConfig, source_model: str, s
     catalog = Catalog(workspace.catalog)
     started = time.monotonic()
     target = target_campaign(config)
-    tasks_key = run_generate_tasks(workspace, target).unit_key
+    # the source campaign's tasks (its own randomisation's weak experts left out): the shifted domain's filter keeps
+    # only the episodes its experts finish
+    tasks_key = run_generate_tasks(workspace, target, campaign_tasks(workspace, config)[0]).unit_key
     tasks = adapted_tasks(config, load_tasks(workspace, tasks_key))
     embeddings = load_embeddings(workspace, tasks_key, target.train.model.language_encoder)
     explored = run_explore(workspace, target, 0, tasks, None, embeddings)

@@ -66,15 +66,16 @@ def cmd_bench_train(args: argparse.Namespace) -> int:
 
 def cmd_bench_rl(args: argparse.Namespace) -> int:
     from bench.rl import bench_rl, markdown, rl_cases
-    from envs.suite import generate_tasks
     from flows.cli.common import campaign_config
+    from stages.generate_tasks import campaign_tasks
 
     if args.steps < 1:
         raise ConfigError(f"bench rl: --steps must be at least 1, got {args.steps}")
     config = campaign_config(args)
     if args.agent:
         config = config.model_copy(update={"baselines": config.baselines.model_copy(update={"agents": args.agent})})
-    tasks = [t for t in generate_tasks(config.tasks, config.seed) if not args.family or t.family in args.family]
+    tasks, _ = campaign_tasks(Workspace.at(args.workspace), config)  # as the campaign's, where it ran in the workspace
+    tasks = [t for t in tasks if not args.family or t.family in args.family]
     cases = rl_cases(config, tasks, args.steps, _explored_steps(args, config.name), args.sac_encoder)
     if not cases:
         raise ConfigError(f"bench rl: expected an RL agent (baselines.agents: ppo, sac) and a family with seen tasks "

@@ -11,10 +11,10 @@ from flows.cli.common import (Commands, add_campaign_options, campaign_config, c
                               configure_environment, non_negative_int, open_catalog, output_file, positive_int,
                               same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
-from schemas.config import Acting, ConfigError
-from schemas.experts import TARGET
-from schemas.tasks import FAMILIES
-from schemas.workspace import write_text_atomically
+from schemas.config import Acting, CampaignConfig, ConfigError
+from schemas.experts import TARGET, ExpertRow
+from schemas.tasks import FAMILIES, TaskRecord
+from schemas.workspace import Workspace, write_text_atomically
 
 MODEL_REF = "champion, @alias, 3, v3, name/3, name@alias (the registry), or a model key train-..."  # --model
 SPLIT_CHOICES = ("seen", "unseen", "unseen_paraphrase", "held_out_wording")  # --split: the evaluation's splits
@@ -57,6 +57,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if weak:
         print(f"sim2act: {len(weak)} task(s) left out, their scripted expert below {TARGET:.0%} (docs/experts.md; "
               f"tasks.weak_experts: keep uses them): {', '.join(weak)}", flush=True)
+    kept = experts_under_campaign(workspace, config, tasks)
+    if len(kept) < len(tasks):  # the refusal above counted every task, to refuse before measuring: the line, the kept
+        tasks, estimate = kept, check_disk(workspace.root, to_explore, kept, catalog)
     if estimate.steps:
         seen = sum(t.split == "seen" for t in tasks)
         print(f"sim2act: {len(tasks)} tasks ({seen} explored); about {estimate.steps:,} steps and "
@@ -77,12 +80,41 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def experts_under_campaign(workspace: Workspace, config: CampaignConfig, tasks: list[TaskRecord]) -> list[TaskRecord]:
+    """The campaign's tasks less those whose expert is below target under its own randomisation: measured here
+    where the workspace holds no row yet (a line per tenth, with rate and ETA), said in one line, before the flow
+    (which finds the rows measured)."""
+    import time
+
+    from envs.expert_check import EPISODES, checks_experts, experts_under, felt_apart, said
+    from stages.generate_tasks import campaign_tasks, left_out_line
+
+    if not checks_experts(config.tasks.weak_experts, config.randomise):
+        return tasks
+    unmeasured = len(tasks) - len(experts_under(workspace, tasks, config.randomise, 1, measure=False))
+    started, done = time.monotonic(), []
+
+    def report(row: ExpertRow) -> None:
+        done.append(row)
+        if len(done) == unmeasured or len(done) % max(unmeasured // 10, 1) == 0:
+            rate = len(done) / (time.monotonic() - started)
+            print(f"sim2act: experts {len(done)}/{unmeasured} tasks, {rate * 60:.1f} tasks/min, "
+                  f"ETA {(unmeasured - len(done)) / rate:.0f}s", flush=True)
+
+    if unmeasured:
+        print(f"sim2act: measuring the scripted experts of {unmeasured} task(s) under this campaign's randomisation "
+              f"({said(felt_apart(config.randomise))}), {EPISODES} episodes each without a camera", flush=True)
+    kept, weak = campaign_tasks(workspace, config, measure=True, progress=report)
+    if weak:
+        print(f"sim2act: {left_out_line(weak, config, kept)}", flush=True)
+    return kept
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     config = campaign_config(args)
-    from envs.suite import generate_tasks
     from flows.run_lock import reading_shard_files
     from flows.tracking import Tracking
-    from stages.generate_tasks import tasks_unit_key
+    from stages.generate_tasks import campaign_tasks, tasks_unit_key
     from stages.index import latest_index
     from stages.train import run_train
     from warehouse.tasks import load_embeddings
@@ -95,7 +127,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         which = f"iteration {args.iteration}" if args.iteration is not None else "any iteration"
         raise ConfigError(f"--iteration: campaign {config.name!r} has no dataset for {which} in {workspace.root} "
                           "decided by this config's filter settings (run `sim2act run` with this config first)")
-    tasks_key = tasks_unit_key(config, generate_tasks(config.tasks, config.seed))
+    tasks_key = tasks_unit_key(config, campaign_tasks(workspace, config)[0])
     if not catalog.is_registered(tasks_key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} (run `sim2act run` first)")
     configure_environment(workspace)

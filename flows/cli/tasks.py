@@ -79,7 +79,8 @@ def cmd_tasks_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_tasks_experts(args: argparse.Namespace) -> int:
-    from bench.expert_table import markdown, measure_experts
+    from bench.expert_table import markdown
+    from envs.expert_check import measure_experts
     from envs.suite import suite_tasks
     from schemas.config import RandomiseConfig
     from schemas.experts import TARGET, default_table_path, load_expert_table, save_expert_table

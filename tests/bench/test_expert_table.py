@@ -1,22 +1,15 @@
 import pytest
 
-from bench.expert_table import markdown, measure_experts
+from bench.expert_table import markdown
 from envs import suite as suite_module
 from envs.suite import generate_tasks
-from schemas.config import ConfigError, RandomiseConfig, TasksConfig
+from schemas.config import ConfigError, TasksConfig
 from schemas.experts import ExpertRow, ExpertTable, load_expert_table, save_expert_table
 
 
 def _row(task_id: str, successes: int, command: str = "sim2act tasks experts") -> ExpertRow:
     return ExpertRow(task_id=task_id, family="robosuite", split="seen", episodes=10, successes=successes,
                      mean_length=40, noise=0.1, randomised=True, command=command, measured_on="2026-11-22")
-
-
-def test_experts_are_measured_per_task_in_worker_processes_under_randomisation():
-    tasks = generate_tasks(TasksConfig(specs=["lift", "mw-reach"], colours=["red"]), seed=0)
-    rows = measure_experts(tasks, episodes=2, noise=0.1, randomise=RandomiseConfig(), workers=2, command="test")
-    assert [r.task_id for r in rows] == ["lift-red", "mw-reach"]
-    assert all(r.episodes == 2 and r.successes == 2 and 0 < r.mean_length < 80 and r.randomised for r in rows)
 
 
 def test_a_partial_run_replaces_only_its_rows_and_the_table_names_every_command(tmp_path):

@@ -4,6 +4,8 @@ that hid the bad value."""
 
 from __future__ import annotations
 
+import logging
+import re
 import socket
 
 import pytest
@@ -273,3 +275,25 @@ def test_a_mapping_given_where_a_value_goes_is_shown(tmp_path, capsys):
     """It said "seed: Input should be a valid integer" and nothing of what was given."""
     assert "seed: Input should be a valid integer (got {'a': 1})" in _refused(
         capsys, ["report", "--workspace", str(tmp_path / "ws"), "--set", "seed={a: 1}"])
+
+
+def test_a_campaign_whose_randomisation_fails_every_expert_is_refused_once_they_are_measured(tmp_path, capsys,
+                                                                                             monkeypatch):
+    """Lift's expert cannot lift a block 100x its mass: the three tasks measured (10 episodes each, cached in the
+    workspace), then one line naming them, before the flow starts."""
+    from envs import expert_check
+    from flows.cli import campaign
+
+    # the refusal comes before the flow: no Prefect home, watchdog or stage log handler for the tests after this one
+    monkeypatch.setattr(campaign, "configure_environment", lambda workspace: None)
+    monkeypatch.setattr(campaign, "watch", lambda: None)
+    monkeypatch.setattr(logging.getLogger("sim2act"), "handlers", [])  # an earlier test's holds a closed capture
+    argv = ["run", "--preset", "smoke", "--set", "randomise.mass=[100,100]", "--workspace", str(tmp_path / "ws")]
+    line = _refused(capsys, argv)
+    assert re.fullmatch(r"sim2act: config error: tasks: expected at least one seen task to explore, got none: 3 task\(s\) "
+                        r"left out, their scripted expert below 90% under this campaign's randomisation "
+                        r"\(randomise.mass=\[100.0, 100.0\]; tasks.weak_experts: keep uses them\): "
+                        r"robosuite: lift-red \d/10, lift-green \d/10, lift-blue \d/10; family robosuite left out whole",
+                        line), line
+    monkeypatch.setattr(expert_check, "measure_experts", lambda *args: pytest.fail("measured again"))
+    assert _refused(capsys, argv) == line  # measured once: a rerun reads the workspace's rows
