@@ -62,7 +62,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         tasks, estimate = kept, check_disk(workspace.root, to_explore, kept, catalog)
     if estimate.steps:
         seen = sum(t.split == "seen" for t in tasks)
-        print(f"sim2act: {len(tasks)} tasks ({seen} explored); about {estimate.steps:,} steps and "
+        print(f"sim2act: {len(tasks)} task{'s' * (len(tasks) != 1)} ({seen} explored); about {estimate.steps:,} steps and "
               f"{estimate.bytes / 1e9:.2f} GB to explore over {estimate.iterations} iteration(s)", flush=True)
     from flows.bootstrap import bootstrap
 
