@@ -136,6 +136,20 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig, tasks: list
             suite = load_specs(config.tasks.spec_files)
             proposals = propose(config.tasks, {n: suite[n].spec for n in config.tasks.specs}, tasks)
             proposed = proposals.tasks
+            # a new binding the proposer brought (the shipped table's check alone): measured under the campaign's
+            # randomisation too, as the templates were (one it left out comes back here and is dropped again)
+            templates = {t.task_id for t in tasks}
+            late = weak_under_campaign(workspace, config, [t for t in proposed if t.task_id not in templates], True)
+            if late:
+                dropped = {r.task_id for r in late}
+                proposed = [t for t in proposed if t.task_id not in dropped]
+                log.warning("generate_tasks: the proposer's %s", left_out_line(late, config, proposed))
+                rejected = {**proposals.rejected, "weak_expert": proposals.rejected.get("weak_expert", 0) + len(late)}
+                proposals = proposals.model_copy(update={
+                    "tasks": proposed, "new_tasks": proposals.new_tasks - len(late), "valid": proposals.valid - len(late),
+                    "rejected": rejected})
+                said_before = {w.task_id for w in weak}  # left out of the templates already: named once
+                weak.extend(r for r in late if r.task_id not in said_before)
         pairs = [(t.task_id, text) for t in proposed for text in [*t.instructions, *t.unseen_instructions]]
         encoder = config.train.model.language_encoder
         log.info("generate_tasks: %d tasks, %d instructions; embedding them with %s", len(proposed), len(pairs), encoder)

@@ -2,6 +2,7 @@
 measures its tasks' experts under it once per workspace, and leaves out those below 90% in one line, before
 exploring; every call site that keys its tasks agrees with the flow."""
 
+import json
 import logging
 import re
 import shutil
@@ -10,7 +11,7 @@ import pytest
 
 from envs import expert_check
 from flows.model_eval import registered_tasks
-from schemas.config import ConfigError, RandomiseConfig, TasksConfig, load_config
+from schemas.config import ConfigError, ProposerConfig, RandomiseConfig, TasksConfig, load_config
 from schemas.experts import ExpertRow
 from schemas.workspace import Workspace
 from stages import StageUnits, UnitOutput
@@ -114,3 +115,18 @@ def test_the_flows_stage_registers_the_kept_tasks_and_an_evaluation_finds_them(m
     StageUnits(Catalog(workspace.catalog), "explore", config.name, 0).register(
         "explore-recorded", UnitOutput({"randomise": config.randomise.model_dump(mode="json")}, [], {}), 1.0)
     assert [t.task_id for t in registered_tasks(workspace, elsewhere)] == ["mw-reach"]
+
+
+def test_a_task_the_proposer_brings_back_is_measured_and_dropped_again(measured, tmp_path, serve_chat):
+    """The proposer checks new bindings against the shipped table alone: mw-push, left out under HEAVY, proposed
+    anew, is dropped by its measured row (a rejection of the proposer's, counted as one)."""
+    server = serve_chat(json.dumps({"tasks": [{"spec": "mw-push", "colours": {}, "instructions": [
+        "nudge the hockey puck toward the goal", "move the puck along the table to the goal spot",
+        "get the puck over to the goal region"]}]}))
+    proposer = ProposerConfig(url=f"http://127.0.0.1:{server.server_port}/v1", model="tiny-llm", retries=1, timeout_s=5)
+    workspace, config = _copy(measured[0], tmp_path), _config(HEAVY, proposer=proposer)
+    workspace.create()
+    Catalog(workspace.catalog).initialise()
+    result = run_generate_tasks(workspace, config)
+    assert result.task_ids == ["mw-reach"] and result.experts_left_out == ["mw-push"]
+    assert result.proposals_valid == 0 and result.proposals_rejected == {"weak_expert": 1}
