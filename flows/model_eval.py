@@ -133,7 +133,7 @@ def registered_tasks(workspace: Workspace, config: CampaignConfig) -> list[TaskR
     catalog = Catalog(workspace.catalog)
     explored = explored_randomise(latest_explore_summary(catalog, config.name))
     as_explored = config if explored is None else config.model_copy(update={"randomise": explored})
-    key = tasks_unit_key(config, campaign_tasks(workspace, as_explored)[0])
+    key = tasks_unit_key(as_explored, campaign_tasks(workspace, as_explored)[0])
     if not catalog.is_registered(key):
         raise ConfigError(f"tasks: this config's tasks were never generated in {workspace.root} "
                           "(run `sim2act run` with it first, or give --tasks FILE)")

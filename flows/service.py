@@ -298,19 +298,22 @@ def _stop(record: dict) -> None:
             os.killpg(pid, signal.SIGKILL)
         except ProcessLookupError:
             return
-        while group_members(pid) and time.monotonic() < deadline + STOP_TIMEOUT_S:
+        deadline = time.monotonic() + 5.0  # what SIGKILL leaves is in uninterruptible sleep: said, not waited on
+        while group_members(pid) and time.monotonic() < deadline:
             time.sleep(0.1)
+        if group_members(pid):
+            print(f"sim2act: process group {pid}: {group_members(pid)} still there after SIGKILL", file=sys.stderr)
 
 
 def group_members(pgid: int) -> list[int]:
     """The processes of group `pgid` that have not exited (a zombie has: its parent has yet to reap it)."""
     members = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            state, _, group = stat.read_text().rsplit(") ", 1)[1].split()[:3]
+        try:  # bytes: the kernel cuts a command's name at 15 bytes, maybe inside a UTF-8 character
+            state, _, group = stat.read_bytes().rsplit(b") ", 1)[1].split()[:3]
         except (OSError, IndexError, ValueError):  # gone while read
             continue
-        if int(group) == pgid and state != "Z":
+        if int(group) == pgid and state != b"Z":
             members.append(int(stat.parent.name))
     return members
 

@@ -9,6 +9,7 @@ import json
 import logging
 import re
 from collections import Counter
+from collections.abc import Callable
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -105,11 +106,13 @@ def _keep_instructions(said: list[str], known: list[str], held_out: set[str], ot
 
 
 def merge_proposals(
-    content: str, specs: dict[str, TaskSpec], config: TasksConfig, tasks: list[TaskRecord]
+    content: str, specs: dict[str, TaskSpec], config: TasksConfig, tasks: list[TaskRecord],
+    also_weak: frozenset[str] = frozenset(),
 ) -> ProposalOutcome:
     """Pure: the tasks after adding the valid proposals in `content` (the model's answer). A new binding
     becomes a task only if the config would take it (tasks.include, a scripted expert at target unless
-    tasks.weak_experts: keep) and at least tasks.paraphrases of its instructions survive the filter."""
+    tasks.weak_experts: keep; `also_weak`: task ids measured below it elsewhere, the campaign's randomisation)
+    and at least tasks.paraphrases of its instructions survive the filter."""
     rejected: Counter[str] = Counter()
     try:
         raw = json.loads(content).get("tasks", [])
@@ -117,7 +120,7 @@ def merge_proposals(
         return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"not_json": 1})
     if not isinstance(raw, list):
         return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"schema": 1})
-    weak = load_expert_table().flagged() if config.weak_experts == "skip" else set()
+    weak = load_expert_table().flagged() | also_weak if config.weak_experts == "skip" else set()
     by_id = {t.task_id: t for t in tasks}
     valid = new = 0
     for item in raw:
@@ -159,7 +162,13 @@ def merge_proposals(
     return ProposalOutcome(tasks=list(by_id.values()), new_tasks=new, valid=valid, rejected=dict(rejected))
 
 
-def propose(config: TasksConfig, specs: dict[str, TaskSpec], tasks: list[TaskRecord]) -> ProposalOutcome:
+def propose(config: TasksConfig, specs: dict[str, TaskSpec], tasks: list[TaskRecord],
+            weak_among: Callable[[list[TaskRecord]], set[str]] | None = None) -> ProposalOutcome:
+    """The templates `tasks` with the LLM's proposals merged in (merge_proposals).
+
+    Args:
+        weak_among: the ids among new bindings whose expert is below target under the campaign's own conditions
+            (measured by the caller); the answer is merged again with them weak, so its counts say what was kept."""
     proposer = config.proposer
     try:
         content = chat(proposer, build_messages(specs, proposer.proposals))
@@ -169,6 +178,10 @@ def propose(config: TasksConfig, specs: dict[str, TaskSpec], tasks: list[TaskRec
         log.warning("%s; tasks.proposer.fallback_to_templates is set: template tasks only", exc)
         return ProposalOutcome(tasks=tasks, new_tasks=0, valid=0, rejected={"unreachable": 1})
     outcome = merge_proposals(content, specs, config, tasks)
+    templates = {t.task_id for t in tasks}
+    late = weak_among([t for t in outcome.tasks if t.task_id not in templates]) if weak_among else set()
+    if late:
+        outcome = merge_proposals(content, specs, config, tasks, frozenset(late))
     log.info("generate_tasks: the LLM proposed %d valid tasks (%d new), rejected %s",
              outcome.valid, outcome.new_tasks, outcome.rejected or "none")
     return outcome

@@ -7,6 +7,7 @@ settings; registers the `tasks` rows and one `instructions` shard.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 
@@ -38,7 +39,7 @@ class TasksResult(StageResult):
     skipped: bool
     proposals_valid: int = 0
     proposals_rejected: dict[str, int] = {}
-    experts_left_out: list[str] = []  # below target under the campaign's own randomisation (campaign_tasks)
+    experts_left_out: list[str] = []  # below target under the campaign's own randomisation: templates, proposals
 
     def did_work(self) -> bool:
         return not self.skipped
@@ -53,9 +54,12 @@ class TasksResult(StageResult):
 
 def tasks_unit_key(config: CampaignConfig, tasks: list[TaskRecord]) -> str:
     """Keyed by the template tasks themselves (editing a spec file makes new tasks) and the
-    proposer settings: an LLM is asked once per key, and its answer is what gets registered."""
+    proposer settings: an LLM is asked once per key, and its answer is what gets registered (with a
+    proposer, the randomisation its new bindings' experts are measured under, where they are)."""
     reads = {"campaign": config.name, "encoder": config.train.model.language_encoder,
              "proposer": config.tasks.proposer}
+    if config.tasks.proposer is not None and checks_experts(config.tasks.weak_experts, config.randomise):
+        reads["experts_felt"] = felt_apart(config.randomise)
     return unit_key(STAGE, VERSION, reads, [t.model_dump_json() for t in tasks])
 
 
@@ -120,7 +124,8 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig, tasks: list
         tasks: the tasks to register (an adaptation's: its source campaign's, whose experts are not measured again
             under the shifted domain); None: campaign_tasks's, measured under the config's randomisation."""
     catalog = Catalog(workspace.catalog)
-    tasks, weak = campaign_tasks(workspace, config, measure=True) if tasks is None else (tasks, [])
+    checking = tasks is None  # the campaign's own tasks: their experts measured under its randomisation
+    tasks, weak = campaign_tasks(workspace, config, measure=True) if checking else (tasks, [])
     if weak:
         log.warning("generate_tasks: %s", left_out_line(weak, config, tasks))
     check_render(config.render, tasks)  # a flow started from the UI is refused as `sim2act run` refuses it
@@ -134,20 +139,19 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig, tasks: list
             from policies.llm_proposer import propose
 
             suite = load_specs(config.tasks.spec_files)
-            proposals = propose(config.tasks, {n: suite[n].spec for n in config.tasks.specs}, tasks)
+            late: list[ExpertRow] = []  # new bindings whose expert is below target under the campaign's randomisation
+
+            def weak_among(new: list[TaskRecord]) -> set[str]:
+                late.extend(weak_under_campaign(workspace, config, new, measure=True))
+                return {r.task_id for r in late}
+
+            # the proposer checks new bindings against the shipped table; measured under the campaign's own
+            # randomisation too, as the templates were (not an adaptation's: its source's tasks stand)
+            proposals = propose(config.tasks, {n: suite[n].spec for n in config.tasks.specs}, tasks,
+                                weak_among if checking else None)
             proposed = proposals.tasks
-            # a new binding the proposer brought (the shipped table's check alone): measured under the campaign's
-            # randomisation too, as the templates were (one it left out comes back here and is dropped again)
-            templates = {t.task_id for t in tasks}
-            late = weak_under_campaign(workspace, config, [t for t in proposed if t.task_id not in templates], True)
             if late:
-                dropped = {r.task_id for r in late}
-                proposed = [t for t in proposed if t.task_id not in dropped]
                 log.warning("generate_tasks: the proposer's %s", left_out_line(late, config, proposed))
-                rejected = {**proposals.rejected, "weak_expert": proposals.rejected.get("weak_expert", 0) + len(late)}
-                proposals = proposals.model_copy(update={
-                    "tasks": proposed, "new_tasks": proposals.new_tasks - len(late), "valid": proposals.valid - len(late),
-                    "rejected": rejected})
                 said_before = {w.task_id for w in weak}  # left out of the templates already: named once
                 weak.extend(r for r in late if r.task_id not in said_before)
         pairs = [(t.task_id, text) for t in proposed for text in [*t.instructions, *t.unseen_instructions]]
@@ -180,7 +184,9 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig, tasks: list
     if output is None:
         ids = [t.task_id for t in load_tasks(workspace, key)]
         log.info("generate_tasks: %d tasks already registered (%s), skipped", len(ids), key)
+        summary = catalog.query("SELECT summary FROM stage_runs WHERE unit_key = ?", [key])
+        left_out = json.loads(summary[0][0] or "{}").get("experts_left_out", []) if summary else []
         return TasksResult(unit_key=key, task_ids=ids, instructions=0, skipped=True,
-                           experts_left_out=[r.task_id for r in weak])
+                           experts_left_out=left_out)  # as registered: the proposer's dropped tasks too
     log.info("generate_tasks: registered %d tasks: %s", len(output.value.task_ids), ", ".join(output.value.task_ids))
     return output.value

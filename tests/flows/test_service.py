@@ -328,18 +328,25 @@ def test_a_state_file_sim2act_did_not_write_is_one_line(tmp_path, capsys, text):
     assert line.startswith(f"sim2act: {workspace.service_state}: not a stack record sim2act wrote ("), line
 
 
-def test_stopping_a_process_waits_for_its_whole_group():
+def test_stopping_a_process_waits_for_its_whole_group(tmp_path):
     """A leader that ends at once on SIGTERM while a child it started takes a second to: `_stop` returns only once
     the child is gone too (CI once saw `down` return with five of a server's processes still exiting)."""
     from flows.service import _stop, group_members
 
-    leader = subprocess.Popen(["bash", "-c", "bash -c \"trap 'sleep 1; exit 0' TERM; while :; do sleep 0.1; done\" & "
-                               "exec sleep 60"], start_new_session=True)
-    deadline = time.monotonic() + 10
-    while len(group_members(leader.pid)) < 2 and time.monotonic() < deadline:  # the child started
-        time.sleep(0.05)
-    assert len(group_members(leader.pid)) >= 2  # the leader, the child (and its sleep)
-    started = time.monotonic()
-    _stop({"pid": leader.pid})  # the leader, this test's child, is a zombie at once: not a member
-    assert group_members(leader.pid) == [] and time.monotonic() - started >= 0.9
-    leader.wait(timeout=5)
+    ready = tmp_path / "trapped"
+    child = f"trap 'sleep 1; exit 0' TERM; touch {ready}; while :; do sleep 0.1; done"
+    leader = subprocess.Popen(["bash", "-c", f'bash -c "{child}" & exec sleep 60'], start_new_session=True)
+    try:
+        deadline = time.monotonic() + 10
+        while not ready.exists() and time.monotonic() < deadline:  # the child holds its trap
+            time.sleep(0.05)
+        assert ready.exists() and len(group_members(leader.pid)) >= 2
+        started = time.monotonic()
+        _stop({"pid": leader.pid})  # the leader, this test's child, is a zombie at once: not a member
+        assert group_members(leader.pid) == [] and time.monotonic() - started >= 0.9
+    finally:
+        try:
+            os.killpg(leader.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        leader.wait(timeout=5)

@@ -119,14 +119,19 @@ def test_the_flows_stage_registers_the_kept_tasks_and_an_evaluation_finds_them(m
 
 def test_a_task_the_proposer_brings_back_is_measured_and_dropped_again(measured, tmp_path, serve_chat):
     """The proposer checks new bindings against the shipped table alone: mw-push, left out under HEAVY, proposed
-    anew, is dropped by its measured row (a rejection of the proposer's, counted as one)."""
-    server = serve_chat(json.dumps({"tasks": [{"spec": "mw-push", "colours": {}, "instructions": [
+    anew (twice), is dropped by its measured row, each proposal of it a rejection; a rerun says the same."""
+    push = {"spec": "mw-push", "colours": {}, "instructions": [
         "nudge the hockey puck toward the goal", "move the puck along the table to the goal spot",
-        "get the puck over to the goal region"]}]}))
+        "get the puck over to the goal region"]}
+    again = {**push, "instructions": ["shove the puck until it reaches the goal", "send the puck to the goal area",
+                                      "slide that puck across to where the goal is"]}
+    server = serve_chat(json.dumps({"tasks": [push, again]}))
     proposer = ProposerConfig(url=f"http://127.0.0.1:{server.server_port}/v1", model="tiny-llm", retries=1, timeout_s=5)
     workspace, config = _copy(measured[0], tmp_path), _config(HEAVY, proposer=proposer)
     workspace.create()
     Catalog(workspace.catalog).initialise()
     result = run_generate_tasks(workspace, config)
     assert result.task_ids == ["mw-reach"] and result.experts_left_out == ["mw-push"]
-    assert result.proposals_valid == 0 and result.proposals_rejected == {"weak_expert": 1}
+    assert result.proposals_valid == 0 and result.proposals_rejected == {"weak_expert": 2}
+    rerun = run_generate_tasks(workspace, config)
+    assert rerun.skipped and rerun.task_ids == ["mw-reach"] and rerun.experts_left_out == ["mw-push"]
