@@ -71,7 +71,8 @@ class TasksConfig(_Strict):
     horizon: dict[str, PositiveInt] = Field(default={}, description="per-spec horizon override")
     proposer: ProposerConfig | None = Field(default=None, description="optional LLM task proposer")
     weak_experts: Literal["skip", "keep"] = Field(
-        default="skip", description="tasks whose scripted expert is below 90% in docs/experts.md: skip or keep"
+        default="skip", description="tasks whose scripted expert is below 90% (docs/experts.md; and under the campaign's "
+        "randomisation where an expert feels it: masses, sizes, frictions, measured once per workspace): skip or keep"
     )
 
     @model_validator(mode="after")
