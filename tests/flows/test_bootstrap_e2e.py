@@ -11,6 +11,7 @@ import json
 import re
 import shutil
 import subprocess
+from pathlib import Path
 
 import imageio.v2 as iio
 import pytest
@@ -151,6 +152,11 @@ def test_mlflow_has_the_campaign_its_iterations_and_the_registered_model(finishe
     assert info.signature.outputs.input_names() == ["action", "uncertainty"]
 
 
+def _ran_on(run, workspace: str) -> bool:
+    """Whether a flow run of the smoke campaign ran on `workspace` (its parameter; the top flow's too)."""
+    return Path(run.parameters.get("workspace", "")).resolve() == Path(workspace).resolve()
+
+
 def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(finished_campaign, prefect_api):
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
@@ -161,6 +167,8 @@ def test_prefect_recorded_the_iterations_the_shards_and_the_explore_progress(fin
     names = ["smoke", "smoke-iteration-0", "smoke-iteration-1", "smoke-explore-0", "smoke-explore-1"]
     with temporary_settings({PREFECT_API_URL: prefect_api}), get_client(sync_client=True) as client:
         runs = client.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=names)))
+        # this campaign's: the server is the session's, and another test's smoke campaign has the same run names
+        runs = [run for run in runs if _ran_on(run, str(finished_campaign[0]))]
         explores = [run.id for run in runs if "explore" in run.name]
         shards = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=explores)))
         progress = client.read_artifacts(artifact_filter=ArtifactFilter(
