@@ -117,9 +117,13 @@ def is_alive(pid: int) -> bool:
     except PermissionError:
         return True
     # A zombie still answers kill(0): it has exited, its parent has not reaped it.
+    import psutil
+
     try:
-        return Path(f"/proc/{pid}/stat").read_text().split(") ")[-1][0] != "Z"
-    except OSError:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+    except psutil.Error:
         return True
 
 
@@ -299,22 +303,23 @@ def _stop(record: dict) -> None:
         except ProcessLookupError:
             return
         deadline = time.monotonic() + 5.0  # what SIGKILL leaves is in uninterruptible sleep: said, not waited on
-        while group_members(pid) and time.monotonic() < deadline:
+        while (left := group_members(pid)) and time.monotonic() < deadline:
             time.sleep(0.1)
-        if group_members(pid):
-            print(f"sim2act: process group {pid}: {group_members(pid)} still there after SIGKILL", file=sys.stderr)
+        if left:
+            print(f"sim2act: process group {pid}: {left} still there after SIGKILL", file=sys.stderr)
 
 
 def group_members(pgid: int) -> list[int]:
     """The processes of group `pgid` that have not exited (a zombie has: its parent has yet to reap it)."""
+    import psutil
+
     members = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:  # bytes: the kernel cuts a command's name at 15 bytes, maybe inside a UTF-8 character
-            state, _, group = stat.read_bytes().rsplit(b") ", 1)[1].split()[:3]
-        except (OSError, IndexError, ValueError):  # gone while read
+    for process in psutil.process_iter():
+        try:
+            if os.getpgid(process.pid) == pgid and process.status() != psutil.STATUS_ZOMBIE:
+                members.append(process.pid)
+        except (ProcessLookupError, psutil.Error):  # gone while looked at
             continue
-        if int(group) == pgid and state != b"Z":
-            members.append(int(stat.parent.name))
     return members
 
 
