@@ -98,6 +98,22 @@ def weak_tasks_left_out(config: TasksConfig) -> list[str]:
     return sorted(ids & flagged)
 
 
+def short_horizons(config: TasksConfig, tasks: list[TaskRecord]) -> str:
+    """Pure: '' or the one line naming each spec whose tasks.horizon override is shorter than its scripted experts'
+    mean episode in the shipped table (measured at the spec's own horizon): few of its expert episodes can succeed.
+    Said, not refused: a short horizon is a test's or a smoke run's choice, and the filter keeps what succeeds."""
+    table = load_expert_table().rows
+    short = []
+    for spec, horizon in config.horizon.items():
+        lengths = [table[t.task_id].mean_length for t in tasks if t.spec == spec and t.task_id in table]
+        if lengths and horizon < sum(lengths) / len(lengths):
+            short.append(f"{spec} {horizon} < {sum(lengths) / len(lengths):.0f}")
+    if not short:
+        return ""
+    return ("tasks.horizon: shorter than the scripted expert's mean episode at the spec's own horizon (docs/experts.md), "
+            f"few of its episodes can succeed and the filter keeps only those: {', '.join(short)} steps")
+
+
 def subtask_instructions(task: TaskRecord, suite: dict[str, SuiteEntry]) -> list[str]:
     """A long-horizon task's sub-tasks, said canonically with its colours, in order ([]: not long-horizon,
     or a spec the suite does not hold, such as a proposer's)."""

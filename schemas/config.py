@@ -68,7 +68,9 @@ class TasksConfig(_Strict):
     max_tasks_per_spec: PositiveInt | None = None
     paraphrases: int = Field(default=3, ge=3, description="instructions per task, canonical included")
     include: list[str] | None = Field(default=None, description="keep only these task ids")
-    horizon: dict[str, PositiveInt] = Field(default={}, description="per-spec horizon override")
+    horizon: dict[str, PositiveInt] = Field(default={}, description=(
+        "per-spec horizon override (one shorter than the spec's mean expert episode, docs/experts.md, is said in "
+        "one line: few of its episodes can succeed)"))
     proposer: ProposerConfig | None = Field(default=None, description="optional LLM task proposer")
     weak_experts: Literal["skip", "keep"] = Field(
         default="skip", description="tasks whose scripted expert is below 90% (docs/experts.md; and under the campaign's "

@@ -15,7 +15,7 @@ import pyarrow as pa
 
 from envs.expert_check import checks_experts, experts_under, felt_apart, said
 from envs.registry import check_render
-from envs.suite import generate_tasks
+from envs.suite import generate_tasks, short_horizons
 from schemas.config import CampaignConfig, ConfigError
 from schemas.experts import TARGET, ExpertRow
 from schemas.keys import unit_key
@@ -128,6 +128,8 @@ def run_generate_tasks(workspace: Workspace, config: CampaignConfig, tasks: list
     tasks, weak = campaign_tasks(workspace, config, measure=True) if checking else (tasks, [])
     if weak:
         log.warning("generate_tasks: %s", left_out_line(weak, config, tasks))
+    if short := short_horizons(config.tasks, tasks):
+        log.warning("generate_tasks: %s", short)
     check_render(config.render, tasks)  # a flow started from the UI is refused as `sim2act run` refuses it
     key = tasks_unit_key(config, tasks)
 

@@ -23,7 +23,7 @@ SPLIT_CHOICES = ("seen", "unseen", "unseen_paraphrase", "held_out_wording")  # -
 def cmd_run(args: argparse.Namespace) -> int:
     config = campaign_config(args, {} if args.iterations is None else {"iterations": args.iterations})
     from envs.registry import check_render
-    from envs.suite import generate_tasks, weak_tasks_left_out
+    from envs.suite import generate_tasks, short_horizons, weak_tasks_left_out
     from warehouse.capacity import check_disk
     from warehouse.training_reader import check_where
 
@@ -57,6 +57,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if weak:
         print(f"sim2act: {len(weak)} task(s) left out, their scripted expert below {TARGET:.0%} (docs/experts.md; "
               f"tasks.weak_experts: keep uses them): {', '.join(weak)}", flush=True)
+    if short := short_horizons(config.tasks, tasks):
+        print(f"sim2act: {short}", flush=True)
     kept = experts_under_campaign(workspace, config, tasks)
     if len(kept) < len(tasks):  # the refusal above counted every task, to refuse before measuring: the line, the kept
         tasks, estimate = kept, check_disk(workspace.root, to_explore, kept, catalog)

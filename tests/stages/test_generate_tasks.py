@@ -1,6 +1,6 @@
 import pytest
 
-from envs.suite import generate_tasks, subtask_instructions
+from envs.suite import generate_tasks, short_horizons, subtask_instructions
 from schemas.config import ConfigError, TasksConfig
 from schemas.task_spec import load_specs, parse_spec_file
 
@@ -109,3 +109,10 @@ def test_a_long_horizon_task_names_its_subtasks_in_its_own_colours():
 def test_spec_names_are_unique():
     with pytest.raises(ConfigError, match="appears twice"):
         parse_spec_file(SPEC + SPEC.split("specs:")[1], "twice.yaml")
+
+
+def test_a_horizon_shorter_than_the_experts_episodes_is_said_per_spec():
+    config = TasksConfig(specs=["lift", "mw-reach"], colours=["red"], horizon={"lift": 20, "mw-reach": 500})
+    line = short_horizons(config, generate_tasks(config, 0))
+    assert "lift 20 < " in line and "mw-reach" not in line  # Lift's expert takes ~44 steps; 500 is past mw-reach's
+    assert short_horizons(TasksConfig(specs=["lift"]), generate_tasks(TasksConfig(specs=["lift"]), 0)) == ""
