@@ -432,7 +432,10 @@ class TrainConfig(_Strict):
                       "measures its own step both ways once and takes bf16 at >= 1.10x; emulated bf16 (~10x slower) "
                       "never; policies/precision.py. The same rule puts the RL baselines' encoders in bf16 "
                       "during their updates (policies/rl_encoder.py)")
-    threads: PositiveInt = 2
+    threads: PositiveInt = Field(default=2, description=(
+        "torch threads of the training step; beside other busy processes set 1: two threads on shared cores wait "
+        "on each other at every parallel region (measured 35 samples/s at 2 against ~530 at 1 beside two busy SAC "
+        "workers on 2 cores, docs/training.md)"))
     model: ModelConfig = ModelConfig()
 
 
