@@ -106,8 +106,9 @@ def short_horizons(config: TasksConfig, tasks: list[TaskRecord]) -> str:
     short = []
     for spec, horizon in config.horizon.items():
         lengths = [table[t.task_id].mean_length for t in tasks if t.spec == spec and t.task_id in table]
-        if lengths and horizon < sum(lengths) / len(lengths):
-            short.append(f"{spec} {horizon} < {sum(lengths) / len(lengths):.0f}")
+        mean = sum(lengths) / len(lengths) if lengths else 0.0
+        if horizon < mean:
+            short.append(f"{spec} {horizon} < {mean:.0f}")
     if not short:
         return ""
     return ("tasks.horizon: shorter than the scripted expert's mean episode at the spec's own horizon (docs/experts.md), "
