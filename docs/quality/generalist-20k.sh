@@ -7,7 +7,7 @@
 # evaluated on the preset's 228 cases x 10 episodes; then each seed's navigation episodes split by where the goal
 # starts (in view, out of view from an end room, from the middle room).
 #
-#   docs/quality/generalist-20k.sh WORKSPACE [SIM2ACT]   # from the repository root; ~9 h on 2 cores
+#   docs/quality/generalist-20k.sh WORKSPACE [SIM2ACT [--set FIELD=VALUE ...]]   # from the repository root; ~9 h on 2 cores
 #
 # 1. the iteration: explore the million (~1.4 h on 2 cores; item 1's documented command: a workspace that holds it
 #    skips it), train it at 20,000 steps under three seeds (~1.8 h each in bf16 where the CPU pays for it), evaluate
@@ -16,16 +16,18 @@
 # 2. `sim2act report` into WORKSPACE-logs/report-20k.md;
 # 3. docs/quality/nav-visibility-probe.py on each of the iteration's models into WORKSPACE-logs/nav-classes-KEY.md.
 # Running it again skips what finished and resumes what was cut (an explore or evaluation unit, a training from its
-# last checkpoint). Beside another busy process (an RL baseline) add `--set train.threads=1` to C below: two torch
-# threads on shared cores wait on each other (docs/training.md). Logs: WORKSPACE-logs/.
+# last checkpoint). Settings after SIM2ACT join every command: beside another busy process (an RL baseline on one
+# core) `--set explore.workers=1 --set train.threads=1 --set evaluate.workers=1` (none of them is part of a unit's key,
+# so a later run without them resumes the same units; two torch threads on shared cores wait on each other:
+# docs/training.md). Logs: WORKSPACE-logs/.
 set -euo pipefail
 # this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
-W=${1:?usage: generalist-20k.sh WORKSPACE [SIM2ACT]}
+W=${1:?usage: generalist-20k.sh WORKSPACE [SIM2ACT [--set FIELD=VALUE ...]]}
 W=${W%/}
 S=${2:-sim2act}
 PYTHON=$(dirname "$(command -v "$S")")/python
-C=(--preset generalist --set render.mesh_detail=0.1 --set evaluate.training_seeds=3 --workspace "$W")
+C=(--preset generalist --set render.mesh_detail=0.1 --set evaluate.training_seeds=3 --workspace "$W" "${@:3}")
 LOGS=$W-logs
 mkdir -p "$LOGS"
 trap 'echo "generalist-20k.sh: a step failed; its log is the newest in $LOGS/" >&2' ERR
