@@ -429,7 +429,7 @@ class TrainConfig(_Strict):
     device: Literal["auto", "cpu", "cuda"] = Field(default="auto", description="auto: cuda when there is one")
     amp: bool = Field(default=True, description="bf16 autocast where the device has bf16 matrix units: cuda, and "
                       "CPUs with AMX; with AVX-512 BF16 alone (0.94x-1.33x fp32 by core and batch) a long training "
-                      "measures its own step both ways once and takes bf16 at >= 1.10x; emulated bf16 (~10x slower) "
+                      "measures its own step both ways once and takes bf16 at >= 1.10x; emulated bf16 (8-16x slower) "
                       "never; policies/precision.py. The same rule puts the RL baselines' encoders in bf16 "
                       "during their updates (policies/rl_encoder.py)")
     threads: PositiveInt = Field(default=2, description=(
