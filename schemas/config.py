@@ -523,10 +523,12 @@ class BaselinesConfig(_Strict):
                          f"({', '.join(FAMILIES)}) to such numbers, got {value!r}")
 
 
+# darker, more tinted, the camera moved further, heavier and larger objects than RandomiseConfig(); its lower
+# friction changes no contact of an object of nominal friction 1 (MuJoCo takes a contact's larger: docs/evaluation.md)
 SHIFTED_DOMAIN = RandomiseConfig(
     light=(0.35, 0.55), camera_shift_m=0.05, camera_rotation_deg=6.0, tint=0.4, colour_jitter=0.1,
     size=(1.1, 1.2), mass=(1.5, 2.0), friction=(0.45, 0.65),
-)  # darker, more tinted, the camera moved further, heavier, larger and slipperier objects than RandomiseConfig()
+)
 
 
 class AdaptConfig(_Strict):
