@@ -10,7 +10,7 @@
 #   docs/quality/generalist-20k.sh WORKSPACE [SIM2ACT [--set FIELD=VALUE ...]]   # from the repository root; ~9 h on 2 cores
 #
 # 1. the iteration: explore the million (~1.4 h on 2 cores; item 1's documented command: a workspace that holds it
-#    skips it), train it at 20,000 steps under three seeds (~1.8 h each in bf16 where the CPU pays for it), evaluate
+#    skips it), train it at 20,000 steps under three seeds (~1.7 h each in bf16 where the CPU pays for it), evaluate
 #    each on the 228 cases (~0.7 h each); no baselines or adaptation (their rows are generalist.sh's, at 7,000
 #    steps, on the same million: its explore keys do not depend on train.*);
 # 2. `sim2act report` into WORKSPACE-logs/report-20k.md;
