@@ -3,8 +3,8 @@ policy's latency, side by side in one run.
 
 - the train stage end to end (`run_train`: SQL selection, Parquet reads, shuffle buffer, frames
   decoded in the DataLoader worker, AdamW steps, checkpoints, registration) on a fresh copy of a
-  synthetic warehouse (real Parquet shards, real PNG frames, decided by the real filter stage and
-  indexed by the real index stage), the campaign's default train settings; its own
+  synthetic warehouse (real Parquet shards, frames stored raw as campaigns store them, decided by the real
+  filter stage and indexed by the real index stage), the campaign's default train settings; its own
   `on_metrics` points give samples/s and the fraction of wall time spent waiting for data;
 - (reference) the same training steps on batches built once in memory by the same collate, no
   reader and no DataLoader: what the reader costs is the ratio of the two;
@@ -51,7 +51,7 @@ LANGUAGE_DIM = 384  # all-MiniLM-L6-v2, the default (frozen) encoder
 DATA_WAIT_TARGET = 0.10  # at most
 # the bench's cases, as `sim2act bench train --cases` names them
 CASES = ("stage", "memory", "precision", "workers0", "resnet18", "vit", "minilm", "cuda", "act")
-CUDA_LOADER_WORKERS = 8  # at most: a GPU step outruns one worker decoding PNG frames
+CUDA_LOADER_WORKERS = 8  # at most: a GPU step outruns one worker reading and decoding frames
 LATENCY_P95_TARGET_MS = 20.0  # at most
 BF16_SPEEDUP_TARGET = 1.8  # bf16 + channels_last over fp32, samples/s, where the CPU has bf16 units (issue 9)
 
@@ -409,8 +409,8 @@ def markdown(bench: TrainBench, command: str) -> str:
         "",
         f"Made by `{command}` on {datetime.date.today().isoformat()}, {bench.cpus} CPUs, torch {bench.torch_threads} "
         f"threads, {bench.gpu}. A synthetic warehouse of {bench.triplets:,} triplets ({bench.frame_size}x"
-        f"{bench.frame_size} PNG frames, real Parquet shards, the real filter and index stages); every stage case "
-        "trains on a fresh copy of it through `run_train` with the campaign's default train settings but the "
+        f"{bench.frame_size} frames stored raw, real Parquet shards, the real filter and index stages); every stage "
+        "case trains on a fresh copy of it through `run_train` with the campaign's default train settings but the "
         "row's, its figures from the stage's own metrics points: samples/s the median and data wait (the share "
         "of wall time blocked on the DataLoader) the mean over the windows after the first (loader start, "
         "warm-up). The in-memory reference runs the same steps on batches collated once. Latency: `Policy.act` "

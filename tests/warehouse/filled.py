@@ -1,5 +1,5 @@
-"""A small real warehouse for tests: synthetic explore units (real Parquet, real PNGs),
-registered through the catalog, decided by the real filter stage."""
+"""A small real warehouse for tests: synthetic explore units (real Parquet, frames stored raw as campaigns store
+them), registered through the catalog, decided by the real filter stage."""
 
 from __future__ import annotations
 
