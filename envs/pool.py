@@ -130,13 +130,27 @@ def interleaved(units: Sequence[Unit], group: Callable[[Unit], Hashable]) -> lis
     return [members[turn] for turn in range(rounds) for members in groups.values() if turn < len(members)]
 
 
+class _CurrentStderr(logging.StreamHandler):
+    """A StreamHandler on sys.stderr as it is at each line, not as it was when the handler was added: a command
+    run twice in one process (a notebook's redirected stderr, a test's captured one) writes where stderr is now,
+    never to a stream closed since (logging's "I/O operation on closed file", 99 lines of it in a refusal)."""
+
+    @property
+    def stream(self):  # type: ignore[override]
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:  # StreamHandler.__init__ and setStream assign it: sys.stderr is the stream
+        pass
+
+
 def log_stages_to_stderr() -> None:
     """Where no Prefect handler takes the stages' log lines (`sim2act train`, `eval`, a pool worker's
     own lines), and the progress bar is drawn only on a terminal: without this, a run piped to a
     file is silent."""
     logger = logging.getLogger("sim2act")
     if not logger.handlers:
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _CurrentStderr()
         handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)

@@ -97,6 +97,21 @@ def _mlflow_tracking_restored() -> Iterator[None]:
         yield
 
 
+@pytest.fixture(autouse=True)
+def _sim2act_logger_restored() -> Iterator[None]:
+    """A command run in-process (`main([...])`) may give the "sim2act" logger its stderr handler
+    (envs.pool.log_stages_to_stderr): every later test in that xdist worker then saw the stages' warnings on
+    its own stderr, or not, by the order tests were dealt (CI: a refusal test counted 99 lines where one
+    is said). Each test gets the logger as it found it."""
+    import logging
+
+    logger = logging.getLogger("sim2act")
+    handlers, level = logger.handlers[:], logger.level
+    yield
+    logger.handlers[:] = handlers
+    logger.setLevel(level)
+
+
 def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

@@ -31,6 +31,14 @@ class DaskHosts:
                 os.killpg(self.processes[name].pid, signal.SIGKILL)
                 self.processes[name].wait()
 
+    def logs(self, chars: int = 3000) -> str:
+        """The last `chars` of the scheduler's and every host's logs, for a failing drill's message: what the
+        flow's own log cannot say (when the scheduler noticed a host gone, what a worker did meanwhile)."""
+        files = [self.roots[next(iter(self.roots))].parent / "scheduler.log",
+                 *(folder / name for folder in self.roots.values() for name in ("worker.log", "prefect-worker.log"))]
+        return "".join(f"\n--- {path.parent.name}/{path.name} ---\n{path.read_text()[-chars:]}"
+                       for path in files if path.exists())
+
     def wait_until_holding(self, client, host: str, timeout: float = 120, alive=lambda: True) -> list[str]:
         """Wait until the scheduler has given `host` a task; the keys it holds."""
         deadline = time.monotonic() + timeout
@@ -53,7 +61,7 @@ def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str],
     port = _free_port()
     processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                                 "--no-dashboard"], cwd=root, start_new_session=True,
-                                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)}
+                                               stdout=(root / "scheduler.log").open("w"), stderr=subprocess.STDOUT)}
     address, roots = f"tcp://127.0.0.1:{port}", {name: root / name for name in hosts}
     try:
         for name, folder in roots.items():

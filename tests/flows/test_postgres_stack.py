@@ -85,7 +85,7 @@ def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_
             [run_id] = re.findall(r"UUID: ([0-9a-f-]{36})", prefect("deployment", "run", "bootstrap/campaign"))
             deadline = time.monotonic() + 600
             while (state := flow_run_state(run_id)) not in ("COMPLETED", "FAILED", "CRASHED"):
-                assert time.monotonic() < deadline, log.read_text()[-5000:]
+                assert time.monotonic() < deadline, hosts.logs()
                 if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", log.read_text()):
                     happened["held"] = hosts.wait_until_holding(client, "host-b")
                     hosts.kill("host-b")
@@ -97,7 +97,7 @@ def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_
             if state == "COMPLETED":
                 break
             happened.setdefault("stopped", get_json(f"{prefect_api}/flow_runs/{run_id}")["state"]["message"])
-            assert happened["runs"] < 3, log.read_text()[-5000:]
+            assert happened["runs"] < 3, hosts.logs()
         happened["output"] = "".join(p.read_text() for p in root.glob("host-*/*.log"))
     happened["wall"] = time.monotonic() - began
     assert happened["held"] and "campaign smoke done" in happened["output"], happened["output"][-5000:]
