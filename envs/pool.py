@@ -130,7 +130,7 @@ def interleaved(units: Sequence[Unit], group: Callable[[Unit], Hashable]) -> lis
     return [members[turn] for turn in range(rounds) for members in groups.values() if turn < len(members)]
 
 
-class _CurrentStderr(logging.StreamHandler):
+class StagesToStderr(logging.StreamHandler):
     """A StreamHandler on sys.stderr as it is at each line, not as it was when the handler was added: a command
     run twice in one process (a notebook's redirected stderr, a test's captured one) writes where stderr is now,
     never to a stream closed since (logging's "I/O operation on closed file", 99 lines of it in a refusal)."""
@@ -150,7 +150,7 @@ def log_stages_to_stderr() -> None:
     file is silent."""
     logger = logging.getLogger("sim2act")
     if not logger.handlers:
-        handler = _CurrentStderr()
+        handler = StagesToStderr()
         handler.setFormatter(logging.Formatter("%(asctime)s | %(levelname)-7s | %(name)s - %(message)s", "%H:%M:%S"))
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)

@@ -102,14 +102,16 @@ def _sim2act_logger_restored() -> Iterator[None]:
     """A command run in-process (`main([...])`) may give the "sim2act" logger its stderr handler
     (envs.pool.log_stages_to_stderr): every later test in that xdist worker then saw the stages' warnings on
     its own stderr, or not, by the order tests were dealt (CI: a refusal test counted 99 lines where one
-    is said). Each test gets the logger as it found it."""
+    is said). That handler goes with the test that added it; Prefect's (PREFECT_LOGGING_EXTRA_LOGGERS, added
+    once per process) stay, as does the logger's level."""
     import logging
 
+    from envs.pool import StagesToStderr
+
     logger = logging.getLogger("sim2act")
-    handlers, level = logger.handlers[:], logger.level
+    before = logger.handlers[:]
     yield
-    logger.handlers[:] = handlers
-    logger.setLevel(level)
+    logger.handlers[:] = [h for h in logger.handlers if h in before or not isinstance(h, StagesToStderr)]
 
 
 def _free_port() -> int:
