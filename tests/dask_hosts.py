@@ -31,7 +31,22 @@ class DaskHosts:
                 os.killpg(self.processes[name].pid, signal.SIGKILL)
                 self.processes[name].wait()
 
-    def logs(self, chars: int = 3000) -> str:
+    def gone_within(self, client, host: str, timeout: float = 30) -> str:
+        """How long the scheduler took to drop a killed host (its closed connections say so at once), or, past
+        `timeout`, that it had not and which processes still hold connections on the host's port."""
+        address = {info["name"]: a for a, info in client.scheduler_info()["workers"].items()}.get(host)
+        began = time.monotonic()
+        while time.monotonic() - began < timeout:
+            if address not in client.scheduler_info()["workers"]:
+                return f"{host} dropped by the scheduler {time.monotonic() - began:.1f} s after its kill"
+            time.sleep(0.2)
+        import psutil
+
+        port = int(address.rsplit(":", 1)[1]) if address else None
+        holders = sorted({c.pid for c in psutil.net_connections("tcp") if c.laddr and c.laddr.port == port})
+        return f"{host} still a worker {timeout:.0f} s after its kill; processes holding its port {port}: {holders}"
+
+    def logs(self, chars: int = 4000) -> str:
         """The last `chars` of the scheduler's and every host's logs, for a failing drill's message: what the
         flow's own log cannot say (when the scheduler noticed a host gone, what a worker did meanwhile)."""
         files = [self.roots[next(iter(self.roots))].parent / "scheduler.log",
@@ -59,8 +74,12 @@ def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str],
     as `make setup` on each would). Prefect 3.8.8's worker ignores SIGTERM (docs/scale-out.md): SIGKILL."""
     dask = str(Path(sys.executable).parent / "dask")
     port = _free_port()
+    # A worker that stops answering without closing its connections is removed after the scheduler's worker-ttl,
+    # checked every worker-ttl: Dask's 5 min default meant 5-10 min; CI once waited 511 s on a gather from such a
+    # worker (which one the logs below now say). 60 s: 1-2 min (docs/scale-out.md).
     processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                                 "--no-dashboard"], cwd=root, start_new_session=True,
+                                               env={**os.environ, "DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL": "60s"},
                                                stdout=(root / "scheduler.log").open("w"), stderr=subprocess.STDOUT)}
     address, roots = f"tcp://127.0.0.1:{port}", {name: root / name for name in hosts}
     try:

@@ -85,11 +85,12 @@ def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_
             [run_id] = re.findall(r"UUID: ([0-9a-f-]{36})", prefect("deployment", "run", "bootstrap/campaign"))
             deadline = time.monotonic() + 600
             while (state := flow_run_state(run_id)) not in ("COMPLETED", "FAILED", "CRASHED"):
-                assert time.monotonic() < deadline, hosts.logs()
+                assert time.monotonic() < deadline, f"{happened}{hosts.logs()}"
                 if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", log.read_text()):
                     happened["held"] = hosts.wait_until_holding(client, "host-b")
                     hosts.kill("host-b")
                     happened["killed_at"] = time.monotonic() - began
+                    happened["host_b_gone"] = hosts.gone_within(client, "host-b")
                     postgres.stop()
                     time.sleep(5)
                     postgres.start()
@@ -97,13 +98,13 @@ def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_
             if state == "COMPLETED":
                 break
             happened.setdefault("stopped", get_json(f"{prefect_api}/flow_runs/{run_id}")["state"]["message"])
-            assert happened["runs"] < 3, hosts.logs()
+            assert happened["runs"] < 3, f"{happened}{hosts.logs()}"
         happened["output"] = "".join(p.read_text() for p in root.glob("host-*/*.log"))
     happened["wall"] = time.monotonic() - began
     assert happened["held"] and "campaign smoke done" in happened["output"], happened["output"][-5000:]
     print(f"two-host campaign: host B killed {happened['killed_at']:.1f} s in, holding {len(happened['held'])} "
           f"shard(s) of iteration 1; the database down 5 s; {happened['runs']} flow run(s) "
-          f"({happened.get('stopped', 'no stop')}); {happened['wall']:.1f} s in all")
+          f"({happened.get('stopped', 'no stop')}); {happened['wall']:.1f} s in all; {happened['host_b_gone']}")
     return happened
 
 
