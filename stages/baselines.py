@@ -28,6 +28,7 @@ from stages import StageResult, StageUnits, UnitOutput
 from stages.evaluate import (SPLITS, Agent, TaskEvaluation, episodes_per_split, evaluate_model, evaluation_cases,
                               group_success)
 from warehouse.catalog import Catalog
+from warehouse.store import fsync_path
 
 STAGE, VERSION = "baselines", 1
 # fields added since version 1, at the values that did what it did
@@ -170,7 +171,11 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
         progress.close()
     tmp = path.with_name(path.stem + ".tmp.zip")
     agent.save(tmp)
-    tmp.replace(path)  # a killed training leaves no agent behind (its last checkpoint stays until it registers)
+    # on the disk before its registration deletes the checkpoints: a machine that stops (not only a killed process)
+    # leaves the agent whole, or its checkpoints; a killed training leaves no agent behind
+    fsync_path(tmp)
+    tmp.replace(path)
+    fsync_path(path.parent)
     return RLTrained(algorithm=unit.algorithm, family=unit.family, env_steps=unit.env_steps,
                      steps_taken=agent.num_timesteps, episodes=env.episodes_finished, successes=env.successes,
                      resumed_at=resumed_at, path=str(path))
