@@ -133,15 +133,15 @@ def interleaved(units: Sequence[Unit], group: Callable[[Unit], Hashable]) -> lis
 class StagesToStderr(logging.StreamHandler):
     """A StreamHandler on sys.stderr as it is at each line, not as it was when the handler was added: a command
     run twice in one process (a notebook's redirected stderr, a test's captured one) writes where stderr is now,
-    never to a stream closed since (logging's "I/O operation on closed file", 99 lines of it in a refusal)."""
+    never to a stream closed since (logging's "I/O operation on closed file", 99 lines of it in a refusal). As
+    the standard library's own last-resort handler (logging._StderrHandler) does; its stream cannot be set."""
+
+    def __init__(self) -> None:
+        logging.Handler.__init__(self)  # not StreamHandler's, which would assign the stream
 
     @property
     def stream(self):  # type: ignore[override]
         return sys.stderr
-
-    @stream.setter
-    def stream(self, value) -> None:  # StreamHandler.__init__ and setStream assign it: sys.stderr is the stream
-        pass
 
 
 def log_stages_to_stderr() -> None:

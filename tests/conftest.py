@@ -103,7 +103,8 @@ def _sim2act_logger_restored() -> Iterator[None]:
     (envs.pool.log_stages_to_stderr): every later test in that xdist worker then saw the stages' warnings on
     its own stderr, or not, by the order tests were dealt (CI: a refusal test counted 99 lines where one
     is said). That handler goes with the test that added it; Prefect's (PREFECT_LOGGING_EXTRA_LOGGERS, added
-    once per process) stay, as does the logger's level."""
+    once per process, after which the stages' handler is not added at all) stay, as does the logger's level
+    (flows/bootstrap.py sets INFO when imported, once per process)."""
     import logging
 
     from envs.pool import StagesToStderr
@@ -111,7 +112,9 @@ def _sim2act_logger_restored() -> Iterator[None]:
     logger = logging.getLogger("sim2act")
     before = logger.handlers[:]
     yield
-    logger.handlers[:] = [h for h in logger.handlers if h in before or not isinstance(h, StagesToStderr)]
+    for handler in [h for h in logger.handlers if h not in before and isinstance(h, StagesToStderr)]:
+        logger.removeHandler(handler)
+        handler.close()
 
 
 def _free_port() -> int:

@@ -6,6 +6,7 @@ docs/scale-out.md says (`--nthreads 1 --no-nanny`), SIGKILLed afterwards."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 from tests.conftest import _free_port
@@ -21,6 +23,7 @@ from tests.conftest import _free_port
 @dataclass
 class DaskHosts:
     address: str  # tcp://127.0.0.1:<port>, the scheduler
+    root: Path  # the drill's folder: the scheduler's log, a folder per host
     roots: dict[str, Path]  # host name -> its working folder
     processes: dict[str, subprocess.Popen]  # "scheduler", each host's Dask worker, "<host>/prefect" its Prefect worker
 
@@ -31,27 +34,37 @@ class DaskHosts:
                 os.killpg(self.processes[name].pid, signal.SIGKILL)
                 self.processes[name].wait()
 
-    def gone_within(self, client, host: str, timeout: float = 30) -> str:
-        """How long the scheduler took to drop a killed host (its closed connections say so at once), or, past
-        `timeout`, that it had not and which processes still hold connections on the host's port."""
-        address = {info["name"]: a for a, info in client.scheduler_info()["workers"].items()}.get(host)
-        began = time.monotonic()
-        while time.monotonic() - began < timeout:
-            if address not in client.scheduler_info()["workers"]:
-                return f"{host} dropped by the scheduler {time.monotonic() - began:.1f} s after its kill"
-            time.sleep(0.2)
-        import psutil
+    def address_of(self, client, host: str) -> str:
+        """The scheduler's address of `host`'s worker."""
+        workers = {info["name"]: address for address, info in client.scheduler_info()["workers"].items()}
+        assert host in workers, f"expected {host} among the scheduler's workers, got {sorted(workers)}"
+        return workers[host]
 
-        port = int(address.rsplit(":", 1)[1]) if address else None
-        holders = sorted({c.pid for c in psutil.net_connections("tcp") if c.laddr and c.laddr.port == port})
-        return f"{host} still a worker {timeout:.0f} s after its kill; processes holding its port {port}: {holders}"
+    def dropped(self, address: str, killed_at: float, timeout: float = 30) -> str:
+        """When the scheduler dropped the worker at `address` (its "Remove worker" line), in seconds from
+        `killed_at` (time.time() at the kill: its closed connections say so at once); past `timeout` from the kill,
+        that it had not, and the connections still open on the worker's port (pid, state)."""
+        removed = re.compile(rf"^(\S+ \S+) - distributed\.scheduler - INFO - Remove worker addr: {re.escape(address)} ",
+                             re.MULTILINE)
+        while not (found := removed.search((self.root / "scheduler.log").read_text())):
+            if time.time() - killed_at > timeout:
+                import psutil
+
+                port = int(address.rsplit(":", 1)[1])
+                held = sorted({(c.pid, c.status) for c in psutil.net_connections("tcp")
+                               if port in (c.laddr.port if c.laddr else None, c.raddr.port if c.raddr else None)},
+                              key=str)
+                return f"not dropped by the scheduler {timeout:.0f} s after its kill; connections on its port: {held}"
+            time.sleep(0.2)
+        at = datetime.strptime(found[1], "%Y-%m-%d %H:%M:%S,%f").timestamp()  # the scheduler's local time, as ours
+        return f"dropped by the scheduler {at - killed_at:.1f} s after its kill"
 
     def logs(self, chars: int = 4000) -> str:
         """The last `chars` of the scheduler's and every host's logs, for a failing drill's message: what the
-        flow's own log cannot say (when the scheduler noticed a host gone, what a worker did meanwhile)."""
-        files = [self.roots[next(iter(self.roots))].parent / "scheduler.log",
+        flow's own log cannot say (when the scheduler dropped a host, what a worker did meanwhile)."""
+        files = [self.root / "scheduler.log",
                  *(folder / name for folder in self.roots.values() for name in ("worker.log", "prefect-worker.log"))]
-        return "".join(f"\n--- {path.parent.name}/{path.name} ---\n{path.read_text()[-chars:]}"
+        return "".join(f"\n--- {path.relative_to(self.root)} ---\n{path.read_text()[-chars:]}"
                        for path in files if path.exists())
 
     def wait_until_holding(self, client, host: str, timeout: float = 120, alive=lambda: True) -> list[str]:
@@ -74,9 +87,10 @@ def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str],
     as `make setup` on each would). Prefect 3.8.8's worker ignores SIGTERM (docs/scale-out.md): SIGKILL."""
     dask = str(Path(sys.executable).parent / "dask")
     port = _free_port()
-    # A worker that stops answering without closing its connections is removed after the scheduler's worker-ttl,
-    # checked every worker-ttl: Dask's 5 min default meant 5-10 min; CI once waited 511 s on a gather from such a
-    # worker (which one the logs below now say). 60 s: 1-2 min (docs/scale-out.md).
+    # A worker whose process is alive but does not answer (frozen) is dropped after the scheduler's worker-ttl,
+    # checked every worker-ttl: 5-10 min at Dask's 5 min default. CI once waited 511 s on a gather with nothing
+    # logged, which such a worker may explain (the drill's message now carries the logs that would say). 60 s:
+    # 1-2 min (docs/scale-out.md); a worker it drops wrongly would leave a drill one host short.
     processes = {"scheduler": subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                                 "--no-dashboard"], cwd=root, start_new_session=True,
                                                env={**os.environ, "DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL": "60s"},
@@ -100,7 +114,7 @@ def dask_hosts(root: Path, hosts: tuple[str, ...], environ: Mapping[str, str],
 
         with Client(address, timeout=60) as client:
             client.wait_for_workers(len(hosts), timeout=120)
-        yield DaskHosts(address, roots, processes)
+        yield DaskHosts(address, root, roots, processes)
     finally:
         for process in processes.values():
             if process.poll() is None:

@@ -88,12 +88,13 @@ def _run_across_two_hosts(ws: str, prefect_api: str, postgres, root: Path, host_
                 assert time.monotonic() < deadline, f"{happened}{hosts.logs()}"
                 if "killed_at" not in happened and re.search(r"explore it1: \d+ shards", log.read_text()):
                     happened["held"] = hosts.wait_until_holding(client, "host-b")
+                    address, killed = hosts.address_of(client, "host-b"), time.time()
                     hosts.kill("host-b")
                     happened["killed_at"] = time.monotonic() - began
-                    happened["host_b_gone"] = hosts.gone_within(client, "host-b")
                     postgres.stop()
                     time.sleep(5)
                     postgres.start()
+                    happened["host_b_gone"] = hosts.dropped(address, killed)
                 time.sleep(0.2)
             if state == "COMPLETED":
                 break
