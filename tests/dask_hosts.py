@@ -69,9 +69,8 @@ class DaskHosts:
 
     def wait_until_holding(self, client, host: str, timeout: float = 120, alive=lambda: True) -> list[str]:
         """Wait until the scheduler has given `host` a task; the keys it holds."""
-        deadline = time.monotonic() + timeout
+        deadline, address = time.monotonic() + timeout, self.address_of(client, host)
         while True:
-            address = {info["name"]: a for a, info in client.scheduler_info()["workers"].items()}.get(host)
             if held := list(client.processing().get(address, ())):
                 return held
             assert alive() and time.monotonic() < deadline, f"{host} was never given a shard"
