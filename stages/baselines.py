@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,7 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     checkpoint where a kill interrupted it) and save it."""
     from envs.gym_env import InstructedTasksEnv
     from envs.pool import log_stages_to_stderr
+    from envs.rollout import close_envs
     from policies.rl_agent import learn_with_checkpoints
 
     log_stages_to_stderr()  # a worker has no Prefect handler, and an agent trains for hours: its progress on stderr
@@ -169,6 +171,9 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
                                                    unit.sac_encoder, unit.target_entropy)
     finally:
         progress.close()
+        # its scenes go with it (MetaWorld's 44 ~6.3 GB with every one kept): an evaluation beside the trainings
+        # still running takes this core and that memory (run_baselines); a next agent here remakes its own in seconds
+        close_envs()
     tmp = path.with_name(path.stem + ".tmp.zip")
     agent.save(tmp)
     # on the disk before its registration deletes the checkpoints: a machine that stops (not only a killed process)
@@ -334,24 +339,56 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours
         evaluations, _ = evaluate_model(workspace, config, iteration, EXPERT, Agent(kind="expert"), cases, embeddings)
         baselines.append(Baseline(agent=EXPERT, model_key=EXPERT, family=None, env_steps=0, evaluations=evaluations))
-    # fresh workers: the kept ones hold up to SIM2ACT_SCENES_PER_WORKER scenes of the campaign's evaluation
-    # (~3 GB on the generalist), which an agent training for hours on one family's never uses (docs/evaluation.md)
-    for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
-                                              lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
-        ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
-        remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints and progress are spent
-        Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
-        log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
-                 unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
-    # after the last training, not beside the others: an evaluation's two workers build their family's scenes
-    # (MetaWorld's ~6 GB each) while the training workers hold theirs and the replays (~14 GB for the generalist's
-    # two SACs with every scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
     per_split = episodes_per_split(config, cases)  # the whole campaign's split sizes: the expert's and the policy's
-    for unit in units:
+
+    def evaluated(unit: RLUnit, workers: int, fresh_workers: bool = False) -> Baseline:
         family_cases = [case for case in cases if case[0].family == unit.family]
-        evaluations, _ = evaluate_model(workspace, config, iteration, unit.unit_key,
+        # evaluate.workers is not part of an evaluation unit's key: the same units on fewer workers
+        on_workers = config.model_copy(update={"evaluate": config.evaluate.model_copy(update={"workers": workers})})
+        evaluations, _ = evaluate_model(workspace, on_workers, iteration, unit.unit_key,
                                         Agent(kind=unit.algorithm, path=unit.path), family_cases, embeddings,
-                                        per_split=per_split)
-        baselines.append(Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
-                                  env_steps=unit.env_steps, evaluations=evaluations))
+                                        per_split=per_split, fresh_workers=fresh_workers)
+        return Baseline(agent=unit.algorithm, model_key=unit.unit_key, family=unit.family,
+                        env_steps=unit.env_steps, evaluations=evaluations)
+
+    # an agent's evaluation runs beside the trainings still running, on the cores they leave idle: its rows
+    # land hours before the last training ends (six times a workspace went with its machine in between and
+    # kept none: docs/results-generalist.md). Memory holds: the evaluation's workers (one family's scenes,
+    # MetaWorld's ~6 GB each) stand where finished trainings' did (their scenes and replays, ~7 GB each for the
+    # generalist's SACs; docs/evaluation.md), on processes of its own closed after it (the kept pool is not the
+    # beside evaluation's to use: the trainings' fresh pool retires it). One evaluation at a time, in a thread
+    # (the catalog takes one writer at a time in a process); the trainings register as they finish meanwhile.
+    beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim2act-baselines-evaluate")
+    early: dict[str, Future] = {}
+
+    def evaluate_beside(unit: RLUnit, training: int) -> None:
+        idle = config.baselines.workers - min(config.baselines.workers, training)  # cores no training takes
+        if training and idle:
+            log.info("baselines: %s on %s evaluated beside %d training(s)", unit.algorithm, unit.family, training)
+            early[unit.unit_key] = beside.submit(evaluated, unit, min(config.evaluate.workers, idle), True)
+
+    try:
+        for unit in units:  # trained by an earlier run, its evaluation cut (or not begun) when that run stopped
+            if unit.unit_key not in pending:
+                evaluate_beside(unit, len(todo))
+        left = len(todo)
+        # fresh workers: the kept ones hold up to SIM2ACT_SCENES_PER_WORKER scenes of the campaign's evaluation
+        # (~3 GB on the generalist), which an agent training for hours on one family's never uses (docs/evaluation.md)
+        for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
+                                                  lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
+            ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
+            remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints and progress are spent
+            Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
+            log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
+                     unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
+            left -= 1
+            evaluate_beside(unit, left)
+    finally:
+        beside.shutdown(wait=True)  # an evaluation in flight keeps its cases registered so far either way
+    # the rest after the last training, on every worker: beside trainings that take every core an evaluation's
+    # workers would add their family's scenes to the trainings' (~14 GB for the generalist's two SACs with every
+    # scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
+    for unit in units:
+        baselines.append(early[unit.unit_key].result() if unit.unit_key in early
+                         else evaluated(unit, config.evaluate.workers))
     return BaselinesResult(baselines=baselines)

@@ -476,12 +476,13 @@ def evaluate_model(
     embeddings: dict[str, np.ndarray],
     suite: str = CAMPAIGN_SUITE,
     per_split: dict[str, int] | None = None,
+    fresh_workers: bool = False,
 ) -> tuple[list[TaskEvaluation], int]:
     """Roll the agent out on each (task, split, instruction) case with the campaign's render,
     randomisation and evaluate settings; each case is a unit registered in the catalog's
     `evaluations` under `suite`. -> (the cases' evaluations in case order, how many were already registered).
     Seeds derive from (campaign, task, episode): every model meets the same episodes; `per_split`: as in
-    evaluation_units."""
+    evaluation_units; `fresh_workers`: on processes of its own, closed after (run_in_pool), not the kept ones."""
     if agent.acting is not None:  # its evaluations would be registered as the model's own, under the same keys
         raise ValueError(f"evaluate_model: expected the agent acting as it trained to, got acting {agent.acting.describe()}")
     catalog = Catalog(workspace.catalog)
@@ -495,7 +496,8 @@ def evaluate_model(
              "/".join(str(n) for n in sorted({len(u.seeds) for u in units})))
     progress = Progress(log, f"evaluate it{iteration}", len(todo), "cases", "episodes")
     try:
-        for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id):
+        for unit, result, seconds in run_in_pool(evaluate_unit, todo, config.evaluate.workers, lambda u: u.task.task_id,
+                                                 fresh_workers):
             row = {"unit_key": unit.unit_key, "campaign": config.name, "iteration": iteration, "suite": suite,
                    "model_key": model_key,
                    **result.model_dump(), "success_rate": result.success_rate}

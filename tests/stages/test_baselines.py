@@ -6,6 +6,7 @@ from envs.suite import generate_tasks
 from schemas.config import RandomiseConfig, RenderConfig, load_config, render_key_fields
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
+from stages import StageUnits, UnitOutput
 from stages.baselines import STAGE, VERSION, RLUnit, longest_first, rl_units
 
 
@@ -119,3 +120,59 @@ def test_a_budget_mapping_given_by_set_merges_into_the_files_and_a_number_replac
     merged = load_config("smoke", given, parse_settings(["baselines.env_steps={metaworld: 1000}"]))
     assert merged.baselines.env_steps == {"robosuite": 2000, "metaworld": 1000}
     assert load_config("smoke", given, parse_settings(["baselines.env_steps=500"])).baselines.env_steps == 500
+
+
+def _beside_harness(tmp_path, monkeypatch, registered: list[str]):
+    """run_baselines with the pool and the evaluation stood in for: the PPO finishes first, and the pool hands over
+    the SAC only once the PPO's evaluation has begun (or 30 s later: an evaluation that waits for the last training
+    never begins before it). `registered`: the agents an earlier run trained. -> (the evaluations' calls, the run)"""
+    import threading
+
+    import stages.baselines as baselines
+    from warehouse.catalog import Catalog
+
+    ws = Workspace.at(tmp_path / "workspace").create()
+    catalog = Catalog(ws.catalog)
+    catalog.initialise()
+    config = load_config("smoke", None, {"baselines": {"agents": ["ppo", "sac"], "workers": 2}})
+    units = [_unit(algorithm, "robosuite", 300).model_copy(
+        update={"path": str(ws.models / f"baselines-{algorithm}-robosuite" / "agent.zip")}) for algorithm in ("sac", "ppo")]
+    ledger = StageUnits(catalog, STAGE, config.name, 0)
+    for unit in units:
+        if unit.algorithm in registered:
+            ledger.register(unit.unit_key, UnitOutput({"algorithm": unit.algorithm}), 1.0)
+    ppo_evaluating, calls = threading.Event(), []
+
+    def evaluate_model(workspace, config, iteration, model_key, agent, cases, embeddings, per_split=None,
+                       fresh_workers=False):
+        calls.append((model_key, config.evaluate.workers, fresh_workers, ledger.pending([units[0].unit_key]) != []))
+        if agent.kind == "ppo":
+            ppo_evaluating.set()
+        return [], 0
+
+    def run_in_pool(work, todo, workers, label, fresh_workers=False):
+        assert fresh_workers and workers == 2
+        for unit in sorted(todo, key=lambda u: u.algorithm != "ppo"):
+            if unit.algorithm == "sac":
+                ppo_evaluating.wait(30)
+            yield unit, baselines.RLTrained(algorithm=unit.algorithm, family=unit.family, env_steps=300,
+                                            steps_taken=300, episodes=5, successes=0, resumed_at=0, path=unit.path), 1.0
+
+    for name, stand_in in {"rl_units": lambda *args: units, "exploration_steps": lambda *args: {},
+                           "evaluate_model": evaluate_model, "run_in_pool": run_in_pool}.items():
+        monkeypatch.setattr(baselines, name, stand_in)
+    result = baselines.run_baselines(ws, config, 0, "tasks", [], {}, [])
+    return calls, result
+
+
+def test_an_agent_trained_is_evaluated_beside_the_trainings_still_running_on_the_cores_they_leave(tmp_path, monkeypatch):
+    calls, result = _beside_harness(tmp_path, monkeypatch, registered=[])
+    # the PPO on one worker of its own while the SAC still trained; the SAC, last, on every evaluation worker
+    assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
+    assert [b.model_key for b in result.baselines] == ["baselines-sac-robosuite", "baselines-ppo-robosuite"]
+
+
+def test_an_agent_an_earlier_run_trained_is_evaluated_beside_the_trainings_a_resume_runs(tmp_path, monkeypatch):
+    # a session's end cut the PPO's evaluation: the resumed run evaluates it beside the SAC's training, not after
+    calls, _ = _beside_harness(tmp_path, monkeypatch, registered=["ppo"])
+    assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
