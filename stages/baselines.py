@@ -11,6 +11,8 @@ Each trained agent is a unit (models/<key>/agent.zip); evaluations go to the war
 
 from __future__ import annotations
 
+import contextvars
+import gc
 import json
 import logging
 from collections.abc import Callable
@@ -181,8 +183,11 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     fsync_path(tmp)
     tmp.replace(path)
     fsync_path(path.parent)
+    steps_taken = agent.num_timesteps
+    del agent  # and SAC's replay (~2.1 GB full) with it now, for what runs beside the trainings still going
+    gc.collect()
     return RLTrained(algorithm=unit.algorithm, family=unit.family, env_steps=unit.env_steps,
-                     steps_taken=agent.num_timesteps, episodes=env.episodes_finished, successes=env.successes,
+                     steps_taken=steps_taken, episodes=env.episodes_finished, successes=env.successes,
                      resumed_at=resumed_at, path=str(path))
 
 
@@ -365,7 +370,17 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
         idle = config.baselines.workers - min(config.baselines.workers, training)  # cores no training takes
         if training and idle:
             log.info("baselines: %s on %s evaluated beside %d training(s)", unit.algorithm, unit.family, training)
-            early[unit.unit_key] = beside.submit(evaluated, unit, min(config.evaluate.workers, idle), True)
+            # in the flow's context: Prefect's log handler finds its run there (a thread starts with none)
+            future = beside.submit(contextvars.copy_context().run, evaluated, unit, min(config.evaluate.workers, idle),
+                                   True)
+
+            def said_if_failed(done: Future) -> None:  # when it happens; raised after the trainings (below)
+                if not done.cancelled() and done.exception() is not None:
+                    log.error("baselines: evaluating %s on %s beside the trainings failed: %r", unit.algorithm,
+                              unit.family, done.exception())
+
+            future.add_done_callback(said_if_failed)
+            early[unit.unit_key] = future
 
     try:
         for unit in units:  # trained by an earlier run, its evaluation cut (or not begun) when that run stopped
@@ -384,11 +399,14 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
             left -= 1
             evaluate_beside(unit, left)
     finally:
-        beside.shutdown(wait=True)  # an evaluation in flight keeps its cases registered so far either way
+        # the one in flight finishes (its cases register as they end); those not begun run below on every worker,
+        # or, after a failed training, in the run that resumes this one
+        beside.shutdown(wait=True, cancel_futures=True)
     # the rest after the last training, on every worker: beside trainings that take every core an evaluation's
     # workers would add their family's scenes to the trainings' (~14 GB for the generalist's two SACs with every
     # scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
     for unit in units:
-        baselines.append(early[unit.unit_key].result() if unit.unit_key in early
+        early_one = early.get(unit.unit_key)
+        baselines.append(early_one.result() if early_one is not None and not early_one.cancelled()
                          else evaluated(unit, config.evaluate.workers))
     return BaselinesResult(baselines=baselines)

@@ -58,6 +58,11 @@ class CatalogVersionError(Sim2ActError, RuntimeError):
 
 
 def _is_lock_error(exc: BaseException) -> bool:
+    """Another process's write lock on the file, or, in this one, a thread's connection in the other mode: DuckDB
+    opens a file in one process read-only or read-write at a time (its instance cache refuses the other with "a
+    different configuration"); both are held for one query or transaction, so a wait gets through."""
+    if isinstance(exc, duckdb.ConnectionException):
+        return "different configuration" in str(exc)
     return isinstance(exc, duckdb.IOException) and "lock" in str(exc).lower()
 
 

@@ -363,6 +363,10 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
                       "--set", "baselines.agents=[expert,ppo,sac]", "--set", f"baselines.env_steps={RL_BUDGET}"]
     run = subprocess.run(with_baselines, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
+    # the agent that trained first (two workers, two agents) is evaluated beside the other's training, its log
+    # lines in the flow run's (a thread of its own that did not carry the run's context would be refused by
+    # Prefect's API handler with a warning)
+    assert "evaluated beside 1 training(s)" in run.stderr and "without a flow run id" not in run.stderr, run.stderr[-3000:]
 
     # by default RL from scratch gets the environment steps the campaign's exploration took, per family
     [(explored,)] = catalog.query("SELECT sum(num_steps) FROM episodes WHERE campaign = 'smoke'")

@@ -122,10 +122,11 @@ def test_a_budget_mapping_given_by_set_merges_into_the_files_and_a_number_replac
     assert load_config("smoke", given, parse_settings(["baselines.env_steps=500"])).baselines.env_steps == 500
 
 
-def _beside_harness(tmp_path, monkeypatch, registered: list[str]):
+def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str | None = None):
     """run_baselines with the pool and the evaluation stood in for: the PPO finishes first, and the pool hands over
     the SAC only once the PPO's evaluation has begun (or 30 s later: an evaluation that waits for the last training
-    never begins before it). `registered`: the agents an earlier run trained. -> (the evaluations' calls, the run)"""
+    never begins before it). `registered`: the agents an earlier run trained; `failing`: the agent whose evaluation
+    raises. -> (the evaluations' calls, the run)"""
     import threading
 
     import stages.baselines as baselines
@@ -148,6 +149,8 @@ def _beside_harness(tmp_path, monkeypatch, registered: list[str]):
         calls.append((model_key, config.evaluate.workers, fresh_workers, ledger.pending([units[0].unit_key]) != []))
         if agent.kind == "ppo":
             ppo_evaluating.set()
+        if agent.kind == failing:
+            raise RuntimeError(f"{failing}'s evaluation failed")
         return [], 0
 
     def run_in_pool(work, todo, workers, label, fresh_workers=False):
@@ -176,3 +179,17 @@ def test_an_agent_an_earlier_run_trained_is_evaluated_beside_the_trainings_a_res
     # a session's end cut the PPO's evaluation: the resumed run evaluates it beside the SAC's training, not after
     calls, _ = _beside_harness(tmp_path, monkeypatch, registered=["ppo"])
     assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
+
+
+
+def test_an_evaluation_beside_the_trainings_that_fails_is_said_at_once_and_raised_after_them(tmp_path, monkeypatch,
+                                                                                             caplog):
+    import logging
+
+    import pytest
+
+    with caplog.at_level(logging.ERROR, logger="sim2act.stages.baselines"), \
+            pytest.raises(RuntimeError, match="ppo's evaluation failed"):
+        _beside_harness(tmp_path, monkeypatch, registered=[], failing="ppo")
+    assert [r.getMessage() for r in caplog.records] == [
+        "baselines: evaluating ppo on robosuite beside the trainings failed: RuntimeError(\"ppo's evaluation failed\")"]

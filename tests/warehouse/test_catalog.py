@@ -50,6 +50,28 @@ def test_threads_registering_one_unit_at_once_register_it_once(workspace):
     assert catalogs[0].query("SELECT count(*) FROM shards") == [(1,)]
 
 
+
+def test_a_thread_reading_waits_for_another_threads_registration_and_the_other_way_round(workspace):
+    """DuckDB opens a file in one process read-only or read-write at a time: a query beside another thread's
+    open transaction (the baselines' evaluation beside a training's registration) waits for it, not fails."""
+    import threading
+    import time
+
+    catalog = Catalog(workspace.catalog)
+    catalog.query("SELECT 1")  # the instance cache, as above
+    for holding, other in ((False, lambda: catalog.query("SELECT count(*) FROM stage_runs")),
+                           (True, lambda: _register(workspace, "filter-w", 2))):
+        held = catalog._open(read_only=holding)  # a transaction or a query in flight, in another thread
+        done: list = []
+        waiting = threading.Thread(target=lambda: done.append(other()))
+        waiting.start()
+        time.sleep(0.3)
+        assert not done  # waits while the other mode holds the file
+        held.close()
+        waiting.join(30)
+        assert done and done[0] in ([(0,)], True)
+    assert catalog.query("SELECT count(*) FROM stage_runs") == [(1,)]
+
 def test_a_reader_counts_by_this_codes_views_in_a_catalog_an_older_sim2act_wrote(workspace):
     """The views' definitions live in the catalog: one last written by older code kept them (counting a
     re-filtered campaign twice) until a writer opened it; the dashboard's panels and `sim2act sql` read them."""
