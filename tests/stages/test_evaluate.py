@@ -206,7 +206,7 @@ def test_an_evaluation_takes_a_case_of_each_family_in_turn(tmp_path, monkeypatch
 
     handed = []
 
-    def record(work, units, workers, label):
+    def record(work, units, workers, label, fresh_workers=False):
         handed.extend(u.task.family for u in units)
         raise Handed
         yield  # a generator, as run_in_pool is
