@@ -358,7 +358,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
 
     # an agent's evaluation runs beside the trainings still running, on the cores they leave idle: its rows
     # land hours before the last training ends (six times a workspace went with its machine in between and
-    # kept none: docs/results-generalist.md). Memory holds: the evaluation's workers (one family's scenes,
+    # kept none: docs/results-generalist.md). Memory should hold: the evaluation's workers (one family's scenes,
     # MetaWorld's ~6 GB each) stand where finished trainings' did (their scenes and replays, ~7 GB each for the
     # generalist's SACs; docs/evaluation.md), on processes of its own closed after it (the kept pool is not the
     # beside evaluation's to use: the trainings' fresh pool retires it). One evaluation at a time, in a thread
