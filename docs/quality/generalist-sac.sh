@@ -5,7 +5,7 @@
 # seen tasks, render and randomisation, then evaluated on the same cases x 10 episodes as the policy and PPO (the
 # episodes drawn under this campaign's name: an evaluation's seeds derive from it, so not the same draws).
 #
-#   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores
+#   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores with AVX-512 BF16, ~24 h on AVX2 alone
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
 # the PPOs first (~5.5-7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
