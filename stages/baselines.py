@@ -366,21 +366,20 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim2act-baselines-evaluate")
     early: dict[str, Future] = {}
 
+    def evaluated_beside(unit: RLUnit, workers: int) -> Baseline:
+        try:
+            return evaluated(unit, workers, fresh_workers=True)
+        except Exception as exc:  # said when it happens; raised after the trainings (below)
+            log.error("baselines: evaluating %s on %s beside the trainings failed: %r", unit.algorithm, unit.family, exc)
+            raise
+
     def evaluate_beside(unit: RLUnit, training: int) -> None:
-        idle = config.baselines.workers - min(config.baselines.workers, training)  # cores no training takes
+        idle = max(0, config.baselines.workers - training)  # cores no training takes
         if training and idle:
             log.info("baselines: %s on %s evaluated beside %d training(s)", unit.algorithm, unit.family, training)
             # in the flow's context: Prefect's log handler finds its run there (a thread starts with none)
-            future = beside.submit(contextvars.copy_context().run, evaluated, unit, min(config.evaluate.workers, idle),
-                                   True)
-
-            def said_if_failed(done: Future) -> None:  # when it happens; raised after the trainings (below)
-                if not done.cancelled() and done.exception() is not None:
-                    log.error("baselines: evaluating %s on %s beside the trainings failed: %r", unit.algorithm,
-                              unit.family, done.exception())
-
-            future.add_done_callback(said_if_failed)
-            early[unit.unit_key] = future
+            early[unit.unit_key] = beside.submit(contextvars.copy_context().run, evaluated_beside, unit,
+                                                 min(config.evaluate.workers, idle))
 
     try:
         for unit in units:  # trained by an earlier run, its evaluation cut (or not begun) when that run stopped

@@ -181,7 +181,6 @@ def test_an_agent_an_earlier_run_trained_is_evaluated_beside_the_trainings_a_res
     assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
 
 
-
 def test_an_evaluation_beside_the_trainings_that_fails_is_said_at_once_and_raised_after_them(tmp_path, monkeypatch,
                                                                                              caplog):
     import logging

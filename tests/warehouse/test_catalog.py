@@ -50,7 +50,6 @@ def test_threads_registering_one_unit_at_once_register_it_once(workspace):
     assert catalogs[0].query("SELECT count(*) FROM shards") == [(1,)]
 
 
-
 def test_a_thread_reading_waits_for_another_threads_registration_and_the_other_way_round(workspace):
     """DuckDB opens a file in one process read-only or read-write at a time: a query beside another thread's
     open transaction (the baselines' evaluation beside a training's registration) waits for it, not fails."""
@@ -71,6 +70,7 @@ def test_a_thread_reading_waits_for_another_threads_registration_and_the_other_w
         waiting.join(30)
         assert done and done[0] in ([(0,)], True)
     assert catalog.query("SELECT count(*) FROM stage_runs") == [(1,)]
+
 
 def test_a_reader_counts_by_this_codes_views_in_a_catalog_an_older_sim2act_wrote(workspace):
     """The views' definitions live in the catalog: one last written by older code kept them (counting a
