@@ -487,7 +487,13 @@ class BaselinesConfig(_Strict):
         default=None, description="each RL agent's training budget: one for every family, or per family ({metaworld: "
         "382023}: another run's exploration steps, so that a workspace without its million trains agents at them); "
         "default, and for a family the mapping leaves out: the environment steps the campaign's exploration took on it")
-    workers: PositiveInt = Field(default=2, description="RL agents trained at once, one core each")
+    workers: PositiveInt = Field(default=2, description=(
+        "RL agents trained at once, one core each; 1: one at a time, shortest first, each evaluated before the next "
+        "begins (its rows hours earlier than beside a longer one; with baselines.threads for the idle cores)"))
+    threads: PositiveInt = Field(default=1, description=(
+        "torch threads of each RL agent's training: 1 beside other agents; with fewer agents at once than cores, "
+        "more (workers 1 and threads 2 on 2 cores: SAC's step 1.4-1.6x faster, one agent's end ~40% sooner; the "
+        "two side by side on one core each still step more in all, docs/bench-rl.md). Not part of an agent's key"))
     replay_size: PositiveInt = Field(
         default=50_000, description="SAC's replay buffer at most, in transitions (each keeps two frames: ~42 KB at "
         "84 px, so ~2.1 GB); a budget below it is kept whole")

@@ -53,6 +53,7 @@ class RLUnit(BaseModel):
     env_steps: int
     replay_size: int  # SAC's replay buffer, transitions
     checkpoint_every: int  # environment steps between resumable checkpoints
+    threads: int = 1  # torch threads of its training (baselines.threads): how fast, not what it learns from
     sac_encoder: str = "separate"  # SAC's: the critic's, shared with the actor (policies/rl_sac.py), or one each
     end_on_success: bool = True  # an episode ends at its first success (baselines.end_on_success)
     target_entropy: float | None = None  # SAC's; None: SB3's, minus the action dimensions
@@ -159,7 +160,10 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
     from envs.rollout import close_envs
     from policies.rl_agent import learn_with_checkpoints
 
+    import torch
+
     log_stages_to_stderr()  # a worker has no Prefect handler, and an agent trains for hours: its progress on stderr
+    torch.set_num_threads(unit.threads)  # the pool's workers start with one
     env = InstructedTasksEnv(unit.tasks, {k: np.asarray(v, dtype=np.float32) for k, v in unit.embeddings.items()},
                              unit.render, unit.randomise, unit.end_on_success)
     path = Path(unit.path)
@@ -242,6 +246,7 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
             units.append(RLUnit(unit_key=key, algorithm=algorithm, family=family, tasks=seen, embeddings=said,
                                 render=config.render, randomise=config.randomise, env_steps=steps, replay_size=replay,
                                 checkpoint_every=config.baselines.checkpoint_every, seed=config.seed,
+                                threads=config.baselines.threads,
                                 sac_encoder=config.baselines.sac_encoder,
                                 end_on_success=config.baselines.end_on_success, target_entropy=target,
                                 path=str(workspace.models / key / "agent.zip"),
@@ -309,21 +314,25 @@ def agents_in_training(models: Path, catalog: Catalog, plans: dict[str, dict]) -
     return sorted(agents, key=lambda a: (a.algorithm != "sac", a.family))
 
 
-def longest_first(units: list[RLUnit]) -> list[RLUnit]:
-    """The agents in the order the pool starts them: SAC before PPO, then the larger budgets.
-
-    With fewer workers than agents the stage ends when its last agent does, so the long ones start
-    first and the short ones fill in beside them. A SAC step takes a gradient step on a batch of 64
-    frames: ~120-160 ms of a core at 84 px, against PPO's 8-18 ms (`sim2act bench rl` on the
-    generalist's families); at the generalist's budgets that is ~15 h for SAC on robosuite."""
+def training_order(units: list[RLUnit], workers: int) -> list[RLUnit]:
+    """The agents in the order the pool starts them. On several workers SAC before PPO, then the larger budgets:
+    the stage ends when its last agent does, so the long ones start first and the short ones fill in beside them.
+    On one worker the end is the same in any order, so the shortest first: each agent's rows land as early as
+    they can. A SAC step takes a gradient step on a batch of 64 frames: ~120-200 ms of a core at 84 px, against
+    PPO's 8-18 ms (`sim2act bench rl` on the generalist's families); at the generalist's budgets that is ~15-25 h
+    for SAC on robosuite."""
+    if workers == 1:
+        return sorted(units, key=lambda unit: (unit.algorithm == "sac", unit.env_steps))
     return sorted(units, key=lambda unit: (unit.algorithm != "sac", -unit.env_steps))
 
 
 def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, tasks_key: str,
                   tasks: list[TaskRecord], embeddings: dict[str, np.ndarray], explore_units: list[str]) -> BaselinesResult:
     """Evaluate the experts on the campaign's evaluation cases, train the RL agents not trained yet
-    with the steps `explore_units` (the campaign's, every iteration) took per family, then evaluate
-    each on its family's cases; rows under `iteration`.
+    with the steps `explore_units` (the campaign's, every iteration) took per family, and evaluate
+    each on its family's cases: as soon as it has trained, beside the trainings still running where they
+    leave a core idle (on one worker: before the next training begins), the rest after the last training;
+    rows under `iteration`.
 
     Unit of work: one RL agent (an algorithm on a family), keyed by the render and randomise settings,
     the campaign seed, the algorithm, the family, its step budget (and SAC's replay where smaller
@@ -336,7 +345,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     units = rl_units(workspace, config, tasks_key, tasks, embeddings, exploration_steps(catalog, explore_units))
     ledger = StageUnits(catalog, STAGE, config.name, iteration)
     pending = set(ledger.pending(u.unit_key for u in units))
-    todo = longest_first([u for u in units if u.unit_key in pending])
+    todo = training_order([u for u in units if u.unit_key in pending], config.baselines.workers)
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
     write_plans(workspace.models, config.name, units)
     cases = evaluation_cases(tasks)
@@ -365,6 +374,15 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     # (the catalog takes one writer at a time in a process); the trainings register as they finish meanwhile.
     beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sim2act-baselines-evaluate")
     early: dict[str, Future] = {}
+    # one worker: no core is left beside a training, so the agents train one at a time, each in a pool of its own,
+    # and each is evaluated on every evaluation worker after its pool closed and before the next one begins
+    # (minutes against the next one's hours)
+    one_at_a_time = config.baselines.workers == 1
+    evaluated_first: dict[str, Baseline] = {}
+
+    def evaluate_now(unit: RLUnit) -> None:
+        log.info("baselines: %s on %s evaluated before the next training", unit.algorithm, unit.family)
+        evaluated_first[unit.unit_key] = evaluated(unit, config.evaluate.workers)
 
     def evaluated_beside(unit: RLUnit, workers: int) -> Baseline:
         try:
@@ -384,19 +402,25 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     try:
         for unit in units:  # trained by an earlier run, its evaluation cut (or not begun) when that run stopped
             if unit.unit_key not in pending:
-                evaluate_beside(unit, len(todo))
+                if one_at_a_time and todo:
+                    evaluate_now(unit)
+                else:
+                    evaluate_beside(unit, len(todo))
         left = len(todo)
         # fresh workers: the kept ones hold up to SIM2ACT_SCENES_PER_WORKER scenes of the campaign's evaluation
         # (~3 GB on the generalist), which an agent training for hours on one family's never uses (docs/evaluation.md)
-        for unit, trained, seconds in run_in_pool(train_rl_agent, todo, config.baselines.workers,
-                                                  lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
-            ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
-            remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints and progress are spent
-            Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
-            log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
-                     unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
-            left -= 1
-            evaluate_beside(unit, left)
+        for batch in [[unit] for unit in todo] if one_at_a_time else [todo]:
+            for unit, trained, seconds in run_in_pool(train_rl_agent, batch, config.baselines.workers,
+                                                      lambda u: f"{u.algorithm} on {u.family}", fresh_workers=True):
+                ledger.register(unit.unit_key, UnitOutput(trained.model_dump()), seconds)
+                remove_checkpoints(Path(unit.path).parent)  # registered: its checkpoints and progress are spent
+                Path(unit.path).with_name(PROGRESS).unlink(missing_ok=True)
+                log.info("baselines: %s on %s trained, %d env steps in %.0fs (%d/%d training episodes succeeded)",
+                         unit.algorithm, unit.family, trained.steps_taken, seconds, trained.successes, trained.episodes)
+                left -= 1
+                evaluate_beside(unit, left)
+            if one_at_a_time and left:  # its pool closed; the last agent is evaluated below, as before
+                evaluate_now(batch[0])
     finally:
         # the one in flight finishes (its cases register as they end); those not begun run below on every worker,
         # or, after a failed training, in the run that resumes this one
@@ -406,6 +430,10 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     # scene kept), past the machine's 24 GB (docs/evaluation.md); the training workers are closed by now
     for unit in units:
         early_one = early.get(unit.unit_key)
-        baselines.append(early_one.result() if early_one is not None and not early_one.cancelled()
-                         else evaluated(unit, config.evaluate.workers))
+        if unit.unit_key in evaluated_first:
+            baselines.append(evaluated_first[unit.unit_key])
+        elif early_one is not None and not early_one.cancelled():
+            baselines.append(early_one.result())
+        else:
+            baselines.append(evaluated(unit, config.evaluate.workers))
     return BaselinesResult(baselines=baselines)

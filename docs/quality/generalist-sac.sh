@@ -5,7 +5,12 @@
 # seen tasks, render and randomisation, then evaluated on the same cases x 10 episodes as the policy and PPO (the
 # episodes drawn under this campaign's name: an evaluation's seeds derive from it, so not the same draws).
 #
-#   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT]   # from the repository root; ~13-15 h on 2 cores with AVX-512 BF16, ~24 h on AVX2 alone
+#   docs/quality/generalist-sac.sh WORKSPACE [SIM2ACT [--set ...]]   # from the repository root; ~13-15 h on 2 cores with AVX-512 BF16, ~24 h on AVX2 alone
+#
+# Settings after SIM2ACT go to the run, e.g. `--set baselines.workers=1 --set baselines.threads=2`: one agent at a
+# time on both cores, MetaWorld's first, each evaluated before the next begins (~12 h to MetaWorld's rows on AVX2
+# instead of ~19 h; both end ~3 h later than side by side: docs/results-generalist.md). Neither is part of a unit's
+# key: a run resumes the same agents from their checkpoints with or without them.
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
 # the PPOs first (~5.5-7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
@@ -27,6 +32,7 @@ export SIM2ACT_SCENES_PER_WORKER=${SIM2ACT_SCENES_PER_WORKER:-64}
 W=${1:?usage: generalist-sac.sh WORKSPACE [SIM2ACT]}
 W=${W%/}
 S=${2:-sim2act}
+MORE=("${@:3}")  # the run's own settings (the report needs none of them)
 C=(--preset generalist --set name=generalist-sac --set render.mesh_detail=0.1 --set train.steps=10
    --set explore.episodes_per_task=2 --workspace "$W")
 LOGS=$W-logs
@@ -35,5 +41,5 @@ trap 'echo "generalist-sac.sh: a step failed; its log is $LOGS/baselines.log" >&
 
 $S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set 'baselines.agents=[sac]' \
   --set 'baselines.env_steps={metaworld: 382023, robosuite: 455956}' --set baselines.checkpoint_every=5000 \
-  >> "$LOGS/baselines.log" 2>&1
+  "${MORE[@]}" >> "$LOGS/baselines.log" 2>&1
 $S report "${C[@]}" | tee "$LOGS/report.md"

@@ -1,4 +1,5 @@
-"""The baselines stage's plan, without training anything: which agent the pool starts first, the units' keys."""
+"""The baselines stage's plan, without training anything: which agent the pool starts first, the units' keys,
+when each agent is evaluated."""
 
 import numpy as np
 
@@ -7,7 +8,7 @@ from schemas.config import RandomiseConfig, RenderConfig, load_config, render_ke
 from schemas.keys import unit_key
 from schemas.workspace import Workspace
 from stages import StageUnits, UnitOutput
-from stages.baselines import STAGE, VERSION, RLUnit, longest_first, rl_units
+from stages.baselines import STAGE, VERSION, RLUnit, rl_units, training_order
 
 
 def _unit(algorithm: str, family: str, env_steps: int) -> RLUnit:
@@ -16,14 +17,17 @@ def _unit(algorithm: str, family: str, env_steps: int) -> RLUnit:
                   replay_size=50_000, checkpoint_every=25_000, seed=0, path="unused")
 
 
-def test_sac_and_the_larger_budgets_start_first():
+def test_on_several_workers_sac_and_the_larger_budgets_start_first_and_on_one_the_shortest():
     # rl_units' order (algorithm, then family): the generalist's budgets per family
     planned = [_unit("ppo", "metaworld", 382_023), _unit("ppo", "navigation", 254_522),
                _unit("ppo", "robosuite", 455_956), _unit("sac", "metaworld", 382_023),
                _unit("sac", "robosuite", 455_956)]
-    order = [(u.algorithm, u.family) for u in longest_first(planned)]
+    order = [(u.algorithm, u.family) for u in training_order(planned, 2)]
     assert order == [("sac", "robosuite"), ("sac", "metaworld"), ("ppo", "robosuite"), ("ppo", "metaworld"),
                      ("ppo", "navigation")]
+    # one worker: the stage ends at the same time in any order; the first rows land soonest this way
+    assert [(u.algorithm, u.family) for u in training_order(planned, 1)] == [
+        ("ppo", "navigation"), ("ppo", "metaworld"), ("ppo", "robosuite"), ("sac", "metaworld"), ("sac", "robosuite")]
     assert [u.unit_key for u in planned][0] == "baselines-ppo-metaworld"  # a new list; the caller's unchanged
 
 
@@ -82,6 +86,49 @@ def test_agents_trained_to_the_horizon_and_at_the_acting_entropy_are_new_units_a
     assert old["sac", "metaworld"].unit_key == before
 
 
+def test_an_agents_torch_threads_are_the_configs_and_not_part_of_its_key(monkeypatch, tmp_path):
+    """baselines.threads: how fast an agent trains, not what it is (a run resumed with another count resumes the same
+    agent); the training worker sets it on torch before the agent's first step."""
+    from types import SimpleNamespace
+
+    import torch
+
+    import envs.gym_env
+    import policies.rl_agent
+    from stages.baselines import train_rl_agent
+
+    config = load_config("smoke", None, {"baselines": {"agents": ["sac"], "threads": 2}})
+    tasks = generate_tasks(config.tasks, config.seed)
+    said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
+    [two] = rl_units(Workspace.at(tmp_path), config, "tasks-k", tasks, said, {"robosuite": 1000})
+    [one] = rl_units(Workspace.at(tmp_path), load_config("smoke", None, {"baselines": {"agents": ["sac"]}}),
+                     "tasks-k", tasks, said, {"robosuite": 1000})
+    assert (two.threads, one.threads) == (2, 1) and two.unit_key == one.unit_key
+
+    seen = []
+
+    class Agent:
+        num_timesteps = 1000
+
+        def save(self, path):
+            path.write_bytes(b"agent")
+
+    def learn(*args):
+        seen.append(torch.get_num_threads())
+        return Agent(), 0
+
+    monkeypatch.setattr(envs.gym_env, "InstructedTasksEnv",
+                        lambda *args: SimpleNamespace(episodes_finished=5, successes=1))
+    monkeypatch.setattr(policies.rl_agent, "learn_with_checkpoints", learn)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # as a pool worker starts
+        trained = train_rl_agent(two)
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [2] and (trained.steps_taken, trained.successes) == (1000, 1)
+
+
 def test_budgets_per_family_override_the_exploration_steps_of_the_families_they_name():
     """baselines.env_steps as a mapping: another run's exploration steps train the same agents (the same keys) in a
     workspace whose own exploration is small; a family it leaves out keeps its exploration's steps."""
@@ -122,11 +169,11 @@ def test_a_budget_mapping_given_by_set_merges_into_the_files_and_a_number_replac
     assert load_config("smoke", given, parse_settings(["baselines.env_steps=500"])).baselines.env_steps == 500
 
 
-def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str | None = None):
+def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str | None = None, workers: int = 2):
     """run_baselines with the pool and the evaluation stood in for: the PPO finishes first, and the pool hands over
     the SAC only once the PPO's evaluation has begun (or 30 s later: an evaluation that waits for the last training
     never begins before it). `registered`: the agents an earlier run trained; `failing`: the agent whose evaluation
-    raises. -> (the evaluations' calls, the run)"""
+    raises; `workers`: baselines.workers. -> (the evaluations' calls, the run, the pools' and evaluations' order)"""
     import threading
 
     import stages.baselines as baselines
@@ -135,18 +182,19 @@ def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str |
     ws = Workspace.at(tmp_path / "workspace").create()
     catalog = Catalog(ws.catalog)
     catalog.initialise()
-    config = load_config("smoke", None, {"baselines": {"agents": ["ppo", "sac"], "workers": 2}})
+    config = load_config("smoke", None, {"baselines": {"agents": ["ppo", "sac"], "workers": workers}})
     units = [_unit(algorithm, "robosuite", 300).model_copy(
         update={"path": str(ws.models / f"baselines-{algorithm}-robosuite" / "agent.zip")}) for algorithm in ("sac", "ppo")]
     ledger = StageUnits(catalog, STAGE, config.name, 0)
     for unit in units:
         if unit.algorithm in registered:
             ledger.register(unit.unit_key, UnitOutput({"algorithm": unit.algorithm}), 1.0)
-    ppo_evaluating, calls = threading.Event(), []
+    ppo_evaluating, calls, events = threading.Event(), [], []
 
     def evaluate_model(workspace, config, iteration, model_key, agent, cases, embeddings, per_split=None,
                        fresh_workers=False):
         calls.append((model_key, config.evaluate.workers, fresh_workers, ledger.pending([units[0].unit_key]) != []))
+        events.append(f"evaluate {agent.kind}")
         if agent.kind == "ppo":
             ppo_evaluating.set()
         if agent.kind == failing:
@@ -154,7 +202,8 @@ def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str |
         return [], 0
 
     def run_in_pool(work, todo, workers, label, fresh_workers=False):
-        assert fresh_workers and workers == 2
+        assert fresh_workers and workers == config.baselines.workers
+        events.append(f"pool of {', '.join(u.algorithm for u in todo)}")
         for unit in sorted(todo, key=lambda u: u.algorithm != "ppo"):
             if unit.algorithm == "sac":
                 ppo_evaluating.wait(30)
@@ -165,11 +214,11 @@ def _beside_harness(tmp_path, monkeypatch, registered: list[str], failing: str |
                            "evaluate_model": evaluate_model, "run_in_pool": run_in_pool}.items():
         monkeypatch.setattr(baselines, name, stand_in)
     result = baselines.run_baselines(ws, config, 0, "tasks", [], {}, [])
-    return calls, result
+    return calls, result, events
 
 
 def test_an_agent_trained_is_evaluated_beside_the_trainings_still_running_on_the_cores_they_leave(tmp_path, monkeypatch):
-    calls, result = _beside_harness(tmp_path, monkeypatch, registered=[])
+    calls, result, _ = _beside_harness(tmp_path, monkeypatch, registered=[])
     # the PPO on one worker of its own while the SAC still trained; the SAC, last, on every evaluation worker
     assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
     assert [b.model_key for b in result.baselines] == ["baselines-sac-robosuite", "baselines-ppo-robosuite"]
@@ -177,8 +226,20 @@ def test_an_agent_trained_is_evaluated_beside_the_trainings_still_running_on_the
 
 def test_an_agent_an_earlier_run_trained_is_evaluated_beside_the_trainings_a_resume_runs(tmp_path, monkeypatch):
     # a session's end cut the PPO's evaluation: the resumed run evaluates it beside the SAC's training, not after
-    calls, _ = _beside_harness(tmp_path, monkeypatch, registered=["ppo"])
+    calls, _, _ = _beside_harness(tmp_path, monkeypatch, registered=["ppo"])
     assert calls == [("baselines-ppo-robosuite", 1, True, True), ("baselines-sac-robosuite", 2, False, False)]
+
+
+def test_on_one_worker_each_agent_is_evaluated_on_every_evaluation_worker_before_the_next_training(
+        tmp_path, monkeypatch):
+    # the shorter PPO first, in a pool of its own; its evaluation after that pool and before the SAC's begins
+    calls, result, events = _beside_harness(tmp_path, monkeypatch, registered=[], workers=1)
+    assert events == ["pool of ppo", "evaluate ppo", "pool of sac", "evaluate sac"]
+    assert calls == [("baselines-ppo-robosuite", 2, False, True), ("baselines-sac-robosuite", 2, False, False)]
+    assert [b.model_key for b in result.baselines] == ["baselines-sac-robosuite", "baselines-ppo-robosuite"]
+    # resumed after the PPO trained: its evaluation first, then the SAC's training
+    _, _, events = _beside_harness(tmp_path / "resumed", monkeypatch, registered=["ppo"], workers=1)
+    assert events == ["evaluate ppo", "pool of sac", "evaluate sac"]
 
 
 def test_an_evaluation_beside_the_trainings_that_fails_is_said_at_once_and_raised_after_them(tmp_path, monkeypatch,
