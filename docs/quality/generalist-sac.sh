@@ -29,7 +29,7 @@ set -euo pipefail
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 # each worker keeps every scene it opens, as the generalist's baselines ran (docs/quality/generalist-baselines.sh)
 export SIM2ACT_SCENES_PER_WORKER=${SIM2ACT_SCENES_PER_WORKER:-64}
-W=${1:?usage: generalist-sac.sh WORKSPACE [SIM2ACT]}
+W=${1:?usage: generalist-sac.sh WORKSPACE [SIM2ACT [--set ...]]}
 W=${W%/}
 S=${2:-sim2act}
 MORE=("${@:3}")  # the run's own settings (the report needs none of them)

@@ -19,14 +19,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from bench.rl import EMBEDDING_SIZE  # noqa: E402
 from envs.gym_env import InstructedTasksEnv  # noqa: E402
 from envs.rollout import close_envs  # noqa: E402
 from envs.suite import generate_tasks  # noqa: E402
 from policies.rl_agent import new_agent  # noqa: E402
 from schemas.config import load_config  # noqa: E402
 from stages.baselines import planned_agents, rl_budget, target_entropy  # noqa: E402
-
-EMBEDDING_SIZE = 384  # MiniLM's: random vectors of its size cost what its own do
 
 
 def main() -> None:
