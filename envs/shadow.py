@@ -54,9 +54,9 @@ class EpisodeShadow:
 
 
 def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, randomisation=None,
-                   placements: str = "benchmark") -> EpisodeShadow:
+                   placements: str = "benchmark", steps: int | None = None) -> EpisodeShadow:
     """One episode of `act` with `expert` (a fresh noiseless expert, or its bound `act`) asked at every state;
-    `placements` as `rollout`'s (a MetaWorld task's, evaluate.metaworld_placements)."""
+    `placements` and `steps` as `rollout`'s (evaluate.metaworld_placements, evaluate.max_steps)."""
     distances: list[float | None] = []
     phases: list[tuple[int, str]] = []
     owner = getattr(expert, "__self__", expert)
@@ -70,7 +70,8 @@ def shadow_episode(env, task: TaskRecord, seed: int, act: Act, expert: Act, rand
         phases.append(expert_phase(owner))
         return action
 
-    rows, _, success = rollout(env, task, seed, policy, randomisation, label=shadowing, placements=placements)
+    rows, _, success = rollout(env, task, seed, policy, randomisation, label=shadowing, steps=steps,
+                                placements=placements)
     taken = np.asarray([r["action"] for r in rows], dtype=np.float64)
     wanted = np.asarray([r["expert_action"] for r in rows], dtype=np.float64)
     discrete = task.family in DISCRETE_FAMILIES

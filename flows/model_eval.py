@@ -212,10 +212,13 @@ def conditions_apart(workspace: Workspace, config: CampaignConfig) -> list[str]:
 
 def _suite(name: str, apart: list[str], config: CampaignConfig, cases: list[tuple[TaskRecord, str, str]]) -> str:
     """The suite's name: `name`, then what differs from the campaign's exploration (`conditions_apart`), and
-    MetaWorld's placements where its cases are on other ones than MT1's (exploration always takes MT1's)."""
+    MetaWorld's placements where its cases are on other ones than MT1's (exploration always takes MT1's), and
+    episodes cut short of their horizons."""
     placements = config.evaluate.metaworld_placements
     if placements != "benchmark" and any(task.family == "metaworld" for task, _, _ in cases):
         apart = [*apart, f"evaluate.metaworld_placements={placements}"]
+    if config.evaluate.max_steps is not None:
+        apart = [*apart, f"evaluate.max_steps={config.evaluate.max_steps}"]
     return f"{name} @ {', '.join(apart)}" if apart else name
 
 

@@ -456,6 +456,10 @@ class EvaluateConfig(_Strict):
         "takes MT1's 50 fixed ones per task (seed % 50, as exploration does: an evaluation episode mostly starts where "
         "an explored one did); 'fresh' draws each from the task's own reset space by the episode's seed (as "
         "robosuite and navigation always do), placements no exploration saw. `sim2act eval` names it in the suite")
+    max_steps: PositiveInt | None = Field(
+        default=None, description="end every evaluation episode after at most this many steps (a success within "
+        "them still counts): a quick look, or a test's, whose success rates do not compare with full horizons, so "
+        "its units are its own and `sim2act eval` names it in the suite; None: each task's horizon")
     training_seeds: PositiveInt = Field(
         default=1, le=16, description="trainings of each iteration's dataset (train.seed, train.seed + 1, ...): the "
         "first is the campaign's model (it competes for champion and explores the next iteration); the others, "

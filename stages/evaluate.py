@@ -59,6 +59,7 @@ class EvalUnit(BaseModel):
     others: list[TaskRecord] = []
     video_stem: str | None  # <stem>-success.mp4 / <stem>-failure.mp4: the first episode of each outcome
     metaworld_placements: str = "benchmark"  # evaluate.metaworld_placements: applies to MetaWorld tasks
+    max_steps: int | None = None  # evaluate.max_steps: each episode ends there at the latest (None: the horizon)
 
 
 class TaskEvaluation(BaseModel):
@@ -316,7 +317,7 @@ def evaluate_unit(unit: EvalUnit) -> TaskEvaluation:
 
         rows, final, success = rollout(
             env, unit.task, seed, act, sample_randomisation(unit.randomise, seed, env.RANDOMISES),
-            placements=_placements(unit),
+            steps=unit.max_steps, placements=_placements(unit),
         )
         returns.append(sum(r["reward"] for r in rows))
         lengths.append(len(rows))
@@ -357,7 +358,7 @@ def shadow_unit(unit: EvalUnit) -> CaseShadow:
         case.add(shadow_episode(env, unit.task, seed, lambda obs: decide(obs)[0],
                                 make_expert(unit.task, 0.0, np.random.default_rng(seed)),
                                 sample_randomisation(unit.randomise, seed, env.RANDOMISES),
-                                placements=_placements(unit)))
+                                placements=_placements(unit), steps=unit.max_steps))
     return case
 
 
@@ -444,7 +445,7 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
     # set (sim2act eval --split) finds the same unit
     reads = {"evaluate": config.evaluate.model_dump(exclude={"workers", "episodes_per_split", "episodes_per_task",
                                                              "held_out_wordings", "training_seeds",
-                                                             "metaworld_placements"}),
+                                                             "metaworld_placements", "max_steps"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
     per_split = per_split or episodes_per_split(config, cases)
@@ -456,13 +457,16 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
         reads.pop("metaworld_placements", None)
         if placements != "benchmark":
             reads["metaworld_placements"] = placements
+        if config.evaluate.max_steps is not None:  # likewise only where set: episodes cut short are other units
+            reads["max_steps"] = config.evaluate.max_steps
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
                               randomise=config.randomise, agent=agent, seeds=seeds,
                               embedding=embeddings[instruction].tolist(), others=others_of(task, cases),
                               video_stem=str(workspace.media / key) if config.evaluate.videos else None,
-                              metaworld_placements=config.evaluate.metaworld_placements))
+                              metaworld_placements=config.evaluate.metaworld_placements,
+                              max_steps=config.evaluate.max_steps))
     return units
 
 

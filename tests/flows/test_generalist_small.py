@@ -24,7 +24,9 @@ SMALL = {"tasks.max_tasks_per_spec": "1", "explore.episodes_per_task": "1", "tra
          # as the documented command draws (docs/results-generalist.md), and smoke's model: what this test asserts
          # (every spec explored, trained on, evaluated in every split) at less of the suite's time
          "render.mesh_detail": "0.1", "train.model.dim": "32", "train.model.vision_depth": "1",
-         "train.model.fusion_depth": "1", "train.model.heads": "4", "train.loader_workers": "0"}
+         "train.model.fusion_depth": "1", "train.model.heads": "4", "train.loader_workers": "0",
+         # its 73 evaluation episodes ran to their horizons (~14,500 steps): a few steps each still meet every case
+         "evaluate.max_steps": "5"}
 
 
 def test_the_generalist_preset_runs_every_spec_of_its_three_families_at_small_size(tmp_path, prefect_api):

@@ -51,6 +51,9 @@ def test_an_evaluation_under_other_frames_than_the_campaign_explored_is_a_suite_
     assert _suite("campaign", [], fresh, [(metaworld, "seen", "reach the goal")]) == \
         "campaign @ evaluate.metaworld_placements=fresh"
     assert _suite("campaign", ["render.shadows=true"], fresh, []) == "campaign @ render.shadows=true"
+    # episodes cut short (evaluate.max_steps) are no full-horizon figure, whatever the family
+    short = config.model_copy(update={"evaluate": config.evaluate.model_copy(update={"max_steps": 10})})
+    assert _suite("campaign", [], short, []) == "campaign @ evaluate.max_steps=10"
     tasks = tmp_path / "elsewhere.yaml"
     tasks.write_text(NEW_TASKS)
     assert eval_cases(workspace, config, tasks, None)[0] == "file:elsewhere.yaml"

@@ -253,6 +253,31 @@ def test_an_rl_agent_meets_its_familys_cases_with_the_campaigns_episodes_per_spl
                                                                       embeddings)}
 
 
+def test_evaluate_max_steps_ends_each_episode_there_in_units_of_their_own(tmp_path):
+    """evaluate.max_steps (a quick look, the suite's generalist test): every episode ends at that step at the
+    latest, and its units are not the full-horizon ones (whose keys hold as they were: it is in a key only where set)."""
+    import numpy as np
+
+    from envs.suite import generate_tasks
+    from schemas.config import CampaignConfig, EvaluateConfig, TasksConfig
+    from schemas.workspace import Workspace
+    from stages.evaluate import Agent, evaluate_unit, evaluation_cases, evaluation_units
+
+    tasks = TasksConfig(specs=["nav-room"], colours=["red"])
+    full, short = (CampaignConfig(tasks=tasks, evaluate=EvaluateConfig(episodes_per_task=2, videos=False,
+                                                                       max_steps=steps)) for steps in (None, 3))
+    cases = evaluation_cases(generate_tasks(full.tasks, full.seed))[:1]
+    embeddings = {instruction: np.zeros(384, dtype=np.float32) for _, _, instruction in cases}
+    workspace, agent = Workspace.at(tmp_path), Agent(kind="expert")
+    [whole] = evaluation_units(workspace, full, "m", agent, cases, embeddings)
+    [cut] = evaluation_units(workspace, short, "m", agent, cases, embeddings)
+    assert cut.unit_key != whole.unit_key and cut.seeds == whole.seeds
+    assert cases[0][0].horizon > 3
+    evaluation = evaluate_unit(cut)
+    assert evaluation.episodes == 2 and max(evaluation.episode_lengths) <= 3
+    assert evaluation.successes == 0  # the room's goal is farther than three steps from its start
+
+
 def test_a_familys_group_holds_each_task_once_said_canonically():
     """A seen task said again in a held-out paraphrase replays its episode seeds: pooled into `success.<family>`
     beside its canonical case it counted twice as independent episodes."""
