@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
-from flows.cli.common import (Commands, add_campaign_options, campaign_config, check_tracking_server,
+from flows.cli.common import (Commands, add_campaign_options, add_config_options, campaign_config, check_tracking_server,
                               configure_environment, non_negative_int, open_catalog, output_file, positive_int,
                               same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
@@ -378,6 +378,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_config(args: argparse.Namespace) -> int:
+    from schemas.config_text import config_yaml
+
+    print(config_yaml(campaign_config(args), changed=args.changed, said=args.command_line), end="")
+    return 0
+
+
 def register(commands: Commands) -> None:
     def campaign_command(name: str, help: str, handler) -> argparse.ArgumentParser:
         command = add_campaign_options(commands.add_parser(name, help=help))
@@ -432,3 +439,11 @@ def register(commands: Commands) -> None:
 
     campaign_command("report", "the results table: success per iteration beside the baselines, dataset, compute",
                      cmd_report).add_argument("--out", type=output_file, help="write the Markdown here (default: print it)")
+
+    config = add_config_options(commands.add_parser(
+        "config", help="the campaign the options name, every field with its value and what it does: YAML that "
+                       "--config loads back"))
+    config.add_argument("--changed", action="store_true",
+                        help="only the fields whose value differs from the default preset's (still a whole campaign "
+                             "with --config)")
+    config.set_defaults(handler=cmd_config)

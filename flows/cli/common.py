@@ -103,13 +103,18 @@ def add_workspace_option(command: argparse.ArgumentParser) -> argparse.ArgumentP
     return command
 
 
-def add_campaign_options(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """A command that reads a campaign config (preset, file, --set) and a workspace, as `run` does."""
+def add_config_options(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """A command that reads a campaign config: preset, file, --set."""
     command.add_argument("--preset", choices=PRESETS, default="default")
     command.add_argument("--config", type=Path, help="YAML file whose fields override the preset's")
     command.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                          help="override one config field, e.g. --set train.contrastive_weight=0 (repeatable)")
-    return add_workspace_option(command)
+    return command
+
+
+def add_campaign_options(command: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """A command that reads a campaign config (preset, file, --set) and a workspace, as `run` does."""
+    return add_workspace_option(add_config_options(command))
 
 
 def campaign_config(args: argparse.Namespace, overrides: dict | None = None) -> CampaignConfig:
