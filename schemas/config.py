@@ -30,17 +30,18 @@ class ChatEndpointConfig(_Strict):
     """An OpenAI-compatible chat-completions endpoint (Ollama, vLLM, llama.cpp server, a hosted API)."""
 
     url: str = Field(pattern=r"^https?://", description="base URL, e.g. http://127.0.0.1:11434/v1")
-    model: str = Field(min_length=1)
+    model: str = Field(min_length=1, description="the model name the endpoint serves, as its API takes it")
     timeout_s: float = Field(default=60.0, gt=0, description="per request")
     retries: int = Field(default=2, ge=0, description="further tries after a timeout, refused connection or 5xx")
-    temperature: float = Field(default=0.7, ge=0.0, le=2.0)
+    temperature: float = Field(default=0.7, ge=0.0, le=2.0, description="sampling temperature of the answers")
     api_key_env: str | None = Field(default=None, description="environment variable holding the API key")
 
 
 class ProposerConfig(ChatEndpointConfig):
     """A chat endpoint that proposes tasks."""
 
-    proposals: PositiveInt = 10
+    proposals: PositiveInt = Field(default=10, description="tasks asked for in the one request (a proposal of an "
+                                   "existing task adds paraphrases to it)")
     fallback_to_templates: bool = Field(default=False, description="if unreachable: templates only, not failure")
 
 
@@ -65,7 +66,9 @@ class TasksConfig(_Strict):
     spec_files: list[Path] = Field(default=[], description="extra YAML spec files")
     colours: list[Colour] | None = Field(default=None, description="bind only these colours (default: the spec's)")
     unseen_colours: list[Colour] = Field(default=[], description="held out in addition to each spec's own")
-    max_tasks_per_spec: PositiveInt | None = None
+    max_tasks_per_spec: PositiveInt | None = Field(
+        default=None, description="bind at most this many colourings of each spec, in the spec's order (after "
+        "the tasks left out for a weak expert); None: every one")
     paraphrases: int = Field(default=3, ge=3, description="instructions per task, canonical included")
     include: list[str] | None = Field(default=None, description="keep only these task ids")
     horizon: dict[str, PositiveInt] = Field(default={}, description=(
@@ -88,13 +91,14 @@ class TasksConfig(_Strict):
 class RenderConfig(_Strict):
     """How frames are rendered; recorded per campaign so training and evaluation see alike."""
 
-    camera: CameraName = "agentview"
-    image_size: int = Field(default=84, ge=32, le=256)
+    camera: CameraName = Field(default="agentview", description="the view a policy sees (robosuite's camera "
+                               "names; MetaWorld and navigation map each to a camera of their own scene)")
+    image_size: int = Field(default=84, ge=32, le=256, description="side of the square frame, in pixels")
     # Shadows, reflections and multisampling cost 3-4x render time on CPU (docs/rollouts.md: 4x MSAA
     # alone took raw rendering from 48 to 27 frames/s) and add little a policy needs at 84 px.
-    shadows: bool = False
-    reflections: bool = False
-    multisamples: int = Field(default=0, ge=0, le=16)
+    shadows: bool = Field(default=False, description="draw shadows (MuJoCo's shadow maps)")
+    reflections: bool = Field(default=False, description="draw reflective surfaces")
+    multisamples: int = Field(default=0, ge=0, le=16, description="anti-aliasing samples per pixel (MSAA); 0: off")
     depth: bool = Field(default=False, description="also record a depth map with every frame; the policy then sees RGB-D")
     # Triangles are a CPU frame's cost (robosuite's visual meshes: 167k faces for Lift). Below 1, robosuite and
     # MetaWorld scenes draw each visual-only mesh decimated to this fraction of its faces (envs/mesh_detail.py):
@@ -152,7 +156,8 @@ class RandomiseConfig(_Strict):
     something for it (a navigation ball has no mass that matters) and records the others as null.
     """
 
-    enabled: bool = True
+    enabled: bool = Field(default=True, description="draw every episode's scene from the ranges below by its "
+                          "seed; false: the nominal scene each time")
     light: Scale = Field(default=(0.6, 1.4), description="diffuse light intensity scale")
     camera_shift_m: float = Field(default=0.02, ge=0, le=0.2, description="max camera offset per axis, metres")
     camera_rotation_deg: float = Field(default=2.0, ge=0, le=15, description="max camera rotation per axis")
@@ -183,12 +188,14 @@ def _levels(value: float | list[float]) -> list[float]:
 
 
 class ExploreConfig(_Strict):
-    episodes_per_task: PositiveInt = 8
+    episodes_per_task: PositiveInt = Field(default=8, description="episodes explored per seen task each iteration "
+                                           "(iteration >= 1 shares them by priority: explore.prioritise)")
     first_episodes_per_task: PositiveInt | None = Field(
         default=None, description="iteration 0's episodes per seen task (the experts' seed set: MimicGen starts "
         "from 10), when the later iterations' budget is another (explore.episodes_per_task); None: the same"
     )
-    episodes_per_shard: PositiveInt = 4
+    episodes_per_shard: PositiveInt = Field(default=4, description="episodes of one task per Parquet shard: the "
+                                            "unit of work a kill loses at most")
     expert_noise: NoiseLevel | list[NoiseLevel] = Field(
         default=0.1, description="std of the expert's Gaussian action noise; a list is a schedule of levels cycled "
         "over each task's expert episodes (clean and noisy demonstrations side by side)"
@@ -273,7 +280,7 @@ class ExploreConfig(_Strict):
 
 class FilterConfig(_Strict):
     min_return: float = Field(default=0.0, description="episodes whose return is below this are rejected")
-    require_success: bool = False
+    require_success: bool = Field(default=False, description="keep only the episodes that reached their goal")
 
 
 # What a model field added after the first checkpoints did before it existed: a checkpoint whose
@@ -297,11 +304,13 @@ class ModelConfig(_Strict):
         description="spatial-softmax keypoints (Levine et al. 2016) over the ResNet-18 trunk's stride-8 feature "
         "map, as one more vision token (hybrid, resnet18): where things are, finer than the trunk's 32 px cells; 0: none",
     )
-    dim: PositiveInt = 64
-    vision_depth: PositiveInt = 2
-    fusion_depth: PositiveInt = 2
-    heads: PositiveInt = 4
-    language_encoder: Literal["all-MiniLM-L6-v2"] = "all-MiniLM-L6-v2"
+    dim: PositiveInt = Field(default=64, description="width of every token in the vision and fusion transformers")
+    vision_depth: PositiveInt = Field(default=2, description="transformer layers of the vision encoder (vit, hybrid)")
+    fusion_depth: PositiveInt = Field(default=2, description="transformer layers over the vision, language and "
+                                      "proprioception tokens together")
+    heads: PositiveInt = Field(default=4, description="attention heads per layer; divides dim")
+    language_encoder: Literal["all-MiniLM-L6-v2"] = Field(
+        default="all-MiniLM-L6-v2", description="the sentence encoder of the instructions (the packaged weights)")
     language_trainable: bool = Field(
         default=False, description="fine-tune the language encoder (else frozen: cached embeddings)"
     )
@@ -365,19 +374,20 @@ class TrainConfig(_Strict):
         "step t; the average is what gets evaluated, registered and explores (the last weights are kept beside "
         "it in the checkpoint); None: the last weights",
     )
-    epochs: PositiveInt = 10
+    epochs: PositiveInt = Field(default=10, description="passes over the iteration's dataset (unless train.steps)")
     steps: PositiveInt | None = Field(
         default=None, description="optimiser steps per model instead of epochs: the epochs become ceil(steps / "
         "batches per epoch), so a training costs the same as the dataset grows over iterations; None: train.epochs",
     )
-    batch_size: PositiveInt = 64
-    lr: float = Field(default=3e-4, gt=0)
+    batch_size: PositiveInt = Field(default=64, description="triplets per optimiser step")
+    lr: float = Field(default=3e-4, gt=0, description="AdamW's peak learning rate")
     language_lr: float = Field(default=2e-5, gt=0, description="learning rate of a fine-tuned language encoder")
-    weight_decay: float = Field(default=0.01, ge=0)
+    weight_decay: float = Field(default=0.01, ge=0, description="AdamW's decoupled weight decay")
     contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")
-    temperature: float = Field(default=0.1, gt=0)
-    grad_clip: float = Field(default=1.0, gt=0)
-    shuffle_buffer: PositiveInt = 2048
+    temperature: float = Field(default=0.1, gt=0, description="InfoNCE's temperature (the contrastive term)")
+    grad_clip: float = Field(default=1.0, gt=0, description="the gradients' global norm is clipped to this")
+    shuffle_buffer: PositiveInt = Field(default=2048, description="triplets the streaming reader shuffles among "
+                                        "(more: batches less correlated, more memory)")
     augment_shift: int = Field(
         default=4, ge=0, le=16,
         description="shift each training frame by up to this many pixels each way (edges repeated); 0: off",
@@ -440,7 +450,8 @@ class TrainConfig(_Strict):
 
 
 class EvaluateConfig(_Strict):
-    episodes_per_task: PositiveInt = 3
+    episodes_per_task: PositiveInt = Field(default=3, description="episodes per evaluation case (a task in one "
+                                           "wording), each on its own seed")
     episodes_per_split: PositiveInt | None = Field(
         default=None, description="at least this many episodes in each split's cell: a split of n cases gets "
         "max(episodes_per_task, ceil(episodes_per_split / n)) per case (45 bounds a Wilson 95% interval to about "
@@ -449,7 +460,7 @@ class EvaluateConfig(_Strict):
     held_out_wordings: bool = Field(
         default=False, description="also evaluate every seen task said in words the generator never uses "
         "(split held_out_wording: schemas/wordings.py), on the canonical wording's seeds")
-    workers: PositiveInt = 2
+    workers: PositiveInt = Field(default=2, description="processes evaluating cases at once")
     videos: bool = Field(default=True, description="an MP4 of the first success and the first failure per case")
     metaworld_placements: Literal["benchmark", "fresh"] = Field(
         default="benchmark", description="MetaWorld's object and goal placements in evaluation episodes: 'benchmark' "
@@ -478,7 +489,8 @@ class RedeployConfig(_Strict):
     registered_model: str | None = Field(
         default=None, pattern=r"^[A-Za-z0-9_.-]+$", description="registry name; default sim2act-<campaign>"
     )
-    alias: str = Field(default="champion", pattern=r"^[A-Za-z][A-Za-z0-9_-]*$")
+    alias: str = Field(default="champion", pattern=r"^[A-Za-z][A-Za-z0-9_-]*$",
+                       description="the registry alias the champion carries (`--model champion` reads it)")
 
 
 class BaselinesConfig(_Strict):
@@ -568,9 +580,11 @@ COLOUR_JITTER_MAX = 0.13
 class CampaignConfig(_Strict):
     """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
 
-    name: str = Field(default="default", pattern=r"^[a-z0-9][a-z0-9_-]*$")
-    seed: int = Field(default=0, ge=0)
-    iterations: PositiveInt = 2
+    name: str = Field(default="default", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="the campaign's name: its "
+                      "rows, MLflow runs and registered model, and its evaluation episodes' seeds derive from it")
+    seed: int = Field(default=0, ge=0, description="the campaign seed every task binding, episode and RL agent draws from")
+    iterations: PositiveInt = Field(default=2, description="bootstrap iterations (`sim2act run --iterations` "
+                                    "continues a finished campaign to more)")
     tasks: TasksConfig = TasksConfig()
     render: RenderConfig = RenderConfig()
     randomise: RandomiseConfig = RandomiseConfig()

@@ -44,3 +44,25 @@ def test_sim2act_config_prints_it_and_refuses_a_bad_field_in_one_line(capsys):
     assert yaml.safe_load(out)["train"]["steps"] == 3
     assert main(["config", "--set", "train.stepz=3"]) == 2
     assert capsys.readouterr().err.strip() == "sim2act: config error: train.stepz: unknown key"
+
+
+def test_every_config_field_says_what_it_does():
+    """robomimic's rule: a field a person reads in `sim2act config` (or the Prefect UI's form) comes with its purpose."""
+    import typing
+
+    from pydantic import BaseModel
+
+    from schemas.config import CampaignConfig
+
+    def silent(model: type[BaseModel], prefix: str = "") -> list[str]:
+        found = []
+        for name, field in model.model_fields.items():
+            nested = [a for a in (field.annotation, *typing.get_args(field.annotation))
+                      if isinstance(a, type) and issubclass(a, BaseModel)]
+            if nested:
+                found += [path for sub in nested for path in silent(sub, f"{prefix}{name}.")]
+            elif not field.description:
+                found.append(prefix + name)
+        return found
+
+    assert silent(CampaignConfig) == []
