@@ -582,7 +582,8 @@ class CampaignConfig(_Strict):
 
     name: str = Field(default="default", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="the campaign's name: its "
                       "rows, MLflow runs and registered model, and its evaluation episodes' seeds derive from it")
-    seed: int = Field(default=0, ge=0, description="the campaign seed every task binding, episode and RL agent draws from")
+    seed: int = Field(default=0, ge=0,
+                      description="the campaign seed every task binding, episode and RL agent draws from")
     iterations: PositiveInt = Field(default=2, description="bootstrap iterations (`sim2act run --iterations` "
                                     "continues a finished campaign to more)")
     tasks: TasksConfig = TasksConfig()
