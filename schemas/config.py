@@ -490,7 +490,7 @@ class RedeployConfig(_Strict):
         default=None, pattern=r"^[A-Za-z0-9_.-]+$", description="registry name; default sim2act-<campaign>"
     )
     alias: str = Field(default="champion", pattern=r"^[A-Za-z][A-Za-z0-9_-]*$",
-                       description="the registry alias the champion carries (`--model champion` reads it)")
+                       description="the registry alias the champion carries (`sim2act eval --model ALIAS` finds it by)")
 
 
 class BaselinesConfig(_Strict):
