@@ -93,7 +93,7 @@ class RenderConfig(_Strict):
 
     camera: CameraName = Field(default="agentview", description="the view a policy sees (robosuite's camera "
                                "names; MetaWorld and navigation map each to a camera of their own scene)")
-    image_size: int = Field(default=84, ge=32, le=256, description="side of the square frame, in pixels")
+    image_size: int = Field(default=84, ge=32, le=256, description="side of each view's square frame, in pixels")
     # Shadows, reflections and multisampling cost 3-4x render time on CPU (docs/rollouts.md: 4x MSAA
     # alone took raw rendering from 48 to 27 frames/s) and add little a policy needs at 84 px.
     shadows: bool = Field(default=False, description="draw shadows (MuJoCo's shadow maps)")
@@ -156,8 +156,9 @@ class RandomiseConfig(_Strict):
     something for it (a navigation ball has no mass that matters) and records the others as null.
     """
 
-    enabled: bool = Field(default=True, description="draw every episode's scene from the ranges below by its "
-                          "seed; false: the nominal scene each time")
+    enabled: bool = Field(default=True, description="draw every episode's light, camera, colours and object "
+                          "physics from the ranges below by its seed; false: the simulator's nominal values "
+                          "(placements still follow the seed)")
     light: Scale = Field(default=(0.6, 1.4), description="diffuse light intensity scale")
     camera_shift_m: float = Field(default=0.02, ge=0, le=0.2, description="max camera offset per axis, metres")
     camera_rotation_deg: float = Field(default=2.0, ge=0, le=15, description="max camera rotation per axis")
@@ -194,8 +195,9 @@ class ExploreConfig(_Strict):
         default=None, description="iteration 0's episodes per seen task (the experts' seed set: MimicGen starts "
         "from 10), when the later iterations' budget is another (explore.episodes_per_task); None: the same"
     )
-    episodes_per_shard: PositiveInt = Field(default=4, description="episodes of one task per Parquet shard: the "
-                                            "unit of work a kill loses at most")
+    episodes_per_shard: PositiveInt = Field(default=4, description="episodes of one task per explore unit (its "
+                                            "episodes and steps shards): a kill loses at most the units in flight, "
+                                            "one per worker")
     expert_noise: NoiseLevel | list[NoiseLevel] = Field(
         default=0.1, description="std of the expert's Gaussian action noise; a list is a schedule of levels cycled "
         "over each task's expert episodes (clean and noisy demonstrations side by side)"
@@ -304,7 +306,8 @@ class ModelConfig(_Strict):
         description="spatial-softmax keypoints (Levine et al. 2016) over the ResNet-18 trunk's stride-8 feature "
         "map, as one more vision token (hybrid, resnet18): where things are, finer than the trunk's 32 px cells; 0: none",
     )
-    dim: PositiveInt = Field(default=64, description="width of every token in the vision and fusion transformers")
+    dim: PositiveInt = Field(default=64, description="width of every token and embedding (vision, fusion, the "
+                             "contrastive space)")
     vision_depth: PositiveInt = Field(default=2, description="transformer layers of the vision encoder (vit, hybrid)")
     fusion_depth: PositiveInt = Field(default=2, description="transformer layers over the vision, language and "
                                       "proprioception tokens together")
@@ -386,8 +389,8 @@ class TrainConfig(_Strict):
     contrastive_weight: float = Field(default=0.2, ge=0.0, le=1.0, description="lambda in lambda*InfoNCE + (1-lambda)*BC")
     temperature: float = Field(default=0.1, gt=0, description="InfoNCE's temperature (the contrastive term)")
     grad_clip: float = Field(default=1.0, gt=0, description="the gradients' global norm is clipped to this")
-    shuffle_buffer: PositiveInt = Field(default=2048, description="triplets the streaming reader shuffles among "
-                                        "(more: batches less correlated, more memory)")
+    shuffle_buffer: PositiveInt = Field(default=2048, description="triplets each loader worker's streaming reader "
+                                        "shuffles among (more: batches less correlated, more memory)")
     augment_shift: int = Field(
         default=4, ge=0, le=16,
         description="shift each training frame by up to this many pixels each way (edges repeated); 0: off",
@@ -581,9 +584,11 @@ class CampaignConfig(_Strict):
     """A bootstrap campaign: K iterations of generate -> explore -> filter -> index -> train -> evaluate -> redeploy."""
 
     name: str = Field(default="default", pattern=r"^[a-z0-9][a-z0-9_-]*$", description="the campaign's name: its "
-                      "rows, MLflow runs and registered model, and its evaluation episodes' seeds derive from it")
+                      "rows, MLflow runs and registered model; with seed, its episodes' and trainings' seeds derive "
+                      "from it")
     seed: int = Field(default=0, ge=0,
-                      description="the campaign seed every task binding, episode and RL agent draws from")
+                      description="the campaign seed: each task's paraphrases, every explored and evaluated "
+                      "episode, each training's initialisation and shuffling, and the RL agents draw from it")
     iterations: PositiveInt = Field(default=2, description="bootstrap iterations (`sim2act run --iterations` "
                                     "continues a finished campaign to more)")
     tasks: TasksConfig = TasksConfig()
