@@ -30,13 +30,13 @@ def config_yaml(config: CampaignConfig, changed: bool = False, said: str = "") -
               "# run it: sim2act run --config THIS_FILE (every setting is here: no --preset needed)"
               if not changed else
               "# the fields that differ from the default preset; run it: sim2act run --config THIS_FILE (no --preset)"]
-    return "\n".join([*header, *_fields(config, base, 0)]) + "\n"
+    # dumped once, as YAML writes enums, paths and tuples; each section reads its part
+    return "\n".join([*header, *_fields(config, config.model_dump(mode="json"), base, 0)]) + "\n"
 
 
-def _fields(model: BaseModel, base: BaseModel | None, depth: int) -> list[str]:
-    """`model`'s fields as YAML lines at `depth`; with `base`, only those that differ from it."""
+def _fields(model: BaseModel, values: dict, base: BaseModel | None, depth: int) -> list[str]:
+    """`model`'s fields (`values`: its JSON dump) as YAML lines at `depth`; with `base`, only those that differ."""
     pad = "  " * depth
-    values = model.model_dump(mode="json")  # enums, paths and tuples as YAML writes them
     lines: list[str] = []
     for name, field in type(model).model_fields.items():
         value, other = getattr(model, name), None if base is None else getattr(base, name)
@@ -47,7 +47,7 @@ def _fields(model: BaseModel, base: BaseModel | None, depth: int) -> list[str]:
                                                               break_long_words=False)]
         if isinstance(value, BaseModel):
             # a section that was None under the base (an optional one set here) is written whole
-            inner = _fields(value, other if isinstance(other, BaseModel) else None, depth + 1)
+            inner = _fields(value, values[name], other if isinstance(other, BaseModel) else None, depth + 1)
             lines += [f"{pad}{name}:", *inner]
         else:
             lines += _flow_lines(f"{pad}{name}: ", values[name], pad + "    ")
@@ -61,13 +61,13 @@ def _flow_lines(start: str, value, indent: str) -> list[str]:
         opening, closing = ("[", "]") if isinstance(value, list) else ("{", "}")
         items = [_flow(v) for v in value] if isinstance(value, list) else \
             [f"{_flow(k)}: {_flow(v)}" for k, v in value.items()]
-        lines, line = [], start + opening
+        lines, line, holds_item = [], start + opening, False
         for i, item in enumerate(items):
             piece = item + (", " if i < len(items) - 1 else closing)
-            if len(line) + len(piece.rstrip()) > WIDTH and line.strip() not in ("", start.strip() + opening):
+            if holds_item and len(line) + len(piece.rstrip()) > WIDTH:
                 lines.append(line.rstrip())
                 line = indent
-            line += piece
+            line, holds_item = line + piece, True
         return [*lines, line]
     return [start + _flow(value)]
 

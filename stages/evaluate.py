@@ -448,6 +448,8 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
                                                              "metaworld_placements", "max_steps"}),
              "render": render_key_fields(config.render), "randomise": config.randomise,
              "seeds_from": [config.name, config.seed]}  # the episodes' seeds derive from these
+    if config.evaluate.max_steps is not None:  # only where set, as placements: episodes cut short are other units
+        reads["max_steps"] = config.evaluate.max_steps
     per_split = per_split or episodes_per_split(config, cases)
     for task, split, instruction in cases:
         episodes = per_split[split]
@@ -457,8 +459,6 @@ def evaluation_units(workspace: Workspace, config: CampaignConfig, model_key: st
         reads.pop("metaworld_placements", None)
         if placements != "benchmark":
             reads["metaworld_placements"] = placements
-        if config.evaluate.max_steps is not None:  # likewise only where set: episodes cut short are other units
-            reads["max_steps"] = config.evaluate.max_steps
         key = unit_key(STAGE, VERSION, reads, [model_key, suite, task.model_dump_json(), split, instruction])
         seeds = [derive_seed(config.name, config.seed, "evaluate", task.task_id, e) for e in range(episodes)]
         units.append(EvalUnit(unit_key=key, task=task, split=split, instruction=instruction, render=config.render,
