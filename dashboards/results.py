@@ -168,7 +168,7 @@ def unseen_by_kind_markdown(evaluations: dict[int, list[TaskEvaluation]], baseli
         # a case evaluated unseen whose task the campaign's tasks now hold as seen (a changed tasks.*) has no kind
         return [e for e in met if e.split == "unseen" and e.task_id in kinds]
 
-    evaluated = {(e.family, e.task_id) for found in evaluations.values() for e in unseen(found)}
+    evaluated = {(e.family, e.task_id) for found in [*evaluations.values(), *baselines.values()] for e in unseen(found)}
     families = sorted({family for family, _ in evaluated})
     tasks = Counter((family, kinds[task_id]) for family, task_id in evaluated)
 
@@ -382,7 +382,7 @@ def spec_markdown(catalog: Catalog, campaign: str) -> list[str]:
     by_iteration = {  # grouped as if each spec were a family: "<spec>/<split>"
         iteration: group_success([e.model_copy(update={"family": spec_of[e.task_id]}) for e in evaluations])
         for iteration, evaluations in evaluations_by_iteration(catalog, campaign).items()}
-    return _split_table("Per task spec (Sim2Act)", by_iteration, specs)
+    return _split_table("Per task spec (Sim2Act)", by_iteration, specs) if by_iteration else []
 
 
 def protocol_markdown(catalog: Catalog, campaign: str) -> list[str]:
@@ -538,25 +538,38 @@ def _success_sections(catalog: Catalog, campaign: str, evaluations: dict[int, li
     if models is not None:
         lines += pending_baselines_markdown(catalog, campaign, models, holder)
 
-    families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group})
+    families = sorted({g.group.split("/")[0] for groups in by_iteration.values() for g in groups if "/" in g.group}
+                      | {e.family for met in baselines.values() for e in met})
     if len(families) > 1:
-        lines += _split_table("Per family (Sim2Act)", by_iteration, families)
+        lines += _split_table("Per family (Sim2Act)", by_iteration, families) if by_iteration else []
         lines += family_baselines_markdown(by_iteration, baselines, families, cases, steps_through)
     lines += unseen_by_kind_markdown(evaluations, baselines, unseen_kinds(catalog, campaign), cases)
 
     lines += spec_markdown(catalog, campaign)
 
-    lines += ["", "## Training seeds (the results protocol)", "", *protocol_markdown(catalog, campaign)]
-
-    lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
+    if evaluations:  # no policy (the baselines alone): no training seeds, no champion to adapt
+        lines += ["", "## Training seeds (the results protocol)", "", *protocol_markdown(catalog, campaign)]
+        lines += ["", "## Adaptation to a shifted domain", "", *adaptation_markdown(catalog, campaign)]
 
     return lines
+
+
+def planned_cases(catalog: Catalog, campaign: str) -> Counter:
+    """family -> the evaluation cases the campaign's latest tasks make, as the baselines meet them
+    (`stages.evaluate.evaluation_cases` without held-out wordings): each task said canonically, and each seen
+    task with held-out paraphrases said with the first of them."""
+    return Counter(dict(catalog.query(
+        "SELECT family, count(*) + count(*) FILTER (WHERE split = 'seen' AND len(unseen_instructions) > 0) FROM ("
+        "SELECT t.* FROM tasks t LEFT JOIN stage_runs r ON r.unit_key = t.unit_key WHERE t.campaign = ? "
+        "QUALIFY row_number() OVER (PARTITION BY t.task_id ORDER BY r.finished_at DESC NULLS LAST, t.unit_key DESC) = 1"
+        ") GROUP BY family", [campaign])))
 
 
 def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None,
                      holder: dict | None = None) -> str:
     """The report. A campaign whose latest dataset is indexed but not yet evaluated (the generalist's
-    million, before its training) gets its dataset and compute sections alone. With `models` (the
+    million, before its training) gets its dataset and compute sections alone; one of no iteration (iterations: 0)
+    its baselines and compute. With `models` (the
     workspace's), the RL baselines not evaluated yet are listed below the table, each as far as it got,
     and whether `holder` (the run holding the workspace now, or None) is training them.
 
@@ -566,7 +579,10 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     latest = catalog.query(  # the last dataset's: every iteration's exploration, nothing older
         f"SELECT explore_units, filter_units FROM {CURRENT_ITERATIONS} WHERE campaign = ? ORDER BY iteration DESC LIMIT 1",
         [campaign])
-    if not evaluations and not latest:
+    # no iteration explored or evaluated, but baselines evaluated or planned (iterations: 0, mid-training included)
+    baselines_alone = not evaluations and not latest and bool(
+        baseline_evaluations(catalog, campaign) or (models is not None and campaign_plans(models, campaign)))
+    if not evaluations and not latest and not baselines_alone:
         held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
         raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse ("
                          + (f"it holds {', '.join(map(repr, held))}: name it with --preset, --config or --set name=...)"
@@ -592,7 +608,11 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
              "baseline meets the same episodes: seeds derive from campaign, task and episode), pooled "
              "per split, the Wilson 95% interval in parentheses.", "",
              "## Success per iteration and against the baselines", ""]
-    if not evaluations:
+    if baselines_alone:  # iterations: 0, the baselines alone: they meet the campaign's tasks' cases
+        lines += ["No iteration: the campaign measures its baselines alone (iterations: 0).", ""]
+        lines += _success_sections(catalog, campaign, evaluations, steps_through, planned_cases(catalog, campaign),
+                                   models, holder)
+    elif not evaluations:
         lines += ["No iteration of this campaign is evaluated yet: its dataset and compute follow."]
     else:
         # the cases a baseline meets: the last iteration's model's, less held-out wordings (stages/baselines.py
@@ -600,7 +620,16 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
         cases = Counter(e.family for e in evaluations[max(evaluations)] if e.split != HELD_OUT_WORDING)
         lines += _success_sections(catalog, campaign, evaluations, steps_through, cases, models, holder)
 
-    lines += ["", "## Dataset per iteration", ""]
+    if not baselines_alone:  # no iteration explored: no dataset
+        lines += dataset_markdown(catalog, campaign, explored, explore_units, filter_units)
+    lines += compute_markdown(catalog, campaign)
+    return "\n".join(lines) + "\n"
+
+
+def dataset_markdown(catalog: Catalog, campaign: str, explored: list[tuple], explore_units: list[str],
+                     filter_units: list[str]) -> list[str]:
+    """The dataset per iteration (`explored`: iteration, steps, episodes, tasks, instructions) and per family."""
+    lines = ["", "## Dataset per iteration", ""]
     dataset = {i: (selected, kept, triplets) for i, selected, kept, triplets in catalog.query(
         f"SELECT iteration, episodes, kept_episodes, triplets FROM {CURRENT_ITERATIONS} WHERE campaign = ?", [campaign])}
     explorers = {}
@@ -615,9 +644,12 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
                      f"{kept} / {selected}", f"{triplets:,}"])
     lines += _table(["iteration", "episodes explored", "env steps", "tasks", "instructions", "explorers (episodes)",
                      "dataset: episodes kept / in selection", "dataset triplets"], rows)
-    lines += dataset_by_family(catalog, campaign, explore_units, filter_units)
+    return lines + dataset_by_family(catalog, campaign, explore_units, filter_units)
 
-    lines += ["", "## Compute", "",
+
+def compute_markdown(catalog: Catalog, campaign: str) -> list[str]:
+    """Per stage and iteration: the units' summed wall seconds, the elapsed and the running hours."""
+    lines = ["", "## Compute", "",
               f"Per stage, as the stages recorded their units: the units' wall seconds summed (an explore unit holds one "
               f"core, so there they are CPU-seconds; a training holds `train.threads`), the stage's elapsed time "
               f"(first unit's start to last unit's end, resumes included) and its running time (the hours in which "
@@ -640,5 +672,4 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
         elapsed = max(end for _, end in group) - min(start for start, _ in group)
         rows.append([stage, iteration, len(group), f"{seconds:,.0f}", f"{seconds / 3600:,.2f}", f"{elapsed / 3600:,.2f}",
                      f"{running_seconds(group) / 3600:,.2f}"])
-    lines += _table(["stage", "iteration", "units", "wall s (summed)", "unit-hours", "elapsed h", "running h"], rows)
-    return "\n".join(lines) + "\n"
+    return lines + _table(["stage", "iteration", "units", "wall s (summed)", "unit-hours", "elapsed h", "running h"], rows)

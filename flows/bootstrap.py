@@ -289,16 +289,23 @@ def _run_campaign(config: CampaignConfig, ws: Workspace, continue_campaign: bool
         outcomes.append(outcome)
         previous, explorer = outcome.dataset, outcome.champion
     if config.baselines.agents:
-        last = outcomes[-1]  # its dataset aggregates every iteration's explore units
-        baselines = baselines_task(str(ws.root), config, last.iteration, last.tasks_key, last.dataset.explore_units)
+        if outcomes:
+            last = outcomes[-1]  # its dataset aggregates every iteration's explore units
+            iteration, tasks_key, explore_units = last.iteration, last.tasks_key, last.dataset.explore_units
+        else:  # no iteration (iterations: 0): the baselines alone, on the campaign's tasks, at baselines.env_steps
+            tasks = generate_tasks_task(str(ws.root), config)
+            _log_stage(tracking, campaign_run_id, tasks)
+            iteration, tasks_key, explore_units = 0, tasks.unit_key, []
+        baselines = baselines_task(str(ws.root), config, iteration, tasks_key, explore_units)
         _log_stage(tracking, campaign_run_id, baselines)
     if config.adapt.episodes_per_task:
         adapted = adapt_task(str(ws.root), config, outcomes[-1].champion)
         _log_stage(tracking, campaign_run_id, adapted)
-    plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
-                                     f"{config.name}: success per iteration (Wilson 95%)",
-                                     ws.media / f"{config.name}-success-by-iteration.png")
-    tracking.log_artifact(campaign_run_id, str(plot), "plots")
+    if outcomes:  # the baselines alone (iterations: 0) have no iteration to plot
+        plot = plot_success_by_iteration(success_by_iteration(catalog, config.name), list(SPLITS),
+                                         f"{config.name}: success per iteration (Wilson 95%)",
+                                         ws.media / f"{config.name}-success-by-iteration.png")
+        tracking.log_artifact(campaign_run_id, str(plot), "plots")
     tracking.finish(campaign_run_id)
     for outcome in outcomes:
         success = ", ".join(f"{split} {rate:.0%}" for split, rate in outcome.split_success.items())

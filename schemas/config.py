@@ -589,8 +589,9 @@ class CampaignConfig(_Strict):
     seed: int = Field(default=0, ge=0,
                       description="the campaign seed: each task's paraphrases, every explored and evaluated "
                       "episode, each training's initialisation and shuffling, and the RL agents draw from it")
-    iterations: PositiveInt = Field(default=2, description="bootstrap iterations (`sim2act run --iterations` "
-                                    "continues a finished campaign to more)")
+    iterations: int = Field(default=2, ge=0, description="bootstrap iterations (`sim2act run --iterations` "
+                            "continues a finished campaign to more); 0: no iteration, the baselines alone on the "
+                            "campaign's tasks (baselines.agents, and baselines.env_steps for the RL agents' budgets)")
     tasks: TasksConfig = TasksConfig()
     render: RenderConfig = RenderConfig()
     randomise: RandomiseConfig = RandomiseConfig()
@@ -615,6 +616,23 @@ class CampaignConfig(_Strict):
         if {"ppo", "sac"} & set(self.baselines.agents) and self.render.image_size < 36:
             raise ValueError("baselines.agents: the RL baselines' image encoder (SB3's NatureCNN) needs "
                              f"render.image_size >= 36, got {self.render.image_size}")
+        return self
+
+    @model_validator(mode="after")
+    def _no_iteration_measures_baselines_only(self) -> CampaignConfig:
+        # without an iteration there is no policy to evaluate, no exploration to take the RL budgets from and
+        # no champion to adapt: what such a campaign is for must be said in full
+        if self.iterations:
+            return self
+        if not self.baselines.agents:
+            raise ValueError("iterations: expected at least 1, or 0 with baselines.agents set (the baselines alone), "
+                             "got 0 and no baselines")
+        if {"ppo", "sac"} & set(self.baselines.agents) and self.baselines.env_steps is None:
+            raise ValueError("baselines.env_steps: expected the RL agents' budget (a number, or one per family) "
+                             "where iterations is 0 (no exploration to take it from), got none")
+        if self.adapt.episodes_per_task:
+            raise ValueError("adapt.episodes_per_task: expected [] where iterations is 0 (no champion to adapt), "
+                             f"got {self.adapt.episodes_per_task}")
         return self
 
     @property

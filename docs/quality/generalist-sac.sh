@@ -14,15 +14,14 @@
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
 # the PPOs first (~5.5-7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its
-# machine before its SACs finished, and those hours came first each time. Here iteration 0 is a token one (2
-# episodes a seen task, one epoch of training, 77 steps: minutes) that the campaign needs before its baselines; its
-# evaluation still runs the preset's 228 cases x 10 episodes (~1 h, every episode to its horizon: the SACs'
-# evaluation reads the same settings). Its
-# policy's rows in this workspace's report are that token model's, not the generalist's: read the SAC rows alone.
-# 1. the campaign `generalist-sac`: the token iteration 0, then the two SACs at once, one a worker, each
-#    checkpointed every 5,000 environment steps (~8 minutes lost to a kill or a session's end), then their
+# machine before its SACs finished, and those hours came first each time. Here the campaign has no iteration
+# (`--iterations 0`: the baselines alone, on the preset's tasks). Until 2026-12-07 it ran a token iteration 0 first
+# (2 episodes a seen task, 77 training steps, its evaluation ~1 h: the ninth run's workspace holds it); the agents'
+# keys are the same either way, so a workspace made with it resumes its agents under this script.
+# 1. the campaign `generalist-sac`: the preset's tasks, then the two SACs at once, one a worker, each
+#    checkpointed every 5,000 environment steps (~10 minutes lost to a kill or a session's end), then their
 #    evaluations on their families' cases;
-# 2. `sim2act report` into WORKSPACE-logs/report.md.
+# 2. `sim2act report` into WORKSPACE-logs/report.md (the SAC rows, and a token model's where the workspace has one).
 # Running it again skips what finished and resumes what was cut. Logs: WORKSPACE-logs/.
 set -euo pipefail
 # this checkout's code, also where SIM2ACT is another checkout's install (an editable install imports its own tree)
@@ -33,13 +32,14 @@ W=${1:?usage: generalist-sac.sh WORKSPACE [SIM2ACT [--set ...]]}
 W=${W%/}
 S=${2:-sim2act}
 MORE=("${@:3}")  # the run's own settings (the report needs none of them)
-C=(--preset generalist --set name=generalist-sac --set render.mesh_detail=0.1 --set train.steps=10
-   --set explore.episodes_per_task=2 --workspace "$W")
+# (the agents' keys read the tasks, render, randomisation and seed: not the token iteration's explore and train
+# settings, which the ninth run's command still carried)
+C=(--preset generalist --set name=generalist-sac --set render.mesh_detail=0.1 --workspace "$W")
 LOGS=$W-logs
 mkdir -p "$LOGS"
 trap 'echo "generalist-sac.sh: a step failed; its log is $LOGS/baselines.log" >&2' ERR
 
-$S run "${C[@]}" --set 'adapt.episodes_per_task=[]' --set 'baselines.agents=[sac]' \
+$S run "${C[@]}" --iterations 0 --set 'adapt.episodes_per_task=[]' --set 'baselines.agents=[sac]' \
   --set 'baselines.env_steps={metaworld: 382023, robosuite: 455956}' --set baselines.checkpoint_every=5000 \
   "${MORE[@]}" >> "$LOGS/baselines.log" 2>&1
 $S report "${C[@]}" | tee "$LOGS/report.md"

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from envs.pool import log_stages_to_stderr
 from flows.cli.common import (Commands, add_campaign_options, add_config_options, campaign_config, check_tracking_server,
-                              configure_environment, non_negative_int, open_catalog, output_file, positive_int,
+                              configure_environment, non_negative_int, open_catalog, output_file,
                               same_campaign_flags)
 from flows.lifetime import ends_with_its_server, watch
 from schemas.config import Acting, CampaignConfig, ConfigError
@@ -50,7 +50,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     workspace.create()
     watch()  # the temporary Prefect server and the workers end with this command, however it ends
     print(
-        f"sim2act: campaign {config.name!r}, {config.iterations} iteration(s), workspace {workspace.root}",
+        f"sim2act: campaign {config.name!r}, "
+        f"{f'{config.iterations} iteration(s)' if config.iterations else 'no iteration (the baselines alone)'}, "
+        f"workspace {workspace.root}",
         flush=True,
     )
     weak = weak_tasks_left_out(config.tasks)
@@ -77,7 +79,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"the results table (iterations, per spec, baselines):  sim2act report {same}",
         f"dashboard (episodes, videos, SQL panels), MLflow UI:  sim2act up {same}",
         f"the warehouse in SQL:  sim2act sql \"SELECT * FROM task_success\" --workspace {workspace.root}",
-        f"the champion on any split or task file:  sim2act eval --model champion {same}",
+        *([f"the champion on any split or task file:  sim2act eval --model champion {same}"] if config.iterations else []),
     ]), flush=True)
     return 0
 
@@ -392,7 +394,8 @@ def register(commands: Commands) -> None:
         return command
 
     run = campaign_command("run", "run a bootstrap campaign (embedded: no server needed)", cmd_run)
-    run.add_argument("--iterations", type=positive_int, help="number of bootstrap iterations")
+    run.add_argument("--iterations", type=non_negative_int,
+                     help="number of bootstrap iterations (0: the baselines alone, baselines.agents)")
     run.add_argument("--continue", dest="continue_campaign", action="store_true",
                      help="one iteration past the campaign's latest finished one (what the nightly deployment runs)")
     campaign_command("train", "train the model alone on a campaign's dataset (resumes if killed)", cmd_train

@@ -444,6 +444,42 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
         f"--config or --set name=...)"), other.stderr
 
 
+def test_a_campaign_of_no_iteration_trains_and_reports_its_baselines_alone(tmp_path, prefect_api):
+    """iterations: 0 on a fresh workspace: the tasks, then the baselines at baselines.env_steps, nothing explored,
+    trained or deployed; the report holds their rows, the compute, and no dataset."""
+    workspace = tmp_path / "workspace"
+    alone = [SIM2ACT, "run", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "0",
+             "--set", "baselines.agents=[ppo]", "--set", f"baselines.env_steps={RL_BUDGET}"]
+    run = subprocess.run(alone, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert "no iteration (the baselines alone)" in run.stdout and "sim2act eval --model champion" not in run.stdout
+    assert "campaign 'smoke': no iteration was evaluated" in run.stdout
+    catalog = Catalog(Workspace.at(workspace).catalog)
+    assert [stage for (stage,) in catalog.query("SELECT DISTINCT stage FROM stage_runs ORDER BY 1")] == [
+        "baselines", "evaluate", "generate_tasks"]
+    assert catalog.query("SELECT count(*) FROM iterations") == [(0,)] and catalog.query(
+        "SELECT count(*) FROM deployments") == [(0,)]
+    [(summary,)] = catalog.query("SELECT summary FROM stage_runs WHERE stage = 'baselines'")
+    assert json.loads(summary)["env_steps"] == RL_BUDGET and json.loads(summary)["family"] == "robosuite"
+    [(agent_cases,)] = catalog.query("SELECT count(*) FROM evaluations")
+    tasks = catalog.query("SELECT split, len(unseen_instructions) > 0 FROM tasks")
+    assert agent_cases == len(tasks) + sum(split == "seen" and said for split, said in tasks)  # every planned case
+
+    report = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--workspace", str(workspace)],
+                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
+    assert report.returncode == 0, report.stderr[-3000:]
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in report.stdout.splitlines() if line.startswith("| ")}
+    assert f"| {RL_BUDGET} |" in rows["PPO from scratch (robosuite)"] and "evaluating" not in rows["PPO from scratch (robosuite)"]
+    assert not any(name.startswith("Sim2Act") for name in rows) and "| baselines | 0 |" in report.stdout
+    assert "No iteration: the campaign measures its baselines alone" in report.stdout
+    assert "## Dataset per iteration" not in report.stdout and "## Training seeds" not in report.stdout
+    assert "## Compute" in report.stdout
+
+    counts = catalog.query("SELECT stage, count(*) FROM stage_runs GROUP BY ALL ORDER BY ALL")
+    again = subprocess.run(alone, env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and catalog.query("SELECT stage, count(*) FROM stage_runs GROUP BY ALL ORDER BY ALL") == counts
+
+
 def test_training_seeds_measure_each_iteration_beside_its_own_model(finished_campaign, tmp_path, prefect_api):
     """evaluate.training_seeds=2 over a finished campaign: no stage redoes a unit (the field is in no unit's key);
     each iteration's dataset is trained again under seed 1 and met by the same evaluation cases, measured and never

@@ -207,3 +207,20 @@ def test_tasks_validate_refuses_a_name_the_built_in_suite_has(tmp_path, capsys):
                                                "(in task_specs/robosuite.yaml): give yours another name")
     builtin = Path(__file__).resolve().parents[2] / "schemas" / "task_specs" / "robosuite.yaml"
     assert main(["tasks", "validate", str(builtin)]) == 0  # the suite's own file is not a clash with itself
+
+
+@pytest.mark.parametrize(("overrides", "said"), [
+    ({}, "iterations: expected at least 1, or 0 with baselines.agents set (the baselines alone), got 0 and no baselines"),
+    ({"baselines": {"agents": ["expert", "sac"]}},
+     "baselines.env_steps: expected the RL agents' budget (a number, or one per family) where iterations is 0 "
+     "(no exploration to take it from), got none"),
+    ({"baselines": {"agents": ["expert"]}, "adapt": {"episodes_per_task": [10]}},
+     "adapt.episodes_per_task: expected [] where iterations is 0 (no champion to adapt), got [10]"),
+])
+def test_a_campaign_of_no_iteration_must_say_what_it_measures(overrides, said):
+    with pytest.raises(ConfigError) as refused:
+        load_config("smoke", None, {"iterations": 0, **overrides})
+    assert str(refused.value) == said
+    alone = load_config("smoke", None, {"iterations": 0, "baselines": {"agents": ["expert", "ppo"], "env_steps": 500}})
+    assert alone.iterations == 0  # the baselines alone: the experts need no budget, the RL agents have theirs
+    assert load_config("smoke", None, {"iterations": 0, "baselines": {"agents": ["expert"]}}).iterations == 0
