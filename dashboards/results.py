@@ -555,14 +555,15 @@ def _success_sections(catalog: Catalog, campaign: str, evaluations: dict[int, li
 
 
 def planned_cases(catalog: Catalog, campaign: str) -> Counter:
-    """family -> the evaluation cases the campaign's latest tasks make, as the baselines meet them
+    """family -> the evaluation cases the campaign's newest tasks unit makes, as the baselines meet them
     (`stages.evaluate.evaluation_cases` without held-out wordings): each task said canonically, and each seen
-    task with held-out paraphrases said with the first of them."""
+    task with held-out paraphrases said with the first of them. (A run that goes back to an older tasks unit
+    registers nothing new: there the count is the newer unit's.)"""
     return Counter(dict(catalog.query(
-        "SELECT family, count(*) + count(*) FILTER (WHERE split = 'seen' AND len(unseen_instructions) > 0) FROM ("
-        "SELECT t.* FROM tasks t LEFT JOIN stage_runs r ON r.unit_key = t.unit_key WHERE t.campaign = ? "
-        "QUALIFY row_number() OVER (PARTITION BY t.task_id ORDER BY r.finished_at DESC NULLS LAST, t.unit_key DESC) = 1"
-        ") GROUP BY family", [campaign])))
+        "SELECT family, count(*) + count(*) FILTER (WHERE split = 'seen' AND len(unseen_instructions) > 0) "
+        "FROM tasks WHERE campaign = ? AND unit_key = (SELECT unit_key FROM stage_runs "
+        "WHERE stage = 'generate_tasks' AND campaign = ? ORDER BY finished_at DESC LIMIT 1) GROUP BY family",
+        [campaign, campaign])))
 
 
 def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None,

@@ -207,7 +207,7 @@ def register(commands: Commands) -> None:
     panels.set_defaults(handler=cmd_bench_panels)
     soak = add_campaign_options(bench_commands.add_parser(
         "soak", help="run a campaign through random SIGKILLs (flow, worker, server), checking its finished parts"))
-    soak.add_argument("--iterations", type=positive_int, help="as `sim2act run --iterations`")
+    soak.add_argument("--iterations", type=positive_int, help="as `sim2act run --iterations` (1 or more: a soak explores)")
     soak.add_argument("--kills", type=int, default=10, help="SIGKILLs before the campaign is let finish")
     soak.add_argument("--wait", type=float, nargs=2, default=(60.0, 600.0), metavar=("MIN", "MAX"),
                       help="seconds from a (re)start to its kill, drawn uniformly")

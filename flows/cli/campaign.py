@@ -29,10 +29,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
     if not any(t.split == "seen" for t in tasks):  # nothing to explore: the filter would keep nothing, an hour in
-        raise ConfigError(f"tasks: expected at least one seen task to explore, got none of {len(tasks)} (every colour "
+        raise ConfigError(f"tasks: expected at least one seen task to explore (or, iterations 0, to train the RL "
+                          f"agents on), got none of {len(tasks)} (every colour "
                           "or task held out: tasks.colours, tasks.unseen_colours, tasks.specs)")
     check_render(config.render, tasks)
     check_where(config.train.where)
+    check_budgets(config, tasks)
     if config.adapt.episodes_per_task:
         from stages.adapt import adapted_tasks
 
@@ -51,7 +53,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     watch()  # the temporary Prefect server and the workers end with this command, however it ends
     print(
         f"sim2act: campaign {config.name!r}, "
-        f"{f'{config.iterations} iteration(s)' if config.iterations else 'no iteration (the baselines alone)'}, "
+        f"{f'{to_explore.iterations} iteration(s)' if to_explore.iterations else 'no iteration (the baselines alone)'}, "
         f"workspace {workspace.root}",
         flush=True,
     )
@@ -79,9 +81,24 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"the results table (iterations, per spec, baselines):  sim2act report {same}",
         f"dashboard (episodes, videos, SQL panels), MLflow UI:  sim2act up {same}",
         f"the warehouse in SQL:  sim2act sql \"SELECT * FROM task_success\" --workspace {workspace.root}",
-        *([f"the champion on any split or task file:  sim2act eval --model champion {same}"] if config.iterations else []),
+        *([f"the champion on any split or task file:  sim2act eval --model champion {same}"] if to_explore.iterations
+          else []),
     ]), flush=True)
     return 0
+
+
+def check_budgets(config: CampaignConfig, tasks: list[TaskRecord]) -> None:
+    """A campaign of no iteration explores nothing to take an RL agent's budget from: each planned agent's family
+    needs one in baselines.env_steps (a mapping may leave a family out), said in one line before any work."""
+    if config.iterations:
+        return
+    from stages.baselines import planned_agents, rl_budget
+
+    unbudgeted = [f"{algorithm} on {family}" for algorithm, family, _ in planned_agents(config, tasks)
+                  if not rl_budget(config.baselines.env_steps, family, {})]
+    if unbudgeted:
+        raise ConfigError(f"baselines.env_steps: expected a budget for every RL agent where iterations is 0, got "
+                          f"{config.baselines.env_steps} and none for {', '.join(unbudgeted)}")
 
 
 def experts_under_campaign(workspace: Workspace, config: CampaignConfig, tasks: list[TaskRecord]) -> list[TaskRecord]:

@@ -297,3 +297,14 @@ def test_a_campaign_whose_randomisation_fails_every_expert_is_refused_once_they_
                         line), line
     monkeypatch.setattr(expert_check, "measure_experts", lambda *args: pytest.fail("measured again"))
     assert _refused(capsys, argv) == line  # measured once: a rerun reads the workspace's rows
+
+
+def test_a_campaign_of_no_iteration_without_a_budget_for_one_of_its_agents_is_refused_before_any_work(tmp_path, capsys):
+    """iterations 0 explores nothing: a budget mapping that leaves out a family an RL agent would train on once
+    dropped that agent without a word."""
+    workspace = tmp_path / "ws"
+    said = _refused(capsys, ["run", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "0",
+                             "--set", "baselines.agents=[ppo]", "--set", "baselines.env_steps={metaworld: 500}"])
+    assert said.endswith("baselines.env_steps: expected a budget for every RL agent where iterations is 0, got "
+                         "{'metaworld': 500} and none for ppo on robosuite"), said
+    assert not workspace.exists()
