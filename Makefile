@@ -18,6 +18,6 @@ test: $(STAMP)
 	$(VENV)/bin/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 # the fast tier for the inner loop: everything but the end-to-end tests (see tests/conftest.py), on the same 2
-# workers as `make test` (687 of 791 tests; when they were 552: 3 min 49 s, against 6 min 28 s on one; AMD EPYC 2 cores, alone)
+# workers as `make test` (693 of 798 tests; when they were 552: 3 min 49 s, against 6 min 28 s on one; AMD EPYC 2 cores, alone)
 check: $(STAMP)
 	$(VENV)/bin/python -m pytest -m "not e2e" -n 2 --dist loadfile --no-loadscope-reorder

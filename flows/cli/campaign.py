@@ -29,8 +29,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     tasks = generate_tasks(config.tasks, config.seed)  # a task config that cannot run is refused here, before any work
     if not any(t.split == "seen" for t in tasks):  # nothing to explore: the filter would keep nothing, an hour in
-        raise ConfigError(f"tasks: expected at least one seen task to explore (or, iterations 0, to train the RL "
-                          f"agents on), got none of {len(tasks)} (every colour "
+        raise ConfigError(f"tasks: expected at least one seen task to explore, got none of {len(tasks)} (every colour "
                           "or task held out: tasks.colours, tasks.unseen_colours, tasks.specs)")
     check_render(config.render, tasks)
     check_where(config.train.where)

@@ -175,7 +175,8 @@ def test_a_campaign_that_cannot_run_is_refused_before_its_workspace_exists(tmp_p
     monkeypatch.setenv("SIM2ACT_SCENES_PER_WORKER", "abc")
     assert "SIM2ACT_SCENES_PER_WORKER: expected a whole number of scenes, at least 1, got 'abc'" in _refused(capsys, run)
     monkeypatch.delenv("SIM2ACT_SCENES_PER_WORKER")
-    assert "argument --iterations: expected 1 or more, got 0" in _refused(capsys, [*run, "--iterations", "0"])
+    assert ("iterations: expected at least 1, or 0 with baselines.agents set (the baselines alone), got 0 and no "
+            "baselines") in _refused(capsys, [*run, "--iterations", "0"])
     assert "argument --iterations: expected 1 or more, got -1" in _refused(
         capsys, ["bench", "soak", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "-1"])
     assert not workspace.exists()
