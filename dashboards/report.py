@@ -85,9 +85,9 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
                                    [campaign]))
     seeds = seeds_by_iteration(catalog, campaign)
     splits = [s for s in SPLITS if any(g.group == s for groups in by_iteration.values() for g in groups)]
+    further = ["look further:", *(f"  {command}" for command in look_further)]
     if not by_iteration:
-        return "\n".join([f"campaign {campaign!r}: no iteration was evaluated", "look further:",
-                          *(f"  {command}" for command in look_further)])
+        return "\n".join([f"campaign {campaign!r}: no iteration was evaluated", *further])
     lines = [f"campaign {campaign!r}: success per iteration (successes/episodes, rate, Wilson 95%)",
              f"  {'iteration':<10}" + "".join(f"{split:<28}" for split in splits)]
     for iteration, groups in sorted(by_iteration.items()):
@@ -108,5 +108,4 @@ def campaign_summary(catalog: Catalog, campaign: str, look_further: list[str]) -
     if seeds:
         lines.append("  (N seeds: the iteration's dataset trained N times, mean ± spread across the trainings, "
                      "Wilson 95% of their pooled episodes)")
-    lines += ["look further:", *(f"  {command}" for command in look_further)]
-    return "\n".join(lines)
+    return "\n".join([*lines, *further])

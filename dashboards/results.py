@@ -20,8 +20,10 @@ from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
 from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
-from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, group_success, read_evaluations
+from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, evaluation_cases, group_success, read_evaluations
+from stages.generate_tasks import STAGE as TASKS_STAGE
 from warehouse.catalog import Catalog
+from warehouse.tasks import tasks_of_unit
 
 SPLIT_COLUMNS = ("seen", "unseen", UNSEEN_PARAPHRASE)
 
@@ -555,15 +557,13 @@ def _success_sections(catalog: Catalog, campaign: str, evaluations: dict[int, li
 
 
 def planned_cases(catalog: Catalog, campaign: str) -> Counter:
-    """family -> the evaluation cases the campaign's newest tasks unit makes, as the baselines meet them
-    (`stages.evaluate.evaluation_cases` without held-out wordings): each task said canonically, and each seen
-    task with held-out paraphrases said with the first of them. (A run that goes back to an older tasks unit
-    registers nothing new: there the count is the newer unit's.)"""
-    return Counter(dict(catalog.query(
-        "SELECT family, count(*) + count(*) FILTER (WHERE split = 'seen' AND len(unseen_instructions) > 0) "
-        "FROM tasks WHERE campaign = ? AND unit_key = (SELECT unit_key FROM stage_runs "
-        "WHERE stage = 'generate_tasks' AND campaign = ? ORDER BY finished_at DESC LIMIT 1) GROUP BY family",
-        [campaign, campaign])))
+    """family -> the evaluation cases the baselines meet (`evaluation_cases`, without held-out wordings) on the
+    tasks of the campaign's newest tasks unit. (A run that goes back to an older tasks unit registers nothing new:
+    there the count is the newer unit's.)"""
+    newest = catalog.query("SELECT unit_key FROM stage_runs WHERE stage = ? AND campaign = ? "
+                           "ORDER BY finished_at DESC LIMIT 1", [TASKS_STAGE, campaign])
+    tasks = tasks_of_unit(catalog, newest[0][0]) if newest else []
+    return Counter(task.family for task, _, _ in evaluation_cases(tasks))
 
 
 def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path | None = None,
@@ -583,7 +583,7 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     # no iteration explored or evaluated, but baselines evaluated or planned (iterations: 0, mid-training included)
     baselines_alone = not evaluations and not latest and bool(
         baseline_evaluations(catalog, campaign) or (models is not None and campaign_plans(models, campaign)))
-    if not evaluations and not latest and not baselines_alone:
+    if not (evaluations or latest or baselines_alone):
         held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
         raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse ("
                          + (f"it holds {', '.join(map(repr, held))}: name it with --preset, --config or --set name=...)"

@@ -44,9 +44,12 @@ def _task_record(r: tuple) -> TaskRecord:
 
 
 def load_tasks(workspace: Workspace, task_unit_key: str) -> list[TaskRecord]:
-    rows = Catalog(workspace.catalog).query(
-        f"SELECT {_TASK_COLUMNS} FROM tasks WHERE unit_key = ? ORDER BY task_id", [task_unit_key]
-    )
+    return tasks_of_unit(Catalog(workspace.catalog), task_unit_key)
+
+
+def tasks_of_unit(catalog: Catalog, task_unit_key: str) -> list[TaskRecord]:
+    """The tasks one generate_tasks unit registered, by task id."""
+    rows = catalog.query(f"SELECT {_TASK_COLUMNS} FROM tasks WHERE unit_key = ? ORDER BY task_id", [task_unit_key])
     return [_task_record(r) for r in rows]
 
 
