@@ -19,7 +19,7 @@ from schemas.tasks import CAMPAIGN_SUITE, UNSEEN_PARAPHRASE
 from schemas.wordings import HELD_OUT_WORDING
 from stages.adapt import (STAGE as ADAPT_STAGE, SUITE as ADAPT_SUITE, AdaptPoint, AdaptResult, adapt_results,
                           episodes_to_reach, points_of_family, pooled, pooled_score)
-from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, campaign_plans
+from stages.baselines import EXPERT, STAGE as BASELINES_STAGE, agents_in_training, all_plans, campaign_plans
 from stages.evaluate import SPLITS, GroupSuccess, TaskEvaluation, evaluation_cases, group_success, read_evaluations
 from stages.generate_tasks import STAGE as TASKS_STAGE
 from warehouse.catalog import Catalog
@@ -584,7 +584,11 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     baselines_alone = not evaluations and not latest and bool(
         baseline_evaluations(catalog, campaign) or (models is not None and campaign_plans(models, campaign)))
     if not (evaluations or latest or baselines_alone):
-        held = [name for (name,) in catalog.query("SELECT DISTINCT campaign FROM iterations ORDER BY 1")]
+        # a campaign of no iteration (the baselines alone) has evaluations on its own tasks or, mid-training, its
+        # agents' plans (an adaptation's evaluations, "<name>-adapt", are another suite's: not a campaign to report)
+        held = sorted({name for (name,) in catalog.query(
+            "SELECT campaign FROM iterations UNION SELECT campaign FROM evaluations WHERE suite = ?", [CAMPAIGN_SUITE])}
+            | ({plan["campaign"] for plan in all_plans(models).values()} if models is not None else set()))
         raise ValueError(f"campaign {campaign!r} has no evaluated iteration in this warehouse ("
                          + (f"it holds {', '.join(map(repr, held))}: name it with --preset, --config or --set name=...)"
                             if held else "it holds no campaign yet)"))

@@ -254,18 +254,21 @@ def rl_units(workspace: Workspace, config: CampaignConfig, tasks_key: str, tasks
     return units
 
 
-def campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
-    """model key -> plan, of the campaign's agents planned in `models` (a workspace's): those its
-    latest run of the stage made, trained or not."""
+def all_plans(models: Path) -> dict[str, dict]:
+    """model key -> plan, of every campaign's agents planned in `models` (a workspace's)."""
     plans = {}
     for path in sorted(models.glob(f"{STAGE}-*/{PLAN}")):
         try:
-            plan = json.loads(path.read_text())
+            plans[path.parent.name] = json.loads(path.read_text())
         except FileNotFoundError:  # a run dropped it meanwhile
             continue
-        if plan["campaign"] == campaign:
-            plans[path.parent.name] = plan
     return plans
+
+
+def campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
+    """model key -> plan, of the campaign's agents planned in `models` (a workspace's): those its
+    latest run of the stage made, trained or not."""
+    return {key: plan for key, plan in all_plans(models).items() if plan["campaign"] == campaign}
 
 
 def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:

@@ -139,13 +139,14 @@ def _training(catalog: Catalog, key: str, seed: int, chunk: int, digest: str = "
 
 
 def _evaluated(catalog: Catalog, model: str, won: int, episodes: int = 10, task: tuple[str, str] | None = None,
-               campaign: str = CAMPAIGN, split: str = "seen", unit: str | None = None) -> None:
+               campaign: str = CAMPAIGN, split: str = "seen", unit: str | None = None,
+               suite: str = CAMPAIGN_SUITE) -> None:
     """`model`'s evaluation on one case: nav-room-red, or `task` (task id, family), in `split`; its first `won`
     episodes succeeded. `unit`: the case evaluated again, under another unit."""
     task_id, family = task or ("nav-room-red", "navigation")
     low, high = wilson_interval(won, episodes)
     key = unit or f"evaluate-{model}-{task_id}" + ("" if campaign == CAMPAIGN else f"-{campaign}")
-    row = {"unit_key": key, "campaign": campaign, "iteration": 0, "suite": CAMPAIGN_SUITE,
+    row = {"unit_key": key, "campaign": campaign, "iteration": 0, "suite": suite,
            "model_key": model, "task_id": task_id, "family": family, "split": split,
            "instruction": task_id, "episodes": episodes, "successes": won, "ci_low": low, "ci_high": high,
            "mean_return": 0.0, "mean_length": 50.0, "episode_lengths": [50] * episodes,
@@ -238,6 +239,23 @@ def test_a_seed_trained_twice_counts_once_and_a_seed_mid_evaluation_is_said(tmp_
                            "30% ± 0 (30, 30, 30) over 3 seeds, 9/30 pooled [17%, 48%]"]
     [seeds] = [line for line in campaign_summary(catalog, CAMPAIGN, []).splitlines() if "3 seeds" in line]
     assert seeds.split() == ["3", "seeds", "70%", "±", "5", "[57%,", "80%]", "30%", "±", "0", "[17%,", "48%]"]
+
+
+def test_a_refusal_names_the_campaigns_of_no_iteration_too(tmp_path):
+    """A campaign of the baselines alone has no `iterations` row: its evaluations, or mid-training its agents'
+    plans, are what the workspace holds of it, and a report asked for another name lists it."""
+    catalog, models = _catalog_with_tasks(tmp_path), tmp_path / "models"
+    (models / "baselines-k").mkdir(parents=True)
+    (models / "baselines-k" / "plan.json").write_text(json.dumps(
+        {"campaign": "sac-only", "algorithm": "sac", "family": "robosuite", "env_steps": 100}))
+    with pytest.raises(ValueError, match=r"campaign 'other' has no .* \(it holds 'sac-only': name it with --preset"):
+        results_markdown(catalog, "other", "sim2act report", models=models)
+    with pytest.raises(ValueError, match=r"\(it holds no campaign yet\)"):  # plans not read: none held
+        results_markdown(catalog, "other", "sim2act report")
+    _evaluated(catalog, "expert", 10, campaign="ceiling")  # the expert alone evaluated
+    _evaluated(catalog, "train-x", 3, campaign="ceiling-adapt", suite="adapt")  # an adaptation's: not a campaign
+    with pytest.raises(ValueError, match=r"\(it holds 'ceiling', 'sac-only': name it with --preset"):
+        results_markdown(catalog, "other", "sim2act report", models=models)
 
 
 def test_a_campaign_indexed_but_not_evaluated_reports_its_dataset(tmp_path):
