@@ -584,8 +584,8 @@ def results_markdown(catalog: Catalog, campaign: str, command: str, models: Path
     baselines_alone = not evaluations and not latest and bool(
         baseline_evaluations(catalog, campaign) or (models is not None and campaign_plans(models, campaign)))
     if not (evaluations or latest or baselines_alone):
-        # a campaign of no iteration (the baselines alone) has evaluations on its own tasks or, mid-training, its
-        # agents' plans (an adaptation's evaluations, "<name>-adapt", are another suite's: not a campaign to report)
+        # a campaign of no iteration (the baselines alone) has no `iterations` row: its evaluations on its own
+        # tasks (suite campaign) name it, or mid-training its agents' plans
         held = sorted({name for (name,) in catalog.query(
             "SELECT campaign FROM iterations UNION SELECT campaign FROM evaluations WHERE suite = ?", [CAMPAIGN_SUITE])}
             | ({plan["campaign"] for plan in all_plans(models).values()} if models is not None else set()))

@@ -438,7 +438,7 @@ def test_baselines_and_the_results_table_beside_a_finished_campaign(finished_cam
 
     other = subprocess.run([SIM2ACT, "report", "--preset", "smoke", "--set", "name=other", "--workspace", str(workspace)],
                            env=sim2act_env(prefect_api), capture_output=True, text=True, timeout=120)
-    held = ", ".join(repr(name) for (name,) in catalog.query(  # the campaigns it ran: none of an adaptation's
+    held = ", ".join(repr(name) for (name,) in catalog.query(  # the campaigns it ran, of no iteration too
         "SELECT campaign FROM iterations UNION SELECT campaign FROM evaluations WHERE suite = 'campaign' ORDER BY 1"))
     assert "smoke" in held and "adapt" not in held
     assert other.returncode == 2 and other.stderr.strip().endswith(
