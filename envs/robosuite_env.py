@@ -224,7 +224,8 @@ class RobosuiteEnv:
             hard_reset=False,  # 0.26 s -> 0.002 s per reset (measured here); colours are re-applied anyway
             reward_shaping=True,
             # robosuite samples object sizes when it builds the model, from env.rng: a fixed seed
-            # makes every worker's model identical, so an episode depends on its own seed only.
+            # makes every worker's model identical, so an episode depends on its own seed only (on one CPU: across
+            # CPUs OpenBLAS's kernels can tip a marginal one, docs/results-generalist.md "Made an eighth time").
             seed=MODEL_SEED,
             **self.scene.options,
         )
