@@ -35,8 +35,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from envs.randomisation import sample_randomisation
-    from envs.registry import make_env
-    from envs.rollout import rollout
+    from envs.rollout import rollout, worker_env
     from schemas.config import load_config, parse_settings
     from schemas.workspace import Workspace
     from stages.explore import _explorer, plan_explore
@@ -57,16 +56,15 @@ def main() -> int:
         return 2
     kernel = os.environ.get("OPENBLAS_CORETYPE", "the CPU's")
     print(f"re-running {len(chosen)} episodes; OpenBLAS kernels: {kernel}")
-    envs, same, steps, start = {}, 0, 0, time.time()
+    same, steps, start = 0, 0, time.time()
     for unit, plan in chosen:
-        env = envs.get(unit.task.env_name) or envs.setdefault(
-            unit.task.env_name, make_env(unit.task.family, unit.task.env_name, None))
+        env = worker_env(unit.task, None)  # one camera-less scene per env, kept across episodes as a worker keeps it
         randomisation = sample_randomisation(unit.randomise, plan.seed, env.RANDOMISES)
         rows, _, success = rollout(env, unit.task, plan.seed, _explorer(unit, plan, None).act, randomisation)
-        was = recorded[plan.episode_id]
-        same += (len(rows), success) == was
+        was, now = recorded[plan.episode_id], (len(rows), success)
+        same += now == was
         steps += len(rows)
-        if (len(rows), success) != was:
+        if now != was:
             print(f"{plan.episode_id}: recorded {was[0]} steps, success {was[1]}; now {len(rows)} steps, success {success}")
     print(f"{same} of {len(chosen)} the same; {steps:,} steps in {time.time() - start:.0f} s")
     return 0
