@@ -506,6 +506,10 @@ class BaselinesConfig(_Strict):
         default=None, description="each RL agent's training budget: one for every family, or per family ({metaworld: "
         "382023}: another run's exploration steps, so that a workspace without its million trains agents at them); "
         "default, and for a family the mapping leaves out: the environment steps the campaign's exploration took on it")
+    families: list[Family] | None = Field(
+        default=None, description="the families the RL agents train on: None, each with seen tasks that an agent "
+        "acts in; a list, only those ([robosuite]: one family's agents, where another's rows are in already, with a "
+        "budget for it alone where iterations is 0). Not part of an agent's key: a family's agent is the same either way")
     workers: PositiveInt = Field(default=2, description=(
         "RL agents trained at once, one core each; 1: one at a time, shortest first, each evaluated before the next "
         "begins (its rows hours earlier than beside a longer one; with baselines.threads for the idle cores)"))
@@ -532,6 +536,13 @@ class BaselinesConfig(_Strict):
         default="acting", description="SAC's entropy target: minus the action components the family acts on "
         "(MetaWorld's 4 of the 7: the 3 it ignores would take the entropy and leave the 4 little noise); all: SB3's "
         "default, minus all 7 (the baselines before 2026-12-05)")
+
+    @field_validator("families")
+    @classmethod
+    def _families_once(cls, value: list[str] | None) -> list[str] | None:
+        if value is not None and (not value or len(set(value)) < len(value)):
+            raise ValueError(f"expected None (every family) or distinct families, got {value!r}")
+        return value
 
     @field_validator("env_steps", mode="before")
     @classmethod

@@ -197,12 +197,15 @@ def train_rl_agent(unit: RLUnit) -> RLTrained:
 
 def planned_agents(config: CampaignConfig, tasks: list[TaskRecord]) -> list[tuple[str, str, list[TaskRecord]]]:
     """(algorithm, family, its seen tasks) for each RL agent of `baselines.agents` on each family with
-    seen tasks that the algorithm acts in."""
+    seen tasks that the algorithm acts in (of `baselines.families` where it names some)."""
     from policies.rl_agent import RL_ALGORITHMS, supports
 
+    families = sorted({t.family for t in tasks})
+    if config.baselines.families is not None:
+        families = [family for family in families if family in config.baselines.families]
     planned = []
     for algorithm in [a for a in config.baselines.agents if a in RL_ALGORITHMS]:
-        for family in sorted({t.family for t in tasks}):
+        for family in families:
             seen = [t for t in tasks if t.family == family and t.split == "seen"]
             if not seen:
                 continue

@@ -309,3 +309,23 @@ def test_a_campaign_of_no_iteration_without_a_budget_for_one_of_its_agents_is_re
     assert said.endswith("baselines.env_steps: expected a budget for every RL agent where iterations is 0, got "
                          "{'metaworld': 500} and none for ppo on robosuite"), said
     assert not workspace.exists()
+
+
+def test_rl_agents_on_a_family_the_campaign_gives_them_nothing_in_are_refused_before_any_work(tmp_path, capsys):
+    """baselines.families names where the RL agents train: a family without seen tasks they act in would train
+    nothing without a word; one that has them takes the budget of the campaign of no iteration for itself alone."""
+    from envs.suite import generate_tasks
+    from flows.cli.campaign import check_budgets
+    from schemas.config import load_config
+
+    workspace = tmp_path / "ws"
+    said = _refused(capsys, ["run", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "0",
+                             "--set", "baselines.agents=[sac]", "--set", "baselines.env_steps=500",
+                             "--set", "baselines.families=[metaworld, robosuite]"])
+    assert said.endswith("baselines.families: expected families an agent of baselines.agents trains on (seen "
+                         "tasks it acts in: robosuite), got metaworld"), said
+    assert not workspace.exists()
+    config = load_config("smoke", None, {"iterations": 0, "tasks": {"specs": ["lift", "mw-reach"]},
+                                         "baselines": {"agents": ["sac"], "families": ["robosuite"],
+                                                       "env_steps": {"robosuite": 500}}})
+    check_budgets(config, generate_tasks(config.tasks, config.seed))  # metaworld's SAC is not asked for

@@ -2,6 +2,7 @@
 when each agent is evaluated."""
 
 import numpy as np
+import pytest
 
 from envs.suite import generate_tasks
 from schemas.config import RandomiseConfig, RenderConfig, load_config, render_key_fields
@@ -253,3 +254,22 @@ def test_an_evaluation_beside_the_trainings_that_fails_is_said_at_once_and_raise
         _beside_harness(tmp_path, monkeypatch, registered=[], failing="ppo")
     assert [r.getMessage() for r in caplog.records] == [
         "baselines: evaluating ppo on robosuite beside the trainings failed: RuntimeError(\"ppo's evaluation failed\")"]
+
+
+def test_baselines_families_trains_only_the_agents_of_the_families_it_names_under_their_own_keys():
+    """baselines.families: one family's agents where another's rows are in (a campaign of no iteration then needs a
+    budget for that family alone); the agent it keeps is the one every family would have trained."""
+    def units(**baselines) -> dict[tuple[str, str], RLUnit]:
+        config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
+                                             "baselines": {"agents": ["ppo", "sac"], **baselines}})
+        tasks = generate_tasks(config.tasks, config.seed)
+        said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
+        return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
+                                                             {"robosuite": 1000, "metaworld": 1000})}
+
+    every, robosuite = units(), units(families=["robosuite"])
+    assert set(every) == {("ppo", "metaworld"), ("ppo", "robosuite"), ("sac", "metaworld"), ("sac", "robosuite")}
+    assert set(robosuite) == {("ppo", "robosuite"), ("sac", "robosuite")}
+    assert all(robosuite[case].unit_key == every[case].unit_key for case in robosuite)
+    with pytest.raises(ValueError, match=r"baselines.families.*distinct families, got \['robosuite', 'robosuite'\]"):
+        load_config("smoke", None, {"baselines": {"families": ["robosuite", "robosuite"]}})
