@@ -37,8 +37,9 @@ def _flatten(data: Mapping, prefix: str = "") -> dict[str, str]:
 MLFLOW_SOURCE_CHARACTERS = 65_535  # the longest dataset source MLflow accepts (mlflow.utils.validation)
 
 # How a campaign runs, not what it makes (the unit keys leave them out): per config section.
-EXECUTION_FIELDS = {"explore": {"workers", "dask_address"}, "evaluate": {"workers"}, "baselines": {"workers"},
-                    "train": TRAIN_EXECUTION_FIELDS}
+# baselines.families too: which families' agents a run trains, each under the key it has beside the others
+EXECUTION_FIELDS = {"explore": {"workers", "dask_address"}, "evaluate": {"workers"},
+                    "baselines": {"workers", "threads", "families"}, "train": TRAIN_EXECUTION_FIELDS}
 
 
 def campaign_settings(config: CampaignConfig) -> dict:
@@ -52,7 +53,7 @@ def campaign_settings(config: CampaignConfig) -> dict:
 
     # the baselines' fields whose default changed as they were added count as absent at that default: a campaign
     # keeps its run, while the unit keys (stages.baselines.LEGACY_VALUES) tell the new agents from the old
-    baselines = {**BASELINES_LEGACY_VALUES, "end_on_success": False, "sac_target_entropy": "acting"}
+    baselines = {**BASELINES_LEGACY_VALUES, "end_on_success": False, "sac_target_entropy": "acting", "families": None}
     legacy = {"render": RENDER_LEGACY_VALUES, "explore": EXPLORE_LEGACY_VALUES, "train": TRAIN_LEGACY_VALUES,
               "baselines": baselines}
     return key_fields(config, {"iterations", "adapt"}, legacy)

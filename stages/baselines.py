@@ -274,13 +274,16 @@ def campaign_plans(models: Path, campaign: str) -> dict[str, dict]:
     return {key: plan for key, plan in all_plans(models).items() if plan["campaign"] == campaign}
 
 
-def write_plans(models: Path, campaign: str, units: list[RLUnit]) -> None:
+def write_plans(models: Path, campaign: str, units: list[RLUnit], families: list[str] | None = None) -> None:
     """Each of `units`' plan.json in its models/<key>/ before any trains, so that a report read
     mid-run names the agents the checkpoints belong to (a key alone does not say its algorithm,
     family or budget); the campaign's other plans (settings since changed, agents since dropped) are
-    removed: no run trains or evaluates them."""
-    for key in set(campaign_plans(models, campaign)) - {unit.unit_key for unit in units}:
-        (models / key / PLAN).unlink(missing_ok=True)
+    removed: no run trains or evaluates them. `families` (baselines.families): the run plans those
+    families' agents alone, so the other families' plans stay, an unfinished agent's with its pending row."""
+    planned = {unit.unit_key for unit in units}
+    for key, plan in campaign_plans(models, campaign).items():
+        if key not in planned and (families is None or plan["family"] in families):
+            (models / key / PLAN).unlink(missing_ok=True)
     for unit in units:
         write_text_atomically(Path(unit.path).with_name(PLAN), json.dumps({
             "campaign": campaign, "algorithm": unit.algorithm, "family": unit.family, "env_steps": unit.env_steps}))
@@ -353,7 +356,7 @@ def run_baselines(workspace: Workspace, config: CampaignConfig, iteration: int, 
     pending = set(ledger.pending(u.unit_key for u in units))
     todo = training_order([u for u in units if u.unit_key in pending], config.baselines.workers)
     log.info("baselines: %d RL agent(s) to train (%d already trained)", len(todo), len(units) - len(todo))
-    write_plans(workspace.models, config.name, units)
+    write_plans(workspace.models, config.name, units, config.baselines.families)
     cases = evaluation_cases(tasks)
     baselines = []
     if EXPERT in config.baselines.agents:  # first: the ceiling in the report minutes in, not after the trainings' hours

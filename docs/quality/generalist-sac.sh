@@ -12,8 +12,8 @@
 # instead of ~19 h; both end ~3 h later than side by side: docs/results-generalist.md). Neither is part of a unit's
 # key: a run resumes the same agents from their checkpoints with or without them.
 #
-# `--set 'baselines.families=[robosuite]' --set 'baselines.env_steps={robosuite: 455956}'` trains robosuite's SAC
-# alone (MetaWorld's rows in already; the same agent's key).
+# `--set 'baselines.families=[robosuite]'` trains robosuite's SAC alone (MetaWorld's rows in already; the same
+# agent's key; the tenth run's command also gave `--set 'baselines.env_steps={robosuite: 455956}'`, the same budget).
 #
 # Why not docs/quality/generalist-baselines.sh: that one explores the million, trains and evaluates the policy and
 # the PPOs first (~5.5-7.5 h on an AMD EPYC), whose rows are in the docs already; six times a workspace went with its

@@ -90,14 +90,16 @@ def check_budgets(config: CampaignConfig, tasks: list[TaskRecord]) -> None:
     """A campaign of no iteration explores nothing to take an RL agent's budget from: each planned agent's family
     needs one in baselines.env_steps (a mapping may leave a family out), said in one line before any work; and
     baselines.families names only families an RL agent of the campaign would train on."""
+    from policies.rl_agent import RL_ALGORITHMS
     from stages.baselines import planned_agents, rl_budget
 
-    if config.baselines.families is not None:
+    # (families name where RL agents train: without one asked for, there is nothing for them to name)
+    if config.baselines.families is not None and set(RL_ALGORITHMS) & set(config.baselines.agents):
         everywhere = config.model_copy(update={"baselines": config.baselines.model_copy(update={"families": None})})
         trainable = {family for _, family, _ in planned_agents(everywhere, tasks)}
         idle = [family for family in config.baselines.families if family not in trainable]
         if idle:
-            raise ConfigError(f"baselines.families: expected families an agent of baselines.agents trains on (seen "
+            raise ConfigError(f"baselines.families: expected families an RL agent of baselines.agents trains on (seen "
                               f"tasks it acts in: {', '.join(sorted(trainable)) or 'none'}), got {', '.join(idle)}")
     if config.iterations:
         return

@@ -438,6 +438,10 @@ def test_the_report_lists_the_baselines_not_evaluated_yet_as_far_as_each_got(tmp
     write_plans(models, "other", [unit("other", "ppo", "robosuite", 9)])  # another campaign's, in the same workspace
     write_plans(models, CAMPAIGN, units[:-1])  # a later run: ppo on metaworld has another budget since (another key)
     assert not (models / "baselines-ppo-metaworld" / "plan.json").exists()
+    write_plans(models, CAMPAIGN, [], ["robosuite"])  # a run of robosuite's agents alone (baselines.families)...
+    assert not (models / "baselines-sac-robosuite" / "plan.json").exists()
+    assert (models / "baselines-sac-metaworld" / "plan.json").exists()  # ...leaves the others' plans as they were
+    write_plans(models, CAMPAIGN, units[:-1])
     assert (models / "baselines-other" / "plan.json").exists() and (models / "baselines-trained" / "plan.json").exists()
     trained("baselines-trained")  # trained, not evaluated
     trained("baselines-other", "other")  # another campaign's

@@ -322,7 +322,7 @@ def test_rl_agents_on_a_family_the_campaign_gives_them_nothing_in_are_refused_be
     said = _refused(capsys, ["run", "--preset", "smoke", "--workspace", str(workspace), "--iterations", "0",
                              "--set", "baselines.agents=[sac]", "--set", "baselines.env_steps=500",
                              "--set", "baselines.families=[metaworld, robosuite]"])
-    assert said.endswith("baselines.families: expected families an agent of baselines.agents trains on (seen "
+    assert said.endswith("baselines.families: expected families an RL agent of baselines.agents trains on (seen "
                          "tasks it acts in: robosuite), got metaworld"), said
     assert not workspace.exists()
     config = load_config("smoke", None, {"iterations": 0, "tasks": {"specs": ["lift", "mw-reach"]},

@@ -43,7 +43,8 @@ def test_a_campaign_keeps_its_mlflow_run_when_newer_code_adds_config_fields():
                            ("explore", "expert_takeover"), ("train", "language_augment"),
                            ("train", "proprio_dropout"), ("explore", "policy_steps"),
                            ("explore", "first_episodes_per_task"), ("baselines", "sac_encoder"),
-                           ("baselines", "end_on_success"), ("baselines", "sac_target_entropy")):
+                           ("baselines", "end_on_success"), ("baselines", "sac_target_entropy"),
+                           ("baselines", "families")):
         assert added not in settings[section]  # as code from before the field existed hashed the campaign
     assert campaign_settings(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))["render"]["wrist_camera"]
     assert campaign_hash(config) != campaign_hash(load_config("hard-mix", None, {"render": {"wrist_camera": True}}))
@@ -58,7 +59,8 @@ def test_a_campaign_resumed_with_other_workers_continues_its_mlflow_runs(tmp_pat
     workspace = Workspace.at(tmp_path).create()
     config = load_config("smoke")
     fewer = load_config("smoke", None, {"evaluate": {"workers": 1}, "explore": {"workers": 1},
-                                        "train": {"threads": 1, "checkpoint_every": 7}})
+                                        "train": {"threads": 1, "checkpoint_every": 7},
+                                        "baselines": {"threads": 2, "families": ["robosuite"]}})
     assert campaign_hash(config) != campaign_hash(fewer) and settings_hash(config) == settings_hash(fewer)
     assert settings_hash(config) != settings_hash(load_config("smoke", None, {"train": {"steps": 11}}))
     first = Tracking(workspace, config)
