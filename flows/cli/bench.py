@@ -78,8 +78,10 @@ def cmd_bench_rl(args: argparse.Namespace) -> int:
     tasks = [t for t in tasks if not args.family or t.family in args.family]
     cases = rl_cases(config, tasks, args.steps, _explored_steps(args, config.name), args.sac_encoder)
     if not cases:
+        among = "" if config.baselines.families is None else f" (baselines.families: {config.baselines.families})"
         raise ConfigError(f"bench rl: expected an RL agent (baselines.agents: ppo, sac) and a family with seen tasks "
-                          f"it acts in, got agents {config.baselines.agents} over {sorted({t.family for t in tasks})}")
+                          f"it acts in, got agents {config.baselines.agents} over {sorted({t.family for t in tasks})}"
+                          f"{among}")
     costs = bench_rl(cases)
     return print_or_write(args, json.dumps([c.model_dump() for c in costs], indent=1),
                           markdown(costs, config.name, args.command_line))

@@ -30,6 +30,9 @@ def test_bench_rl_refuses_bad_input_before_any_work(capsys):
     assert "--steps must be at least 1" in capsys.readouterr().err
     assert main(["bench", "rl", "--preset", "smoke", "--set", "baselines.agents=[expert]"]) == 2
     assert "expected an RL agent" in capsys.readouterr().err
+    assert main(["bench", "rl", "--preset", "smoke", "--set", "baselines.agents=[sac]",
+                 "--set", "baselines.families=[metaworld]"]) == 2  # the smoke campaign's tasks are robosuite's
+    assert capsys.readouterr().err.rstrip().endswith("over ['robosuite'] (baselines.families: ['metaworld'])")
 
 
 def test_sacs_encoders_side_by_side_and_in_the_agents_key(tmp_path):
