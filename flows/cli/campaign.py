@@ -33,6 +33,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                           "or task held out: tasks.colours, tasks.unseen_colours, tasks.specs)")
     check_render(config.render, tasks)
     check_where(config.train.where)
+    check_agent_families(config, tasks)
     check_budgets(config, tasks)
     if config.adapt.episodes_per_task:
         from stages.adapt import adapted_tasks
@@ -86,23 +87,28 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_agent_families(config: CampaignConfig, tasks: list[TaskRecord]) -> None:
+    """baselines.families names only families an RL agent of the campaign would train on, said in one line before
+    any work (without an RL agent asked for, there is nothing for it to name)."""
+    from policies.rl_agent import RL_ALGORITHMS
+    from stages.baselines import planned_agents
+
+    if config.baselines.families is None or not set(RL_ALGORITHMS) & set(config.baselines.agents):
+        return
+    everywhere = config.model_copy(update={"baselines": config.baselines.model_copy(update={"families": None})})
+    trainable = {family for _, family, _ in planned_agents(everywhere, tasks)}
+    idle = [family for family in config.baselines.families if family not in trainable]
+    if idle:
+        raise ConfigError(f"baselines.families: expected families an RL agent of baselines.agents trains on (seen "
+                          f"tasks it acts in: {', '.join(sorted(trainable)) or 'none'}), got {', '.join(idle)}")
+
+
 def check_budgets(config: CampaignConfig, tasks: list[TaskRecord]) -> None:
     """A campaign of no iteration explores nothing to take an RL agent's budget from: each planned agent's family
-    needs one in baselines.env_steps (a mapping may leave a family out), said in one line before any work; and
-    baselines.families names only families an RL agent of the campaign would train on."""
-    from policies.rl_agent import RL_ALGORITHMS
-    from stages.baselines import planned_agents, rl_budget
-
-    # (families name where RL agents train: without one asked for, there is nothing for them to name)
-    if config.baselines.families is not None and set(RL_ALGORITHMS) & set(config.baselines.agents):
-        everywhere = config.model_copy(update={"baselines": config.baselines.model_copy(update={"families": None})})
-        trainable = {family for _, family, _ in planned_agents(everywhere, tasks)}
-        idle = [family for family in config.baselines.families if family not in trainable]
-        if idle:
-            raise ConfigError(f"baselines.families: expected families an RL agent of baselines.agents trains on (seen "
-                              f"tasks it acts in: {', '.join(sorted(trainable)) or 'none'}), got {', '.join(idle)}")
+    needs one in baselines.env_steps (a mapping may leave a family out), said in one line before any work."""
     if config.iterations:
         return
+    from stages.baselines import planned_agents, rl_budget
 
     unbudgeted = [f"{algorithm} on {family}" for algorithm, family, _ in planned_agents(config, tasks)
                   if not rl_budget(config.baselines.env_steps, family, {})]

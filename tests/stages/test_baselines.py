@@ -64,18 +64,21 @@ def test_a_training_writes_its_progress_at_its_start_and_at_each_percent(tmp_pat
         assert [r.getMessage().split(",")[0] for r in caplog.records] == ["sac on robosuite: 132231/455956 env steps"]
 
 
+def _units_over_lift_and_reach(**baselines) -> dict[tuple[str, str], RLUnit]:
+    """(algorithm, family) -> the RL unit of PPO and SAC over Lift and MetaWorld's reach, 1,000 steps explored each,
+    under these baselines settings."""
+    config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
+                                         "baselines": {"agents": ["ppo", "sac"], **baselines}})
+    tasks = generate_tasks(config.tasks, config.seed)
+    said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
+    return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
+                                                         {"robosuite": 1000, "metaworld": 1000})}
+
+
 def test_agents_trained_to_the_horizon_and_at_the_acting_entropy_are_new_units_and_the_old_keep_their_keys():
     """baselines.end_on_success and sac_target_entropy changed what the agents are: the defaults make new units;
     the values the earlier agents were trained with give those agents' keys, as before the fields existed."""
-    def keys(**baselines) -> dict[tuple[str, str], RLUnit]:
-        config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
-                                             "baselines": {"agents": ["ppo", "sac"], **baselines}})
-        tasks = generate_tasks(config.tasks, config.seed)
-        said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
-        return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
-                                                             {"robosuite": 1000, "metaworld": 1000})}
-
-    new, old = keys(), keys(end_on_success=True, sac_target_entropy="all")
+    new, old = _units_over_lift_and_reach(), _units_over_lift_and_reach(end_on_success=True, sac_target_entropy="all")
     assert all(new[case].unit_key != old[case].unit_key for case in new)
     assert (new["sac", "metaworld"].target_entropy, new["sac", "robosuite"].target_entropy) == (-4.0, None)
     assert not new["sac", "metaworld"].end_on_success and old["sac", "metaworld"].end_on_success
@@ -259,15 +262,7 @@ def test_an_evaluation_beside_the_trainings_that_fails_is_said_at_once_and_raise
 def test_baselines_families_trains_only_the_agents_of_the_families_it_names_under_their_own_keys():
     """baselines.families: one family's agents where another's rows are in (a campaign of no iteration then needs a
     budget for that family alone); the agent it keeps is the one every family would have trained."""
-    def units(**baselines) -> dict[tuple[str, str], RLUnit]:
-        config = load_config("smoke", None, {"tasks": {"specs": ["lift", "mw-reach"]},
-                                             "baselines": {"agents": ["ppo", "sac"], **baselines}})
-        tasks = generate_tasks(config.tasks, config.seed)
-        said = {text: np.zeros(4, np.float32) for t in tasks for text in t.instructions}
-        return {(u.algorithm, u.family): u for u in rl_units(Workspace.at("unused"), config, "tasks-k", tasks, said,
-                                                             {"robosuite": 1000, "metaworld": 1000})}
-
-    every, robosuite = units(), units(families=["robosuite"])
+    every, robosuite = _units_over_lift_and_reach(), _units_over_lift_and_reach(families=["robosuite"])
     assert set(every) == {("ppo", "metaworld"), ("ppo", "robosuite"), ("sac", "metaworld"), ("sac", "robosuite")}
     assert set(robosuite) == {("ppo", "robosuite"), ("sac", "robosuite")}
     assert all(robosuite[case].unit_key == every[case].unit_key for case in robosuite)
